@@ -1,0 +1,27 @@
+"""Shared by the command modules: turning the project's errors into one-line exits."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import typer
+from rich.console import Console
+
+from annotator.errors import AnnotatorError
+from ble_groundtruth.formats.devices import SiteConfigError
+from ble_groundtruth.formats.markers import MarkerMapError
+from ble_groundtruth.formats.mbd import MbdError
+
+console = Console(stderr=True)
+KNOWN_ERRORS = (AnnotatorError, MarkerMapError, MbdError, SiteConfigError, FileNotFoundError)
+
+
+@contextmanager
+def one_line_errors() -> Iterator[None]:
+    """Known errors -> red one-line message and exit 1; anything else keeps its traceback."""
+    try:
+        yield
+    except KNOWN_ERRORS as e:
+        console.print(f"[red]error:[/red] {e}", highlight=False)
+        raise typer.Exit(1) from None
