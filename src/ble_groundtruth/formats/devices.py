@@ -112,3 +112,16 @@ def read_par(path: str | Path) -> MapParams:
 def format_par(p: MapParams) -> str:
     return json.dumps({"origin": list(p.origin), "limits": list(p.limits),
                        "direction": list(p.direction), "parity": p.parity}) + "\n"
+
+
+def devices_from_obj(dongles: object, beacons: object, source: str = "<devices>") -> Devices:
+    """Devices from already-decoded ``Dongles``/``Beacons`` objects (as embedded in .hst files)."""
+    return Devices(_devices(dongles, f"{source}: Dongles"), _devices(beacons, f"{source}: Beacons"))
+
+
+def devices_to_obj(devices: Devices) -> tuple[dict[str, list], dict[str, list]]:
+    """The inverse of :func:`devices_from_obj`: ``{mac: [[x, y, z], colour, alias]}`` per kind."""
+    def kind(ds: dict[str, Device]) -> dict[str, list]:
+        return {d.mac: [list(d.position), d.colour, d.alias] for d in ds.values()}
+
+    return kind(devices.dongles), kind(devices.beacons)
