@@ -1,0 +1,1 @@
+"""Sensor agent: scans BLE adapters (or replays / simulates them) and publishes RSSI batches over Zenoh."""

@@ -1,0 +1,70 @@
+"""Talking to a running collector: a short-lived client-mode Zenoh session and one query per
+control command, with a timeout and a one-line error when nobody answers."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from ble_groundtruth import wire
+from ble_groundtruth.zenoh_config import DEFAULT_ENDPOINT, SessionSpec, TlsFiles, build_config
+from collector.errors import CommandFailed, Unreachable
+
+# How long each command may take once the collector has the request (stop drains first).
+TIMEOUTS = {"start": 15.0, "stop": 60.0, "status": 10.0, "runs": 10.0}
+
+
+class CollectorClient:
+    def __init__(self, connect: str = DEFAULT_ENDPOINT, site: str = "default",
+                 connect_timeout_s: float = 3.0, tls: TlsFiles | None = None) -> None:
+        self.connect = connect
+        self.site = site
+        self.tls = tls  # the operator's certificate when the collector listens on tls/...
+        self._timeout_ms = int(connect_timeout_s * 1000)
+        self._session = None
+
+    def __enter__(self) -> CollectorClient:
+        import zenoh
+
+        spec = SessionSpec(mode="client", connect=[self.connect], tls=self.tls,
+                           extra={"connect/timeout_ms": self._timeout_ms})
+        try:
+            self._session = zenoh.open(build_config(spec))
+        except zenoh.ZError:
+            raise Unreachable(self._unreachable()) from None
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    def _unreachable(self) -> str:
+        return f"no collector answered at {self.connect} (is `collector serve` running?)"
+
+    def call(self, command: str, request: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Send one control request; returns the reply without its "ok" field."""
+        key = wire.collector_control_key(self.site, command)
+        payload = json.dumps(request or {}).encode()
+        replies = self._session.get(key, payload=payload, timeout=TIMEOUTS[command])
+        for reply in replies:
+            if reply.ok is None:
+                raise CommandFailed(f"{command}: {reply.err.payload.to_string()}")
+            msg = wire.from_json(reply.ok.payload.to_bytes(), f"{command} reply")
+            if not msg.get("ok"):
+                raise CommandFailed(f"{command}: {msg.get('error', 'failed without a reason')}")
+            msg.pop("ok", None)
+            return msg
+        raise Unreachable(self._unreachable())
+
+    def start(self, name: str | None = None) -> dict[str, Any]:
+        return self.call("start", {"name": name})
+
+    def stop(self) -> dict[str, Any]:
+        return self.call("stop")
+
+    def status(self) -> dict[str, Any]:
+        return self.call("status")
+
+    def runs(self) -> list[dict[str, Any]]:
+        return self.call("runs")["runs"]

@@ -1,0 +1,143 @@
+"""Collector settings: the collector.yaml schema, its validation, and the Zenoh session it implies.
+
+Paths in the file are relative to the file; CLI flags override file values (see ``with_overrides``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from ble_groundtruth.wire import WireError, check_id
+from ble_groundtruth.zenoh_config import (
+    DEFAULT_ENDPOINT,
+    SessionSpec,
+    TlsFiles,
+    insecure_endpoints,
+)
+from collector.errors import ConfigError
+
+KEYS = ("site", "data_dir", "listen", "tls", "insecure", "acl", "fsync_interval_s")
+
+
+@dataclass(frozen=True, slots=True)
+class CollectorConfig:
+    site: str = "default"
+    data_dir: Path = Path("data")
+    listen: tuple[str, ...] = (DEFAULT_ENDPOINT,)
+    tls: TlsFiles | None = None
+    insecure: bool = False
+    acl: Path | None = None  # zenoh access-control JSON5 file
+    fsync_interval_s: float = 1.0
+
+    def session_spec(self, acl_text: str | None = None) -> SessionSpec:
+        return SessionSpec(mode="router", listen=self.listen, tls=self.tls, acl=acl_text)
+
+    def with_overrides(self, *, data_dir: Path | None = None, listen: list[str] | None = None,
+                       site: str | None = None, insecure: bool = False) -> CollectorConfig:
+        """Apply CLI flags (None/False = keep the file's value) and re-check the result."""
+        cfg = self
+        if insecure:
+            cfg = replace(cfg, insecure=True)
+        if data_dir is not None:
+            cfg = replace(cfg, data_dir=Path(data_dir))
+        if listen:
+            cfg = replace(cfg, listen=tuple(listen))
+        if site is not None:
+            cfg = replace(cfg, site=site)
+        cfg.validate("options")
+        return cfg
+
+    def validate(self, where: str) -> None:
+        """Checks that involve several fields; raises ConfigError naming `where`."""
+        try:
+            check_id(self.site, "site")
+        except WireError as e:
+            raise ConfigError(f"{where}: {e}") from None
+        for ep in self.listen:
+            _check_endpoint(ep, where, "listen")
+            if ep.startswith("tls/") and self.tls is None:
+                raise ConfigError(f"{where}: listen endpoint {ep} needs tls: {{root_ca, cert, key}}")
+        exposed = insecure_endpoints(self.listen)
+        if exposed and not self.insecure:
+            raise ConfigError(
+                f"{where}: listen endpoint {exposed[0]} is unencrypted beyond this machine; "
+                "use tls/... with tls files, or allow it with insecure: true / --insecure")
+
+
+def _check_endpoint(ep: Any, where: str, field: str) -> None:
+    if not isinstance(ep, str) or "/" not in ep or ":" not in ep.partition("/")[2]:
+        raise ConfigError(f"{where}: {field} entries must look like tcp/HOST:PORT, got {ep!r}")
+
+
+def load_config(path: str | Path) -> CollectorConfig:
+    """Read and validate a collector.yaml; every problem is one ConfigError line naming the field."""
+    import yaml
+
+    path = Path(path)
+    name = path.name
+    try:
+        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{name}: not valid YAML: {str(e).splitlines()[0]}") from None
+    return parse_config(raw or {}, base=path.parent, name=name)
+
+
+def parse_config(raw: Any, *, base: Path, name: str = "collector.yaml") -> CollectorConfig:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{name}: expected a mapping of settings at the top level")
+    unknown = sorted(set(raw) - set(KEYS))
+    if unknown:
+        raise ConfigError(f"{name}: unknown key {unknown[0]!r} (known: {', '.join(KEYS)})")
+    cfg = CollectorConfig()
+    kw: dict[str, Any] = {}
+    if "site" in raw:
+        kw["site"] = _str(raw["site"], name, "site")
+    if "data_dir" in raw:
+        kw["data_dir"] = base / _str(raw["data_dir"], name, "data_dir")
+    else:
+        kw["data_dir"] = base / cfg.data_dir
+    if "listen" in raw:
+        listen = raw["listen"]
+        if isinstance(listen, str):
+            listen = [listen]
+        if not isinstance(listen, list) or not listen:
+            raise ConfigError(f"{name}: listen must be a non-empty list of endpoints, got {raw['listen']!r}")
+        for ep in listen:
+            _check_endpoint(ep, name, "listen")
+        kw["listen"] = tuple(listen)
+    if raw.get("tls") is not None:
+        tls = raw["tls"]
+        if not isinstance(tls, dict) or set(tls) != {"root_ca", "cert", "key"}:
+            raise ConfigError(f"{name}: tls must be null or a mapping with root_ca, cert and key")
+        files = {k: base / _str(v, name, f"tls.{k}") for k, v in tls.items()}
+        for k, p in files.items():
+            if not p.is_file():
+                raise ConfigError(f"{name}: tls.{k} file not found: {p}")
+        kw["tls"] = TlsFiles(str(files["root_ca"]), str(files["cert"]), str(files["key"]))
+    if "insecure" in raw:
+        if not isinstance(raw["insecure"], bool):
+            raise ConfigError(f"{name}: insecure must be true or false, got {raw['insecure']!r}")
+        kw["insecure"] = raw["insecure"]
+    if raw.get("acl") is not None:
+        acl = base / _str(raw["acl"], name, "acl")
+        if not acl.is_file():
+            raise ConfigError(f"{name}: acl file not found: {acl}")
+        kw["acl"] = acl
+    if "fsync_interval_s" in raw:
+        v = raw["fsync_interval_s"]
+        if isinstance(v, bool) or not isinstance(v, int | float) or not 0 <= v <= 3600:
+            raise ConfigError(f"{name}: fsync_interval_s must be a number of seconds in [0, 3600], got {v!r}")
+        kw["fsync_interval_s"] = float(v)
+    cfg = replace(cfg, **kw)
+    cfg.validate(name)
+    return cfg
+
+
+def _str(v: Any, name: str, field: str) -> str:
+    if not isinstance(v, str) or not v:
+        raise ConfigError(f"{name}: {field} must be a non-empty string, got {v!r}")
+    return v

@@ -1,0 +1,74 @@
+"""`collector live`: a terminal view of every sensor (rate, last RSSI, RSSI sparkline), refreshed
+from the collector's status query."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from rich import box
+from rich.console import Group
+from rich.live import Live
+from rich.table import Table
+from rich.text import Text
+
+BARS = "▁▂▃▄▅▆▇█"
+RSSI_LO, RSSI_HI = -100, -30
+SPARK_WIDTH = 20  # most recent readings shown per sensor
+
+
+def sparkline(values: Sequence[int | float], lo: float = RSSI_LO, hi: float = RSSI_HI) -> str:
+    """One character per value, clipped to [lo, hi]: stronger signal = taller bar."""
+    out = []
+    for v in values:
+        f = (min(max(v, lo), hi) - lo) / (hi - lo)
+        out.append(BARS[min(len(BARS) - 1, int(f * len(BARS)))])
+    return "".join(out)
+
+
+def render(status: dict[str, Any]) -> Group:
+    run = status.get("run")
+    head = Text(f"run {run['run_id']}: {run['readings']} readings written" if run
+                else "no run active (readings are counted, not written)",
+                style="bold green" if run else "yellow")
+    agents = status.get("agents", {})
+    table = Table(expand=False, box=box.SIMPLE_HEAD, show_edge=False)
+    widths = {"agent": max([len(a) for a in agents] + [5]), "sensor": 12, "seen": 5}
+    for col, just in (("agent", "left"), ("sensor", "left"), ("alive", "center"),
+                      ("rate/s", "right"), ("RSSI", "right"), ("seen", "right"),
+                      ("readings", "right")):
+        table.add_column(col, justify=just, no_wrap=True, min_width=widths.get(col, len(col)))
+    # The sparkline gives way first when the terminal is narrow.
+    table.add_column("recent RSSI", no_wrap=True, overflow="crop", max_width=SPARK_WIDTH)
+    for agent, a in sorted(agents.items()):
+        sensors = a.get("sensors") or {}
+        if not sensors:
+            table.add_row(agent, "-", _alive(a), "", "", "", "", "")
+        for mac, s in sorted(sensors.items()):
+            age = s.get("last_seen_age_s")
+            table.add_row(agent, mac, _alive(a), f"{s.get('rate_hz', 0):.1f}",
+                          str(s.get("last_rssi", "")),
+                          f"{age:.1f}s" if age is not None else "",
+                          str(s.get("readings", 0)), sparkline(s.get("recent_rssi", [])[-SPARK_WIDTH:]))
+    rejected = status.get("rejected_payloads") or {}
+    foot = Text(f"rejected payloads: {sum(rejected.values())}  duplicates dropped: "
+                f"{status.get('duplicates_dropped', 0)}", style="dim")
+    return Group(head, table, foot)
+
+
+def _alive(a: dict[str, Any]) -> str:
+    return "[green]yes" if a.get("alive") else "[red]no"
+
+
+def run_live(fetch: Callable[[], dict[str, Any]], *, interval_s: float = 0.5,
+             duration_s: float | None = None) -> None:
+    """Redraw until Ctrl-C (or for duration_s, used by tests and demos)."""
+    end = None if duration_s is None else time.monotonic() + duration_s
+    with Live(render(fetch()), refresh_per_second=4, screen=False) as live:
+        try:
+            while end is None or time.monotonic() < end:
+                time.sleep(interval_s)
+                live.update(render(fetch()))
+        except KeyboardInterrupt:
+            pass

@@ -1,0 +1,1 @@
+"""Scanner backends behind one small interface (``base.ScannerBackend``): bleak, replay, simulated."""

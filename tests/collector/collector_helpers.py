@@ -1,0 +1,83 @@
+"""Builders and a small real-Zenoh publisher for the collector tests (stand-in for an agent)."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable
+
+import zenoh
+
+from ble_groundtruth import wire
+from ble_groundtruth.zenoh_config import SessionSpec, TlsFiles, build_config
+
+T0 = 1_700_000_000_123_456_789
+
+
+def make_reading(i: int = 0, **kw) -> wire.Reading:
+    args = {"t_ns": T0 + i * 1_000_003, "beacon": "e78f135624ce", "rssi": -40 - i % 60, "mono_ns": 0}
+    args.update(kw)
+    return wire.Reading(**args)
+
+
+def make_batch(seq: int, n: int = 5, *, agent: str = "pi-01", boot: str = "0123456789abcdef",
+               sensor: str = "b827eb4521b4", first: int | None = None) -> wire.Batch:
+    first = seq * n if first is None else first
+    return wire.Batch(agent, boot, sensor, seq, tuple(make_reading(first + j) for j in range(n)))
+
+
+def expected_lines(batches: list[wire.Batch]) -> list[str]:
+    return [f"{wire.format_ts(r.t_ns)},{b.sensor},{r.beacon},{r.rssi}"
+            for b in batches for r in b.readings]
+
+
+def wait_for(cond: Callable[[], object], timeout: float = 20.0, what: str = "condition") -> object:
+    """Poll until cond() is truthy; generous deadline because the test machine is shared."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        v = cond()
+        if v:
+            return v
+        time.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+class FakeAgent:
+    """Publishes batches on the data keys and records the acks it is sent, like a real agent."""
+
+    def __init__(self, endpoint: str, agent: str = "pi-01", site: str = "default",
+                 boot: str = "0123456789abcdef", tls: TlsFiles | None = None) -> None:
+        self.agent, self.site, self.boot = agent, site, boot
+        self.session = zenoh.open(build_config(SessionSpec(mode="client", connect=[endpoint], tls=tls)))
+        self.acks: dict[str, int] = {}
+        self.ack_msgs: list[dict] = []
+        self._lock = threading.Lock()
+        self._ack_sub = self.session.declare_subscriber(wire.ack_key(site, agent), self._on_ack)
+        self.token = None
+
+    def _on_ack(self, sample: zenoh.Sample) -> None:
+        msg = json.loads(sample.payload.to_bytes())
+        with self._lock:
+            self.ack_msgs.append(msg)
+            if msg["boot"] == self.boot:
+                self.acks.update(msg["streams"])
+
+    def acked(self, sensor: str) -> int:
+        with self._lock:
+            return self.acks.get(sensor, -1)
+
+    def declare_token(self) -> None:
+        self.token = self.session.liveliness().declare_token(wire.agent_token_key(self.site, self.agent))
+
+    def put(self, batch: wire.Batch) -> None:
+        self.session.put(wire.data_key(self.site, batch.agent_id, batch.sensor), wire.to_wire(batch))
+
+    def put_raw(self, sensor: str, payload: bytes, agent: str | None = None) -> None:
+        self.session.put(wire.data_key(self.site, agent or self.agent, sensor), payload)
+
+    def close(self) -> None:
+        if self.token is not None:
+            self.token.undeclare()
+        self._ack_sub.undeclare()
+        self.session.close()

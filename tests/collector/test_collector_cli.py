@@ -1,0 +1,206 @@
+"""The `collector` command line in real processes over loopback Zenoh, including the end-to-end
+capture with two real `sensor-agent` processes replaying the bundled trajectory."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import pytest
+import yaml
+from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
+
+from ble_groundtruth.formats.mbd import iter_rows
+from collector.client import CollectorClient
+from collector.errors import CollectorError
+
+COLLECTOR = [sys.executable, "-m", "collector.cli"]
+SENSOR_AGENT = Path(sys.executable).with_name("sensor-agent")
+
+
+def cli(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run([*COLLECTOR, *args], capture_output=True, text=True, timeout=timeout)
+
+
+def reachable(endpoint: str) -> bool:
+    try:
+        with CollectorClient(endpoint, connect_timeout_s=0.5) as c:
+            c.status()
+    except CollectorError:
+        return False
+    return True
+
+
+@pytest.fixture
+def serve(tmp_path, endpoint):
+    """`collector serve` in its own process; yields its data dir; SIGTERM at the end must exit 0."""
+    data = tmp_path / "data"
+    proc = subprocess.Popen([*COLLECTOR, "serve", "--data-dir", str(data), "--listen", endpoint],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: proc.poll() is not None or reachable(endpoint), 30, "collector serve to answer")
+        assert proc.poll() is None, proc.stderr.read()
+        yield data
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+
+
+def rows_by_sensor(paths) -> dict[str, list[tuple]]:
+    out: dict[str, list[tuple]] = defaultdict(list)
+    for p in paths:
+        for r in iter_rows(p):
+            out[r.sensor].append((r.t_ns, r.sensor, r.beacon, r.rssi))
+    return dict(out)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not SENSOR_AGENT.exists(), reason="sensor-agent is not installed")
+def test_two_replaying_agents_end_to_end(serve, endpoint, dataset_dir) -> None:
+    files = sorted((dataset_dir / "trk" / "straight_01").glob("*.mbd"))
+    assert len(files) == 12
+    started = cli("start", "--name", "e2e", "--connect", endpoint)
+    assert started.returncode == 0, started.stderr
+    run_id = started.stdout.strip()
+    agents = [subprocess.Popen([str(SENSOR_AGENT), "run", "--agent-id", f"pi-{i}", "--site", "default",
+                                "--connect", endpoint, "--replay-speed", "0", "--replay-keep-time",
+                                *[a for f in half for a in ("--replay", str(f))]],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+              for i, half in enumerate((files[:6], files[6:]))]
+    for a in agents:
+        _out, err = a.communicate(timeout=120)
+        assert a.returncode == 0, err  # 0 = every batch was acknowledged by the collector
+    stopped = cli("stop", "--connect", endpoint)
+    assert stopped.returncode == 0, stopped.stderr
+    run_dir = Path(stopped.stdout.strip())
+    assert run_dir == (serve / run_id).resolve()
+
+    want = rows_by_sensor(files)
+    got = rows_by_sensor(sorted((run_dir / "rssi").glob("*.mbd")))
+    assert sorted(got) == sorted(want)
+    assert len(got) == 12
+    for sensor, rows in want.items():
+        assert sorted(got[sensor]) == sorted(rows), sensor
+        assert len(got[sensor]) == len(rows)
+    doc = yaml.safe_load((run_dir / "run.yaml").read_text())
+    assert doc["readings"] == sum(len(r) for r in want.values())
+    assert sorted(doc["agents"]) == ["pi-0", "pi-1"]
+    assert sum(len(a["sensors"]) for a in doc["agents"].values()) == 12
+    assert doc["missing_batches"] == 0
+
+
+def test_cli_start_status_stop_runs(serve, endpoint) -> None:
+    agent = FakeAgent(endpoint)
+    try:
+        agent.declare_token()
+        run_id = cli("start", "--name", "cli", "--connect", endpoint).stdout.strip()
+        assert run_id.endswith("Z-cli")
+        batches = [make_batch(i) for i in range(3)]
+        for b in batches:
+            agent.put(b)
+        wait_for(lambda: agent.acked(batches[0].sensor) == 2, what="acks")
+        st = cli("status", "--json", "--connect", endpoint)
+        assert st.returncode == 0, st.stderr
+        doc = json.loads(st.stdout)
+        assert doc["run"]["run_id"] == run_id
+        sensor = doc["agents"]["pi-01"]["sensors"][batches[0].sensor]
+        assert doc["agents"]["pi-01"]["alive"] is True
+        assert sensor["readings"] == 15
+        table = cli("status", "--connect", endpoint)
+        assert batches[0].sensor in table.stdout
+        assert "pi-01" in table.stdout
+        live = cli("live", "--connect", endpoint, "--duration", "0.6", "--interval", "0.2")
+        assert live.returncode == 0
+        assert batches[0].sensor in live.stdout
+        stop = cli("stop", "--connect", endpoint)
+        assert stop.returncode == 0
+        run_dir = Path(stop.stdout.strip())
+        assert (run_dir / "rssi" / f"{batches[0].sensor}.mbd").read_text().splitlines() == expected_lines(batches)
+        runs = json.loads(cli("runs", "--json", "--connect", endpoint).stdout)
+        assert [(r["run_id"], r["name"], r["readings"]) for r in runs] == [(run_id, "cli", 15)]
+        assert "cli" in cli("runs", "--connect", endpoint).stdout
+        again = cli("stop", "--connect", endpoint)
+        assert again.returncode == 1
+        assert again.stderr.strip() == "stop: no run is active"
+    finally:
+        agent.close()
+
+
+@pytest.mark.parametrize("command", [["start"], ["stop"], ["status"], ["runs"], ["live"]])
+def test_unreachable_is_one_line_and_exit_1(endpoint, command) -> None:
+    r = cli(*command, "--connect", endpoint)
+    assert r.returncode == 1
+    assert r.stderr.strip() == f"no collector answered at {endpoint} (is `collector serve` running?)"
+
+
+def test_serve_rejects_bad_config(tmp_path) -> None:
+    cfg = tmp_path / "collector.yaml"
+    cfg.write_text("batch_ms: 5\n")
+    r = cli("serve", "--config", str(cfg))
+    assert r.returncode == 1
+    assert r.stderr.strip().startswith("collector.yaml: unknown key 'batch_ms'")
+    assert "Traceback" not in r.stderr
+
+
+def test_record_in_the_foreground(tmp_path, endpoint) -> None:
+    proc = subprocess.Popen([*COLLECTOR, "record", "--name", "fg", "--duration", "30",
+                             "--data-dir", str(tmp_path), "--listen", endpoint],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: reachable(endpoint), 30, "record to come up")
+        agent = FakeAgent(endpoint)
+        try:
+            b = make_batch(0)
+            agent.put(b)
+            wait_for(lambda: agent.acked(b.sensor) == 0, what="ack")
+        finally:
+            agent.close()
+        proc.send_signal(signal.SIGINT)  # Ctrl-C ends the recording early, cleanly
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    (run,) = list(tmp_path.glob("*-fg"))
+    assert (run / "rssi" / f"{b.sensor}.mbd").read_text().splitlines() == expected_lines([b])
+    assert yaml.safe_load((run / "run.yaml").read_text())["readings"] == 5
+    assert "5 readings in" in out
+
+
+def test_sigterm_finalises_an_active_run(tmp_path, endpoint) -> None:
+    proc = subprocess.Popen([*COLLECTOR, "serve", "--data-dir", str(tmp_path), "--listen", endpoint],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: reachable(endpoint), 30, "serve to come up")
+        assert cli("start", "--name", "term", "--connect", endpoint).returncode == 0
+        time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        _out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    (run,) = list(tmp_path.glob("*-term"))
+    doc = yaml.safe_load((run / "run.yaml").read_text())
+    assert doc["stopped_by"] == "shutdown"
+    assert doc["stop"] is not None
+
+
+def test_serve_on_a_busy_port_is_one_line(tmp_path) -> None:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = cli("serve", "--listen", f"tcp/127.0.0.1:{port}", "--data-dir", str(tmp_path))
+    assert r.returncode == 1
+    assert r.stderr.count("\n") == 1
+    assert r.stderr.startswith(f"cannot open the Zenoh router on tcp/127.0.0.1:{port}: ")
+    assert "Address already in use" in r.stderr

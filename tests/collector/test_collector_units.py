@@ -1,0 +1,288 @@
+"""Pure parts of the collector: decoding, row formatting, dedupe/ack watermarks, rejects, run ids,
+run directories and config files."""
+
+from __future__ import annotations
+
+import struct
+
+import pytest
+import yaml
+from collector_helpers import make_batch
+
+from ble_groundtruth import wire
+from ble_groundtruth.formats.mbd import format_row, iter_rows
+from collector.config import CollectorConfig, load_config
+from collector.errors import CollectorError, ConfigError
+from collector.ingest import RejectCounter, StreamTracker, decode, format_rows, reject_reason
+from collector.store import RunWriter, clean_name, list_runs, make_run_id
+
+# -- decode ------------------------------------------------------------------------------------
+
+
+def test_decode_matches_wire_decoder() -> None:
+    b = make_batch(3, n=20)
+    got = decode(wire.to_wire(b))
+    assert (got.agent_id, got.boot_id, got.sensor, got.seq) == (b.agent_id, b.boot_id, b.sensor, 3)
+    assert [(t, bytes(m).hex(), r) for t, _mono, m, r in got.rows] == \
+        [(r.t_ns, r.beacon, r.rssi) for r in b.readings]
+
+
+def test_decode_with_extras_takes_the_full_path() -> None:
+    ib = wire.IBeacon("f7826da64fa24e988024bc5b71e0893e", 1, 2, -59)
+    b = wire.Batch("pi-01", "0123456789abcdef", "b827eb4521b4", 0,
+                   (wire.Reading(1_700_000_000 * 10**9, "e78f135624ce", -50, 5, ibeacon=ib),))
+    got = decode(wire.to_wire(b))
+    assert got.rows == [(1_700_000_000 * 10**9, 5, bytes.fromhex("e78f135624ce"), -50)]
+
+
+def _corrupt(data: bytes, off: int, fmt: str, value) -> bytes:
+    out = bytearray(data)
+    struct.pack_into(fmt, out, off, value)
+    return bytes(out)
+
+
+@pytest.mark.parametrize("mutate", [
+    lambda d: b"NOPE" + d[4:],
+    lambda d: _corrupt(d, 4, "<H", 9),
+    lambda d: d[:-1],
+    lambda d: d + b"x",
+    lambda d: d.replace(b'"seq":0', b'"seq":-1'),
+    lambda d: d.replace(b"b827eb4521b4", b"b827eb4521bz"),
+    lambda d: _corrupt(d, len(d) - 1, "<b", 100),  # RSSI of the last reading
+    lambda d: _corrupt(d, len(d) - 23, "<q", 42),  # timestamp of the last reading
+])
+def test_decode_raises_exactly_what_wire_raises(mutate) -> None:
+    bad = mutate(wire.to_wire(make_batch(0, n=2)))
+    with pytest.raises(wire.WireError) as expected:
+        wire.from_wire(bad)
+    with pytest.raises(wire.WireError) as got:
+        decode(bad)
+    assert type(got.value) is type(expected.value)
+    assert str(got.value) == str(expected.value)
+
+
+def test_reject_reasons() -> None:
+    assert reject_reason(wire.BadMagic("x")) == "bad_magic"
+    assert reject_reason(wire.Truncated("x")) == "truncated"
+    assert reject_reason(wire.InvalidField("x")) == "invalid_field"
+    assert reject_reason(wire.WireError("x")) == "malformed"
+
+
+def test_format_rows_is_format_row_in_bulk() -> None:
+    b = make_batch(0, n=30)
+    rows = decode(wire.to_wire(b)).rows
+    assert format_rows(b.sensor, rows) == "".join(format_row(r.t_ns, b.sensor, r.beacon, r.rssi)
+                                                  for r in b.readings)
+    # ...including times with leading zeros in the fraction and whole seconds.
+    rows = [(1_600_000_000_000_000_007, 0, b"\x01" * 6, -5), (1_600_000_001_000_000_000, 0, b"\xff" * 6, 0)]
+    assert format_rows("aabbccddeeff", rows) == (
+        "1600000000.000000007,aabbccddeeff,010101010101,-5\n"
+        "1600000001.000000000,aabbccddeeff,ffffffffffff,0\n")
+
+
+# -- dedupe, gaps, watermarks --------------------------------------------------------------------
+
+S = ("pi-01", "0123456789abcdef", "b827eb4521b4")
+
+
+def test_tracker_dedupes_and_keeps_contiguous_watermark() -> None:
+    t = StreamTracker()
+    assert [t.accept(S, q) for q in (0, 1, 1, 0, 3, 4, 3)] == [True, True, False, False, True, True, False]
+    assert t.duplicates == 3
+    st = t.streams[S]
+    assert st.done_upto == 1
+    assert st.gaps == 1
+    assert t.missing(S) == 1
+    assert t.open_gaps() == 1
+    assert t.accept(S, 2)  # recovery fills the gap: watermark jumps over what was already there
+    assert st.done_upto == 4
+    assert t.missing(S) == 0
+    assert t.ack_message("pi-01") == {"boot": S[1], "streams": {}}  # nothing durable yet
+    assert t.mark_durable() == {"pi-01"}
+    assert t.ack_message("pi-01") == {"boot": S[1], "streams": {"b827eb4521b4": 4}}
+    assert t.mark_durable() == set()  # unchanged -> nobody to tell
+
+
+def test_tracker_acks_only_the_latest_boot() -> None:
+    t = StreamTracker()
+    t.accept(S, 0)
+    t.accept(("pi-01", "fedcba9876543210", S[2]), 0)
+    t.accept(("pi-01", "fedcba9876543210", S[2]), 1)
+    t.mark_durable()
+    assert t.ack_message("pi-01") == {"boot": "fedcba9876543210", "streams": {S[2]: 1}}
+    assert t.ack_message("nobody") is None
+
+
+def test_tracker_stream_first_seen_late() -> None:
+    t = StreamTracker()
+    assert t.accept(S, 5)
+    assert t.streams[S].first_seq == 5
+    assert t.streams[S].done_upto == 5
+    t.mark_durable()
+    assert t.ack_message("pi-01")["streams"] == {S[2]: 5}
+    assert t.accept(S, 4)  # from before the collector joined (e.g. history): written once
+    assert not t.accept(S, 4)
+    assert not t.accept(S, 5)
+    assert t.duplicates == 2
+
+
+def test_reject_counter_rate_limits_logging(caplog) -> None:
+    now = [0.0]
+    rc = RejectCounter(lambda: now[0], interval_s=10.0)
+    for _ in range(5):
+        rc.reject("bad_magic", "k", "bad magic")
+    now[0] = 11.0
+    rc.reject("bad_magic", "k", "bad magic")
+    rc.reject("truncated", "k", "short")
+    assert rc.snapshot() == {"bad_magic": 6, "truncated": 1}
+    msgs = [r.getMessage() for r in caplog.records if r.name == "collector.ingest"]
+    assert len(msgs) == 3
+    assert "[4 more like it not logged]" in msgs[1]
+
+
+# -- run ids and run directories ---------------------------------------------------------------------
+
+
+def test_run_ids_sort_and_are_safe() -> None:
+    t = 1_795_318_500 * 10**9  # 2026-11-22T03:35:00Z
+    assert make_run_id(t, "hall walk #2") == "20261122T033500Z-hall-walk-2"
+    assert make_run_id(t, None) == "20261122T033500Z-run"
+    assert make_run_id(t, "../../etc") == "20261122T033500Z-etc"
+    assert clean_name("...") == "run"
+    assert make_run_id(t, "b") > make_run_id(t - 10**9, "z")
+
+
+def test_run_writer_files_and_yaml(tmp_path) -> None:
+    w = RunWriter(tmp_path, "20261122T033500Z-x", "x", 1_795_318_500 * 10**9, {"site": "default"})
+    b = make_batch(0, n=4)
+    rows = decode(wire.to_wire(b)).rows
+    w.append("pi-01", b.sensor, format_rows(b.sensor, rows), len(rows))
+    w.close()
+    w.write_yaml(stop_ns=1_795_318_560 * 10**9, agents={"pi-01": {}}, extra={"gaps": 0})
+    got = [(r.t_ns, r.sensor, r.beacon, r.rssi) for r in iter_rows(w.dir / "rssi" / f"{b.sensor}.mbd")]
+    assert got == [(r.t_ns, b.sensor, r.beacon, r.rssi) for r in b.readings]
+    doc = yaml.safe_load((w.dir / "run.yaml").read_text())
+    assert doc["start"] == "2026-11-22T03:35:00.000Z"
+    assert doc["stop"] == "2026-11-22T03:36:00.000Z"
+    assert doc["readings"] == 4
+    assert doc["site"] == "default"
+    assert list_runs(tmp_path) == [{"run_id": "20261122T033500Z-x", "name": "x",
+                                    "start": "2026-11-22T03:35:00.000Z",
+                                    "stop": "2026-11-22T03:36:00.000Z", "readings": 4}]
+    with pytest.raises(CollectorError, match="already exists"):
+        RunWriter(tmp_path, "20261122T033500Z-x", "x", 0, {})
+
+
+# -- config ----------------------------------------------------------------------------------------
+
+
+def _write(tmp_path, text: str):
+    p = tmp_path / "collector.yaml"
+    p.write_text(text)
+    return p
+
+
+def test_config_defaults_and_relative_paths(tmp_path) -> None:
+    (tmp_path / "acl.json5").write_text("{enabled: false}")
+    cfg = load_config(_write(tmp_path, "site: lab\ndata_dir: runs\nacl: acl.json5\nfsync_interval_s: 2\n"))
+    assert cfg.site == "lab"
+    assert cfg.data_dir == tmp_path / "runs"
+    assert cfg.acl == tmp_path / "acl.json5"
+    assert cfg.listen == ("tcp/127.0.0.1:7447",)
+    assert cfg.fsync_interval_s == 2.0
+    assert load_config(_write(tmp_path, "")).data_dir == tmp_path / "data"
+
+
+def test_config_overrides() -> None:
+    cfg = CollectorConfig().with_overrides(listen=["tcp/127.0.0.1:9000"], site="x")
+    assert cfg.listen == ("tcp/127.0.0.1:9000",)
+    assert cfg.site == "x"
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("colour: red\n", "collector.yaml: unknown key 'colour'"),
+    ("fsync_interval_s: soon\n", "collector.yaml: fsync_interval_s must be a number"),
+    ("insecure: 1\n", "collector.yaml: insecure must be true or false"),
+    ("listen: [7447]\n", "collector.yaml: listen entries must look like tcp/HOST:PORT"),
+    ("listen: [tcp/192.168.1.10:7447]\n", "tcp/192.168.1.10:7447 is unencrypted beyond this machine"),
+    ("tls: {root_ca: ca.pem}\n", "tls must be null or a mapping with root_ca, cert and key"),
+    ("tls: {root_ca: a, cert: b, key: c}\n", "tls.root_ca file not found"),
+    ("acl: missing.json5\n", "acl file not found"),
+    ("site: 'a b'\n", "site must be 1-64 characters"),
+    ("- 1\n", "expected a mapping"),
+    ("site: [unclosed\n", "not valid YAML"),
+])
+def test_config_errors_name_the_field(tmp_path, text: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message.replace("[", r"\[")) as e:
+        load_config(_write(tmp_path, text))
+    assert "\n" not in str(e.value)
+
+
+def test_config_insecure_allows_lan_listen(tmp_path) -> None:
+    cfg = load_config(_write(tmp_path, "listen: [tcp/0.0.0.0:7447]\ninsecure: true\n"))
+    assert cfg.listen == ("tcp/0.0.0.0:7447",)
+
+
+class _FullDisk:
+    """Stands in for a file on a full disk: every write fails."""
+
+    def write(self, data: bytes) -> int:
+        raise OSError(28, "No space left on device")
+
+    def flush(self) -> None:
+        pass
+
+
+def test_failed_write_keeps_rows_for_the_retry(tmp_path) -> None:
+    w = RunWriter(tmp_path, "r", "r", 1_795_318_500 * 10**9, {})
+    b = make_batch(0, n=3)
+    rows = decode(wire.to_wire(b)).rows
+    w.append("pi-01", b.sensor, format_rows(b.sensor, rows[:2]), 2)
+    app = w.appenders[b.sensor]
+    real, app._f = app._f, _FullDisk()
+    with pytest.raises(OSError, match="No space"):
+        w.flush()
+    w.append("pi-01", b.sensor, format_rows(b.sensor, rows[2:]), 1)
+    app._f = real  # space again
+    w.close()
+    assert (w.dir / "rssi" / f"{b.sensor}.mbd").read_text().splitlines() == \
+        [format_row(r.t_ns, b.sensor, r.beacon, r.rssi).strip() for r in b.readings]
+
+
+def test_insecure_flag_allows_lan_listen() -> None:
+    with pytest.raises(ConfigError, match="--insecure"):
+        CollectorConfig().with_overrides(listen=["tcp/0.0.0.0:7447"])
+    cfg = CollectorConfig().with_overrides(listen=["tcp/0.0.0.0:7447"], insecure=True)
+    assert cfg.insecure
+
+
+# -- live view ---------------------------------------------------------------------------------------
+
+
+def test_sparkline_maps_rssi_to_bar_heights() -> None:
+    from collector.live import sparkline
+
+    assert sparkline([-120, -100, -65, -30, 0]) == "▁▁▅██"
+    assert sparkline([]) == ""
+
+
+def test_live_table_shows_every_sensor_and_the_run() -> None:
+    from rich.console import Console
+
+    from collector.live import render
+
+    status = {"run": {"run_id": "20261122T033500Z-x", "readings": 12},
+              "agents": {"pi-01": {"alive": True, "sensors": {
+                  "b827eb4521b4": {"rate_hz": 9.5, "last_rssi": -61, "last_seen_age_s": 0.25,
+                                   "readings": 12, "recent_rssi": [-90, -30]}}},
+                         "pi-02": {"alive": False, "sensors": {}}},
+              "rejected_payloads": {"bad_magic": 3}, "duplicates_dropped": 1}
+    console = Console(width=120, record=True)
+    console.print(render(status))
+    text = console.export_text()
+    assert "run 20261122T033500Z-x: 12 readings written" in text
+    row = next(line for line in text.splitlines() if "b827eb4521b4" in line)
+    assert row.split()[:7] == ["pi-01", "b827eb4521b4", "yes", "9.5", "-61", "0.2s", "12"]
+    assert "▂█" in row  # -90 dBm is one step above the -100 floor
+    assert "pi-02" in text
+    assert "rejected payloads: 3  duplicates dropped: 1" in text
