@@ -6,9 +6,11 @@ The only place that knows Zenoh's configuration keys; callers say what they mean
 
 from __future__ import annotations
 
+import ipaddress
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -29,6 +31,7 @@ class SessionSpec:
     connect: Sequence[str] = ()
     tls: TlsFiles | None = None
     extra: dict[str, object] = field(default_factory=dict)  # raw zenoh keys, for tests/ACLs
+    acl: str | None = None  # JSON5 text of zenoh's `access_control` section (see load_acl)
 
 
 def build_config(spec: SessionSpec):  # -> zenoh.Config
@@ -53,6 +56,55 @@ def build_config(spec: SessionSpec):  # -> zenoh.Config
         conf.insert_json5("transport/link/tls/connect_private_key", json.dumps(spec.tls.key))
         conf.insert_json5("transport/link/tls/connect_certificate", json.dumps(spec.tls.cert))
         conf.insert_json5("transport/link/tls/enable_mtls", "true")
+    if spec.acl is not None:
+        conf.insert_json5("access_control", spec.acl)
     for key, value in spec.extra.items():
         conf.insert_json5(key, json.dumps(value))
     return conf
+
+
+class AclFileError(ValueError):
+    """An ACL file that is missing or that zenoh rejects."""
+
+
+def load_acl(path: str | Path) -> str:
+    """Read a zenoh ACL file (JSON5, the `access_control` section as ``deploy/`` generates it).
+
+    Zenoh itself validates it here, so a typo fails at startup with the file's name rather
+    than later inside ``zenoh.open``.
+    """
+    import zenoh
+
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as e:
+        raise AclFileError(f"{p}: cannot read ACL file: {e.strerror or e}") from e
+    try:
+        zenoh.Config().insert_json5("access_control", text)
+    except zenoh.ZError as e:
+        first = str(e).splitlines()[0] if str(e) else "invalid"
+        raise AclFileError(f"{p}: not a valid zenoh access_control section: {first}") from e
+    return text
+
+
+def insecure_endpoints(endpoints: Sequence[str]) -> list[str]:
+    """The endpoints that would carry traffic unencrypted beyond this machine.
+
+    Plain ``tcp``/``udp`` links on any address that is not loopback (a wildcard such as
+    ``0.0.0.0`` or a hostname counts as exposed); the collector refuses to listen on these
+    without an explicit ``--insecure``.
+    """
+    out = []
+    for ep in endpoints:
+        proto, _, rest = ep.partition("/")
+        if proto not in ("tcp", "udp"):
+            continue  # tls/quic are encrypted; unixsock-stream never leaves the host
+        host = rest.split("#", 1)[0].rsplit(":", 1)[0].strip("[]")
+        try:
+            loopback = ipaddress.ip_address(host).is_loopback
+        except ValueError:
+            loopback = host == "localhost"
+        if not loopback:
+            out.append(ep)
+    return out
