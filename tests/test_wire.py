@@ -62,6 +62,26 @@ def test_accepts_bytearray_and_memoryview() -> None:
     assert wire.from_wire(bytearray(data)) == wire.from_wire(memoryview(data)) == batch()
 
 
+def test_floor_round_trips_and_is_only_encoded_when_stated() -> None:
+    b = batch(seq=12, floor=9)
+    data = wire.to_wire(b)
+    assert b'"floor":9' in data
+    assert wire.from_wire(data) == b
+    assert wire.from_wire(data).floor == 9
+    # Absent in the payload = -1 (an older agent that states nothing).
+    plain = wire.to_wire(batch(floor=-1))
+    assert b"floor" not in plain
+    assert wire.from_wire(plain).floor == -1
+    assert wire.from_wire(raw(META, [ROW])).floor == -1
+    assert wire.from_wire(raw({**META, "floor": 0}, [ROW])).floor == 0
+
+
+@pytest.mark.parametrize("floor", [-2, "3", 1.5, True, None])
+def test_bad_floor_rejected(floor) -> None:
+    with pytest.raises(wire.InvalidField, match="floor"):
+        wire.from_wire(raw({**META, "floor": floor}, [ROW]))
+
+
 @pytest.mark.parametrize(("payload", "error", "text"), [
     (b"XXXX" + raw(META, [ROW])[4:], wire.BadMagic, "bad magic"),
     (raw(META, [ROW], version=2), wire.UnsupportedVersion, "schema version 2"),

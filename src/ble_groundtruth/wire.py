@@ -6,7 +6,7 @@ without pulling in bleak or zenoh. ``docs/protocol.md`` describes the same thing
 A reading batch is binary::
 
     header   struct "<4sHHI"   magic b"BGTB", schema version, meta length, reading count
-    meta     UTF-8 JSON        {"agent", "boot", "sensor", "seq"} (+ optional "sent_ns")
+    meta     UTF-8 JSON        {"agent", "boot", "sensor", "seq"} (+ optional "sent_ns", "floor")
     readings count x "<qq6sb"  t_ns (Unix ns), mono_ns (agent monotonic ns, 0 = unknown),
                                beacon MAC (6 raw bytes), RSSI (dBm, int8)
     extras   "<I" + JSON       optional: {"<index>": {"ibeacon": {...}, "eddystone": {...}}}
@@ -215,6 +215,8 @@ class Batch:
     seq: int  # per (agent, boot, sensor) stream, from 0, +1 per batch
     readings: tuple[Reading, ...] = field(default_factory=tuple)
     sent_ns: int = 0
+    # The sender will never (re)send a seq below this one of this stream; -1 = not stated.
+    floor: int = -1
 
     @property
     def stream(self) -> tuple[str, str, str]:
@@ -234,6 +236,8 @@ def to_wire(batch: Batch) -> bytes:
                             "sensor": batch.sensor, "seq": batch.seq}
     if batch.sent_ns:
         meta["sent_ns"] = batch.sent_ns
+    if batch.floor >= 0:
+        meta["floor"] = batch.floor
     meta_b = json.dumps(meta, separators=(",", ":")).encode()
     if len(meta_b) > MAX_META_BYTES:
         raise Oversized("batch metadata too large")
@@ -291,6 +295,9 @@ def from_wire(data: bytes | bytearray | memoryview) -> Batch:
     sent_ns = meta.get("sent_ns", 0)
     if not _is_int(sent_ns) or sent_ns < 0:
         raise InvalidField("sent_ns must be a non-negative integer")
+    floor = meta.get("floor", -1)
+    if not _is_int(floor) or not -1 <= floor < 2**63:
+        raise InvalidField(f"floor must be an integer >= -1, got {floor!r}")
 
     extras: dict[str, Any] = {}
     rest = data[end_readings:]
@@ -321,7 +328,7 @@ def from_wire(data: bytes | bytearray | memoryview) -> Batch:
             if "eddystone" in e:
                 ed = Eddystone.from_dict(e["eddystone"])
         readings.append(Reading(t_ns, mac.hex(), rssi, mono_ns, ib, ed))
-    return Batch(agent, boot, sensor, seq, tuple(readings), sent_ns)
+    return Batch(agent, boot, sensor, seq, tuple(readings), sent_ns, floor)
 
 
 # ---------------------------------------------------------------------------------------------

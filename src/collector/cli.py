@@ -68,12 +68,21 @@ def serve(
     listen: Annotated[list[str] | None, typer.Option("--listen", help="Endpoint to listen on; repeatable (default tcp/127.0.0.1:7447).")] = None,
     site: Annotated[str | None, typer.Option("--site", help="Site name (default: from the config, else 'default').")] = None,
     insecure: InsecureOpt = False,
+    check: Annotated[bool, typer.Option("--check", help="Only validate the config (and its TLS and ACL files), print the resolved settings as JSON and exit.")] = False,
 ) -> None:
-    """Run the collector: the Zenoh router agents connect to. Stops cleanly on Ctrl-C / SIGTERM."""
+    """Run the collector: the Zenoh router agents connect to. Stops cleanly on Ctrl-C / SIGTERM.
+
+    A run left active by a killed collector is resumed on the same data directory."""
     from collector.server import Collector
 
     try:
         cfg = _load(config, data_dir, listen, site, insecure)
+        if check:
+            from collector.config import check_files
+
+            check_files(cfg)
+            console.print_json(json.dumps(cfg.describe()))
+            return
         collector = Collector(cfg).open()
     except CollectorError as e:
         raise _fail(e) from None
@@ -133,18 +142,23 @@ def _client(connect: str, site: str, root_ca: Path | None, cert: Path | None, ke
 @app.command()
 def start(
     name: Annotated[str | None, typer.Option("--name", help="Run name (part of the run id).")] = None,
+    max_offset_ms: Annotated[float, typer.Option("--max-offset-ms", help="Warn about agents whose clock is off by more than this (measured at start).")] = 50.0,
+    strict: Annotated[bool, typer.Option("--strict", help="Refuse to start (exit 1) if an agent's clock is off by more than --max-offset-ms.")] = False,
     connect: ConnectOpt = DEFAULT_ENDPOINT,
     site: SiteOpt = "default",
     root_ca: RootCaOpt = None,
     cert: CertOpt = None,
     key: KeyOpt = None,
 ) -> None:
-    """Start a capture run on a running collector; prints the run id."""
+    """Start a capture run on a running collector; prints the run id. Agents' clocks are
+    checked first: one warning line per agent off by more than --max-offset-ms."""
     try:
         with _client(connect, site, root_ca, cert, key) as c:
-            reply = c.start(name)
+            reply = c.start(name, max_offset_ms=max_offset_ms, strict=strict)
     except CollectorError as e:
         raise _fail(e) from None
+    for w in reply.get("clock_warnings", []):
+        err_console.print(f"[yellow]warning: {escape(w)}", highlight=False, soft_wrap=True)
     console.print(reply["run_id"], highlight=False)
 
 

@@ -57,8 +57,14 @@ class CollectorClient:
             return msg
         raise Unreachable(self._unreachable())
 
-    def start(self, name: str | None = None) -> dict[str, Any]:
-        return self.call("start", {"name": name})
+    def start(self, name: str | None = None, *, max_offset_ms: float | None = None,
+              strict: bool = False) -> dict[str, Any]:
+        req: dict[str, Any] = {"name": name}
+        if max_offset_ms is not None:
+            req["max_offset_ms"] = max_offset_ms
+        if strict:
+            req["strict"] = True
+        return self.call("start", req)
 
     def stop(self) -> dict[str, Any]:
         return self.call("stop")

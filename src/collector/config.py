@@ -18,7 +18,7 @@ from ble_groundtruth.zenoh_config import (
 )
 from collector.errors import ConfigError
 
-KEYS = ("site", "data_dir", "listen", "tls", "insecure", "acl", "fsync_interval_s")
+KEYS = ("site", "data_dir", "listen", "tls", "insecure", "acl", "fsync_interval_s", "clock_interval_s")
 
 
 @dataclass(frozen=True, slots=True)
@@ -30,6 +30,7 @@ class CollectorConfig:
     insecure: bool = False
     acl: Path | None = None  # zenoh access-control JSON5 file
     fsync_interval_s: float = 1.0
+    clock_interval_s: float = 120.0  # agent clock checks during a run (also at start and stop)
 
     def session_spec(self, acl_text: str | None = None) -> SessionSpec:
         return SessionSpec(mode="router", listen=self.listen, tls=self.tls, acl=acl_text)
@@ -48,6 +49,14 @@ class CollectorConfig:
             cfg = replace(cfg, site=site)
         cfg.validate("options")
         return cfg
+
+    def describe(self) -> dict[str, Any]:
+        """The resolved settings as plain data (what `collector serve --check` prints)."""
+        return {"site": self.site, "data_dir": str(self.data_dir), "listen": list(self.listen),
+                "tls": None if self.tls is None else {"root_ca": self.tls.root_ca,
+                                                      "cert": self.tls.cert, "key": self.tls.key},
+                "insecure": self.insecure, "acl": None if self.acl is None else str(self.acl),
+                "fsync_interval_s": self.fsync_interval_s, "clock_interval_s": self.clock_interval_s}
 
     def validate(self, where: str) -> None:
         """Checks that involve several fields; raises ConfigError naming `where`."""
@@ -132,6 +141,11 @@ def parse_config(raw: Any, *, base: Path, name: str = "collector.yaml") -> Colle
         if isinstance(v, bool) or not isinstance(v, int | float) or not 0 <= v <= 3600:
             raise ConfigError(f"{name}: fsync_interval_s must be a number of seconds in [0, 3600], got {v!r}")
         kw["fsync_interval_s"] = float(v)
+    if "clock_interval_s" in raw:
+        v = raw["clock_interval_s"]
+        if isinstance(v, bool) or not isinstance(v, int | float) or not 1 <= v <= 86400:
+            raise ConfigError(f"{name}: clock_interval_s must be a number of seconds in [1, 86400], got {v!r}")
+        kw["clock_interval_s"] = float(v)
     cfg = replace(cfg, **kw)
     cfg.validate(name)
     return cfg
@@ -141,3 +155,35 @@ def _str(v: Any, name: str, field: str) -> str:
     if not isinstance(v, str) or not v:
         raise ConfigError(f"{name}: {field} must be a non-empty string, got {v!r}")
     return v
+
+
+def check_files(cfg: CollectorConfig) -> None:
+    """What `serve --check` adds to parsing: the TLS files are PEM of the right kind, the ACL file
+    is accepted by zenoh, and the whole Zenoh configuration builds. One ConfigError line otherwise."""
+    from ble_groundtruth.zenoh_config import AclFileError, build_config, load_acl
+
+    acl_text = None
+    if cfg.acl is not None:
+        try:
+            acl_text = load_acl(cfg.acl)
+        except AclFileError as e:
+            raise ConfigError(" ".join(str(e).split())) from None
+    if cfg.tls is not None:
+        from cryptography import x509
+        from cryptography.hazmat.primitives.serialization import load_pem_private_key
+
+        checks = (("tls.root_ca", cfg.tls.root_ca, x509.load_pem_x509_certificate),
+                  ("tls.cert", cfg.tls.cert, x509.load_pem_x509_certificate),
+                  ("tls.key", cfg.tls.key, lambda b: load_pem_private_key(b, password=None)))
+        for field, path, load in checks:
+            try:
+                load(Path(path).read_bytes())
+            except OSError as e:
+                raise ConfigError(f"{field}: cannot read {path}: {e.strerror}") from None
+            except (ValueError, TypeError) as e:
+                raise ConfigError(f"{field}: {path} is not a usable PEM file: "
+                                  f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+    try:
+        build_config(cfg.session_spec(acl_text))
+    except Exception as e:  # noqa: BLE001 - zenoh reports config problems as ZError or ValueError
+        raise ConfigError(f"zenoh rejects the configuration: {' '.join(str(e).split())}") from None

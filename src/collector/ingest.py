@@ -10,6 +10,7 @@ import threading
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 from ble_groundtruth import wire
 
@@ -32,6 +33,7 @@ class RawBatch:
     sensor: str
     seq: int
     rows: list[tuple[int, int, bytes, int]]
+    floor: int = -1  # the agent never (re)sends seqs below this; -1 = not said (older agent)
 
     @property
     def stream(self) -> tuple[str, str, str]:
@@ -52,7 +54,8 @@ def decode(payload: bytes) -> RawBatch:
         return fast
     b = wire.from_wire(payload)
     return RawBatch(b.agent_id, b.boot_id, b.sensor, b.seq,
-                    [(r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi) for r in b.readings])
+                    [(r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi) for r in b.readings],
+                    getattr(b, "floor", -1))
 
 
 def _decode_fast(data: bytes) -> RawBatch | None:
@@ -80,6 +83,9 @@ def _decode_fast(data: bytes) -> RawBatch | None:
     sent = meta.get("sent_ns", 0)
     if type(sent) is not int or sent < 0:
         return None
+    floor = meta.get("floor", -1)
+    if type(floor) is not int or not -1 <= floor < 2**63:
+        return None
     rows = list(_READING.iter_unpack(data[start:end]))
     if rows:
         ts = [r[0] for r in rows]
@@ -87,7 +93,7 @@ def _decode_fast(data: bytes) -> RawBatch | None:
         if min(ts) < wire.T_NS_MIN or max(ts) > wire.T_NS_MAX or min(rs) < wire.RSSI_MIN \
                 or max(rs) > wire.RSSI_MAX or min(r[1] for r in rows) < 0:
             return None
-    return RawBatch(agent, boot, sensor, seq, rows)
+    return RawBatch(agent, boot, sensor, seq, rows, floor)
 
 
 def format_rows(sensor: str, rows: list[tuple[int, int, bytes, int]]) -> str:
@@ -168,27 +174,66 @@ class StreamState:
     gaps: int = 0  # times a seq jumped forward
     first_seq: int = 0  # where this collector joined the stream
     before_first: set[int] = field(default_factory=set)  # seqs < first_seq that arrived later
+    floor: int = -1  # highest floor the agent announced (contract 1)
+    lost: int = 0  # seqs skipped over because the agent's floor passed them unseen
+    implicit_floor: int = 0  # first seq of a stream first seen without a floor (older agent)
+
+    def lost_total(self) -> int:
+        # An older agent's stream first seen at k counts seqs < k as lost, unless they came later.
+        return self.lost + max(0, self.implicit_floor - len(self.before_first))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"done_upto": self.done_upto, "ahead": sorted(self.ahead), "max_seq": self.max_seq,
+                "gaps": self.gaps, "first_seq": self.first_seq,
+                "before_first": sorted(self.before_first), "floor": self.floor,
+                "lost": self.lost, "implicit_floor": self.implicit_floor}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> StreamState:
+        done = int(d["done_upto"])
+        # What was persisted is durable by construction: the state is written after the fsync.
+        return StreamState(done_upto=done, acked_upto=done, ahead={int(x) for x in d["ahead"]},
+                           max_seq=int(d["max_seq"]), gaps=int(d["gaps"]),
+                           first_seq=int(d["first_seq"]),
+                           before_first={int(x) for x in d["before_first"]},
+                           floor=int(d["floor"]), lost=int(d["lost"]),
+                           implicit_floor=int(d["implicit_floor"]))
 
 
 class StreamTracker:
-    """Decides whether a batch is new, and keeps the contiguous watermark the acks carry."""
+    """Decides whether a batch is new, and keeps the contiguous watermark the acks carry.
+
+    Floors (contract 1): seqs below a stream's announced floor will never come again, so the
+    watermark moves over the missing ones and counts them as lost; it never moves past a missing
+    seq at or above the floor, so nothing the agent may still re-send is acknowledged unseen.
+    """
+
+    MAX_ACK_BOOTS = 16  # boots per agent that keep getting (re)acked; older ones were long settled
 
     def __init__(self) -> None:
         self.streams: dict[tuple[str, str, str], StreamState] = {}
         self.duplicates = 0
 
-    def accept(self, stream: tuple[str, str, str], seq: int) -> bool:
+    def accept(self, stream: tuple[str, str, str], seq: int, floor: int = -1) -> bool:
         """True for a batch not seen before (call once per received batch, then handle it)."""
+        floor = min(floor, seq)  # a floor above its own batch would be a broken agent; never skip it
         st = self.streams.get(stream)
         if st is None:
-            # A stream first seen at seq k > 0 started before this collector did: earlier batches
-            # went to a previous collector process, or arrive later from the publisher's cache.
-            # The watermark starts at k-1 so acks can flow; earlier seqs are still written once.
-            st = StreamState(done_upto=seq - 1, acked_upto=seq - 1, first_seq=seq)
-            if seq > 0:
-                log.warning("stream %s/%s/%s first seen at seq %d", *stream, seq)
+            if floor >= 0:
+                st = StreamState(done_upto=-1, acked_upto=-1, first_seq=seq)
+            else:
+                # An older agent (no floor) first seen at seq k: treated as floor = k. Earlier seqs
+                # that still turn up (e.g. from the publisher's history) are written once.
+                st = StreamState(done_upto=seq - 1, acked_upto=seq - 1, first_seq=seq,
+                                 implicit_floor=seq)
+                if seq > 0:
+                    log.warning("stream %s/%s/%s first seen at seq %d without a floor; "
+                                "treating seqs below it as lost", *stream, seq)
             self.streams[stream] = st
-        if seq < st.first_seq:
+        if floor > st.floor:
+            st.floor = floor
+            self._apply_floor(st, floor)
+        if seq < st.implicit_floor:
             if seq in st.before_first:
                 self.duplicates += 1
                 return False
@@ -202,15 +247,29 @@ class StreamTracker:
         st.max_seq = max(st.max_seq, seq)
         if seq == st.done_upto + 1:
             st.done_upto = seq
-            while st.done_upto + 1 in st.ahead:
-                st.done_upto += 1
-                st.ahead.discard(st.done_upto)
+            self._advance(st)
         else:
             st.ahead.add(seq)
         return True
 
+    @staticmethod
+    def _apply_floor(st: StreamState, floor: int) -> None:
+        if floor - 1 <= st.done_upto:
+            return
+        below = {s for s in st.ahead if s < floor}
+        st.lost += (floor - 1 - st.done_upto) - len(below)
+        st.ahead -= below
+        st.done_upto = floor - 1
+        StreamTracker._advance(st)
+
+    @staticmethod
+    def _advance(st: StreamState) -> None:
+        while st.done_upto + 1 in st.ahead:
+            st.done_upto += 1
+            st.ahead.discard(st.done_upto)
+
     def missing(self, stream: tuple[str, str, str]) -> int:
-        """Batches below the highest seq seen that have not arrived (yet)."""
+        """Batches below the highest seq seen that have not arrived (yet) and may still come."""
         st = self.streams[stream]
         return max(0, st.max_seq - st.done_upto - len(st.ahead))
 
@@ -226,11 +285,32 @@ class StreamTracker:
                 moved.add(agent)
         return moved
 
+    def ack_messages(self, agent_id: str) -> list[dict[str, Any]]:
+        """One ack JSON per boot of this agent (contract 2), most recent boots only, oldest first."""
+        per_boot: dict[str, dict[str, int]] = {}
+        for (a, b, s), st in self.streams.items():
+            if a == agent_id:
+                streams = per_boot.setdefault(b, {})
+                if st.acked_upto >= 0:
+                    streams[s] = st.acked_upto
+        boots = list(per_boot.items())[-self.MAX_ACK_BOOTS:]
+        return [{"boot": b, "streams": s} for b, s in boots]
+
     def ack_message(self, agent_id: str) -> dict | None:
-        """The ack JSON for an agent's most recent boot (the only one still listening)."""
-        boots = [(b, s, st) for (a, b, s), st in self.streams.items() if a == agent_id]
-        if not boots:
-            return None
-        latest = boots[-1][0]  # dicts keep insertion order: the last boot id seen is the live one
-        streams = {s: st.acked_upto for b, s, st in boots if b == latest and st.acked_upto >= 0}
-        return {"boot": latest, "streams": streams}
+        """The ack JSON for an agent's most recent boot (dicts keep insertion order)."""
+        msgs = self.ack_messages(agent_id)
+        return msgs[-1] if msgs else None
+
+    def to_state(self) -> dict[str, Any]:
+        """Only what is durable: acked_upto is what the persisted files cover."""
+        return {"duplicates": self.duplicates,
+                "streams": [{"agent": a, "boot": b, "sensor": s, **st.to_dict()}
+                            for (a, b, s), st in self.streams.items()]}
+
+    @staticmethod
+    def from_state(d: dict[str, Any]) -> StreamTracker:
+        t = StreamTracker()
+        t.duplicates = int(d.get("duplicates", 0))
+        for e in d.get("streams", []):
+            t.streams[(e["agent"], e["boot"], e["sensor"])] = StreamState.from_dict(e)
+        return t

@@ -1,13 +1,16 @@
 """The running collector: a Zenoh router session, the data subscriber, the writer thread that owns
-all run state, the control queryables, the acknowledgement publisher and agent bookkeeping.
+all run state (files, state.json, dedupe, acks, quarantine), the control queryables, agent clock
+checks and agent bookkeeping.
 
 Threads: Zenoh callbacks only decode and enqueue; one writer thread dedupes, formats and writes;
-one control thread answers queries and asks agents for their status (blocking calls live there).
+one control thread answers queries and asks agents for their status and clock (blocking calls).
 """
 
 from __future__ import annotations
 
+import base64
 import logging
+import os
 import queue
 import re
 import threading
@@ -20,6 +23,7 @@ from importlib import metadata
 from typing import Any
 
 from ble_groundtruth import wire
+from ble_groundtruth.sdnotify import Notifier
 from ble_groundtruth.zenoh_config import AclFileError, build_config, load_acl
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
@@ -31,7 +35,16 @@ from collector.ingest import (
     format_rows,
     reject_reason,
 )
-from collector.store import RunWriter, iso_utc, list_runs, make_run_id
+from collector.store import (
+    STATE_FILE,
+    FileWrite,
+    RunWriter,
+    find_active_state,
+    is_disk_full,
+    iso_utc,
+    list_runs,
+    make_run_id,
+)
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +52,12 @@ COMMANDS = ("start", "stop", "status", "runs")
 TICK_S = 0.2  # flush + ack period while data arrives
 RATE_WINDOW_S = 5.0
 RSSI_HISTORY = 40  # readings kept per sensor for the live sparkline
+QUEUE_MAX = 20_000  # batches between the Zenoh callbacks and the writer
+QUEUE_WAIT_S = 0.5  # a callback waits this long for room (back-pressure) before dropping unacked
+MAX_BUFFER_BYTES = 64 * 1024 * 1024  # rows held in memory while the disk refuses them
+DISK_RETRY_S = 1.0
+QUARANTINE_MAX_BYTES = 16 * 1024 * 1024  # per run; beyond it rejects are only counted
+QUARANTINE_PAYLOAD = 4096  # bytes of each rejected payload kept (base64) in rejected.jsonl
 
 
 def zenoh_reason(err: Exception) -> str:
@@ -90,26 +109,41 @@ class _Stopping:
 
 
 class Collector:
-    """Open with ``open()``, close with ``close()`` (which also ends an active run cleanly)."""
+    """Open with ``open()``, close with ``close()`` (which also ends an active run cleanly).
+
+    A run left active by a killed collector is resumed by ``open()`` on the same data directory:
+    same run id and files (cut back to what state.json covers), same dedupe state.
+    """
 
     def __init__(self, cfg: CollectorConfig, *, clock: Callable[[], int] = time.time_ns,
                  monotonic: Callable[[], float] = time.monotonic, drain_grace_s: float = 0.3,
-                 drain_timeout_s: float = 3.0, status_timeout_s: float = 1.0) -> None:
+                 drain_timeout_s: float = 3.0, status_timeout_s: float = 1.0,
+                 max_buffer_bytes: int = MAX_BUFFER_BYTES, queue_max: int = QUEUE_MAX,
+                 quarantine_max_bytes: int = QUARANTINE_MAX_BYTES,
+                 notifier: Notifier | None = None, file_write: FileWrite = os.write) -> None:
         self.cfg = cfg
+        self._file_write = file_write  # tests inject a writer that fails like a full disk
         self._clock = clock
         self._mono = monotonic
         self._drain_grace = drain_grace_s
         self._drain_timeout = drain_timeout_s
         self._status_timeout = status_timeout_s
+        self._max_buffer = max_buffer_bytes
+        self._quarantine_max = quarantine_max_bytes
+        self._notifier = notifier if notifier is not None else Notifier()
         self.rejects = RejectCounter(monotonic)
-        self._data: queue.SimpleQueue[RawBatch] = queue.SimpleQueue()
+        self._data: queue.Queue[RawBatch] = queue.Queue(maxsize=queue_max)
+        self._quarantine: queue.Queue[dict[str, Any]] = queue.Queue(maxsize=1000)
         self._cmds: queue.SimpleQueue[tuple[Callable[[], Any], Future]] = queue.SimpleQueue()
         self._ctl: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._closing = threading.Event()
-        self._lock = threading.Lock()  # guards _alive and _agent_info (shared with callbacks)
+        self._lock = threading.Lock()  # guards _alive, _agent_info and the overflow counter
         self._alive: dict[str, bool] = {}
         self._agent_info: dict[str, dict[str, Any]] = {}
         self._info_pending: set[str] = set()
+        self._overflow = 0  # batches dropped (unacknowledged) because the queue stayed full
+        self._overflow_log = -1e9
+        self._run_active = False  # mirror of `_run is not None` for the control thread
         # Writer-thread state: nobody else touches these.
         self._tracker = StreamTracker()
         self._run: RunWriter | None = None
@@ -117,6 +151,14 @@ class Collector:
         self._live: dict[tuple[str, str], SensorLive] = {}
         self._discarded = 0
         self._write_errors = 0
+        self._deferred = 0  # batches refused unacked while rows piled up in memory (disk full)
+        self._unknown_agents: dict[str, int] = {}
+        self._lost_base: dict[str, int] = {}  # per stream, lost seqs before the run started
+        self._clock_log: dict[str, list[dict[str, Any]]] = {}
+        self._restarts = 0
+        self._dirty = False  # something to persist since the last state.json
+        self._quarantined_bytes = 0
+        self._quarantine_dropped = 0
         self._session = None
         self._decls: list[Any] = []
         self._threads: list[threading.Thread] = []
@@ -134,9 +176,13 @@ class Collector:
             except AclFileError as e:
                 raise CollectorError(zenoh_reason(e)) from None
         conf = build_config(self.cfg.session_spec(acl_text))
+        self._resume_unfinished_run()
         try:
             self._session = zenoh.open(conf)
         except zenoh.ZError as e:
+            if self._run is not None:
+                self._run.close()
+                self._run = None
             raise CollectorError(f"cannot open the Zenoh router on {', '.join(self.cfg.listen)}: "
                                  f"{zenoh_reason(e)}") from None
         site, s = self.cfg.site, self._session
@@ -155,16 +201,54 @@ class Collector:
                 wire.collector_control_key(site, cmd), lambda q, c=cmd: self._ctl.put((c, q))))
         log.info("collector serving site %r on %s, data in %s", site, ", ".join(self.cfg.listen),
                  self.cfg.data_dir)
-        for r in list_runs(self.cfg.data_dir):
-            if r["stop"] is None:
-                log.warning("run %s was never stopped (collector killed?); its files hold what "
-                            "was fsynced before that", r["run_id"])
+        self._notifier.ready(f"serving site {site} on {', '.join(self.cfg.listen)}")
         return self
+
+    def _resume_unfinished_run(self) -> None:
+        """Continue the run a killed collector left active (state.json), before any data flows."""
+        import yaml
+
+        active = find_active_state(self.cfg.data_dir)
+        for run_dir, state in active:
+            try:
+                doc = yaml.safe_load((run_dir / "run.yaml").read_text(encoding="utf-8")) or {}
+            except (OSError, yaml.YAMLError):
+                doc = {}
+            if doc.get("stop") is not None:  # stopped, but killed before state.json said so
+                continue
+            if self._run is not None:
+                log.warning("run %s was also left active; only the newest run (%s) is resumed",
+                            state.get("run_id"), self._run.run_id)
+                continue
+            try:
+                tracker = StreamTracker.from_state(state["tracker"])
+                run = RunWriter(self.cfg.data_dir, state["run_id"], state["name"],
+                                int(state["start_ns"]), dict(state["meta"]), resume=state,
+                                write=self._file_write)
+            except (KeyError, TypeError, ValueError) as e:
+                raise CollectorError(f"{run_dir / STATE_FILE}: cannot resume the run: {e!r}") from None
+            except OSError as e:
+                raise CollectorError(f"cannot resume run {run_dir}: {e}") from None
+            self._run, self._tracker = run, tracker
+            self._run_active = True
+            self._lost_base = {k: int(v) for k, v in state.get("lost_base", {}).items()}
+            self._clock_log = {k: list(v) for k, v in state.get("clock", {}).items()}
+            self._restarts = int(state.get("restarts", 0)) + 1
+            self._quarantined_bytes = int(state.get("quarantined_bytes", 0))
+            run.write_state(self._state())
+            log.warning("resumed run %s after an unclean stop (restart %d): %d readings on disk",
+                        run.run_id, self._restarts, run.readings)
+        for r in list_runs(self.cfg.data_dir):
+            if r["stop"] is None and (self._run is None or r["run_id"] != self._run.run_id) \
+                    and not (self.cfg.data_dir / str(r["run_id"]) / STATE_FILE).exists():
+                log.warning("run %s was never stopped and has no %s; its files hold what was "
+                            "fsynced before the collector died", r["run_id"], STATE_FILE)
 
     def close(self) -> None:
         """End an active run (drained and finalised), then stop the threads and the session."""
         if self._session is None:
             return
+        self._notifier.stopping("stopping: draining the active run")
         try:
             self.stop_run(reason="shutdown", missing_ok=True)
         except CollectorError as e:
@@ -177,6 +261,7 @@ class Collector:
             t.join(timeout=10)
         self._session.close()
         self._session = None
+        self._notifier.close()
 
     def __enter__(self) -> Collector:
         return self.open()
@@ -186,13 +271,33 @@ class Collector:
 
     # -- public API (also what the control queryables call) ---------------------------------------
 
-    def start_run(self, name: str | None = None, timeout: float = 10.0) -> dict[str, Any]:
+    def start_run(self, name: str | None = None, timeout: float = 10.0, *,
+                  max_offset_ms: float | None = None, strict: bool = False) -> dict[str, Any]:
+        """Start a run; agents' clocks are measured first. With ``strict``, an agent whose clock
+        is off by more than ``max_offset_ms`` refuses the start (CollectorError)."""
         self._refresh_agents()
-        return self._call(lambda: self._do_start(name), timeout)
+        samples = self.measure_clocks()
+        warnings = []
+        if max_offset_ms is not None:
+            for agent, smp in sorted(samples.items()):
+                if abs(smp["offset_ms"]) > max_offset_ms:
+                    warnings.append(f"agent {agent}: clock offset {smp['offset_ms']:+.1f} ms exceeds "
+                                    f"{max_offset_ms:g} ms (round trip {smp['rtt_ms']:.1f} ms)")
+        if strict and warnings:
+            raise CollectorError(f"{warnings[0]}; fix its time sync (chrony) or start without --strict"
+                                 + (f" ({len(warnings) - 1} more agents off)" if len(warnings) > 1 else ""))
+        reply = self._call(lambda: self._do_start(name, samples), timeout)
+        reply["clock"] = {a: {"offset_ms": v["offset_ms"], "rtt_ms": v["rtt_ms"]} for a, v in samples.items()}
+        reply["clock_warnings"] = warnings
+        return reply
 
     def stop_run(self, *, reason: str = "requested", missing_ok: bool = False,
                  timeout: float = 60.0) -> dict[str, Any] | None:
         self._refresh_agents()
+        if self._run_active:
+            samples = self.measure_clocks()
+            if samples:
+                self._call(lambda: self._add_clock(samples), timeout)
         fut: Future = Future()
         self._cmds.put((lambda: self._do_stop(fut, reason, missing_ok), Future()))
         return fut.result(timeout)
@@ -212,20 +317,47 @@ class Collector:
 
     def _on_sample(self, sample: Any) -> None:
         key = str(sample.key_expr)
+        payload = b""
         try:
+            payload = sample.payload.to_bytes()
             _site, agent, sensor = wire.parse_data_key(key)
-            batch = decode(sample.payload.to_bytes())
+            batch = decode(payload)
             if batch.agent_id != agent or batch.sensor != sensor:
-                self.rejects.reject("key_mismatch", key,
-                                    f"batch of agent {batch.agent_id}, sensor {batch.sensor} on this key")
+                self._reject("key_mismatch", key,
+                             f"batch of agent {batch.agent_id}, sensor {batch.sensor} on this key", payload)
                 return
         except wire.WireError as e:
-            self.rejects.reject(reject_reason(e), key, str(e))
+            self._reject(reject_reason(e), key, str(e), payload)
             return
         except Exception as e:  # noqa: BLE001 - a callback must not die on one bad sample
-            self.rejects.reject("malformed", key, f"{type(e).__name__}: {e}")
+            self._reject("malformed", key, f"{type(e).__name__}: {e}", payload)
             return
-        self._data.put(batch)
+        try:
+            # Waiting here is the back-pressure: Zenoh (BLOCK congestion control) slows the senders.
+            self._data.put(batch, timeout=QUEUE_WAIT_S)
+        except queue.Full:
+            # Not handled, so never acknowledged: the agent's spool sends it again later.
+            now = self._mono()
+            with self._lock:
+                self._overflow += 1
+                if now - self._overflow_log < 10:
+                    return
+                self._overflow_log = now
+                n = self._overflow
+            log.warning("receive queue full (%d batches): dropped a batch of %s unacknowledged "
+                        "(%d so far); the writer cannot keep up", self._data.maxsize, key, n)
+
+    def _reject(self, reason: str, key: str, message: str, payload: bytes) -> None:
+        """Count, log (rate-limited) and queue for <run>/rejected.jsonl; never raises."""
+        self.rejects.reject(reason, key, message)
+        rec = {"at_ns": self._clock(), "key": key, "reason": reason, "error": message,
+               "size": len(payload),
+               "payload_b64": base64.b64encode(payload[:QUARANTINE_PAYLOAD]).decode("ascii")}
+        try:
+            self._quarantine.put_nowait(rec)
+        except queue.Full:
+            with self._lock:
+                self._quarantine_dropped += 1
 
     def _on_token(self, sample: Any) -> None:
         import zenoh
@@ -241,7 +373,11 @@ class Collector:
     # -- control thread ---------------------------------------------------------------------------
 
     def _control_loop(self) -> None:
+        last_clock = self._mono()
         while not self._closing.is_set():
+            if self._run_active and self._mono() - last_clock >= self.cfg.clock_interval_s:
+                last_clock = self._mono()
+                self._periodic_clock()
             try:
                 cmd, arg = self._ctl.get(timeout=0.2)
             except queue.Empty:
@@ -251,15 +387,30 @@ class Collector:
                 with self._lock:
                     self._info_pending.discard(arg)
                 continue
+            if cmd == "start":
+                last_clock = self._mono()
             self._answer(cmd, arg)
 
+    def _periodic_clock(self) -> None:
+        try:
+            samples = self.measure_clocks()
+            if samples:
+                self._call(lambda: self._add_clock(samples), 10.0)
+        except Exception:
+            log.exception("periodic clock check failed")
+
     def _answer(self, cmd: str, query: Any) -> None:
+        key = wire.collector_control_key(self.cfg.site, cmd)
+        raw = b""
         try:
             req: dict[str, Any] = {}
-            if query.payload is not None and query.payload.to_bytes().strip():
-                req = wire.from_json(query.payload.to_bytes(), f"{cmd} request")
+            if query.payload is not None:
+                raw = query.payload.to_bytes()
+            if raw.strip():
+                req = wire.from_json(raw, f"{cmd} request")
             if cmd == "start":
-                reply = self.start_run(_request_name(req))
+                max_off, strict = _request_clock_limits(req)
+                reply = self.start_run(_request_name(req), max_offset_ms=max_off, strict=strict)
             elif cmd == "stop":
                 reply = self.stop_run()
             elif cmd == "status":
@@ -267,13 +418,18 @@ class Collector:
             else:
                 reply = {"runs": self.runs()}
             reply = {"ok": True, **reply}
-        except (CollectorError, wire.WireError) as e:
+        except wire.WireError as e:
+            self._reject("bad_request", key, str(e), raw)
+            reply = {"ok": False, "error": str(e)}
+        except CollectorError as e:
             reply = {"ok": False, "error": str(e)}
         except Exception as e:
             log.exception("control command %s failed", cmd)
             reply = {"ok": False, "error": f"internal error: {type(e).__name__}: {e}"}
         try:
-            query.reply(wire.collector_control_key(self.cfg.site, cmd), wire.to_json(reply))
+            query.reply(key, wire.to_json(reply))
+        except Exception as e:  # noqa: BLE001 - the asker may be gone; the collector goes on
+            log.warning("could not answer %s: %s", cmd, e)
         finally:
             query.drop()
 
@@ -300,10 +456,45 @@ class Collector:
         except Exception as e:  # noqa: BLE001 - agent status is best effort; the data path is not
             log.warning("could not query agent status on %s: %s", selector, e)
 
+    def measure_clocks(self) -> dict[str, dict[str, Any]]:
+        """Four-timestamp exchange with every live agent (contract 4), one query per agent so
+        each reply's arrival time t4 is its own.
+
+        offset = ((t2 - t1) + (t3 - t4)) / 2 is how far the agent's clock is ahead of ours;
+        rtt = (t4 - t1) - (t3 - t2) is the network round trip without the agent's own delay.
+        """
+        if self._session is None or (self._threads and threading.current_thread() is self._threads[0]):
+            return {}
+        with self._lock:
+            agents = sorted(a for a, alive in self._alive.items() if alive)
+        out: dict[str, dict[str, Any]] = {}
+        for agent in agents:
+            key = wire.agent_clock_key(self.cfg.site, agent)
+            try:
+                t1 = self._clock()
+                replies = self._session.get(key, payload=wire.to_json({"t1": t1}),
+                                            timeout=self._status_timeout)
+                for reply in replies:
+                    t4 = self._clock()
+                    if reply.ok is None:
+                        log.warning("agent %s refused the clock check: %s", agent,
+                                    reply.err.payload.to_string()[:200])
+                        break
+                    msg = wire.from_json(reply.ok.payload.to_bytes(), "clock reply")
+                    out[agent] = clock_sample(msg, t1, t4, iso_utc(t4))
+                    break
+            except wire.WireError as e:
+                log.warning("ignoring the clock reply of agent %s: %s", agent, e)
+            except Exception as e:  # noqa: BLE001 - clock health is advisory; never blocks a run
+                log.warning("could not check the clock of agent %s: %s", agent, e)
+        return out
+
     # -- writer thread ------------------------------------------------------------------------------
 
     def _writer_loop(self) -> None:
-        clocks = {"tick": self._mono(), "fsync": self._mono(), "reack": self._mono()}
+        now = self._mono()
+        clocks = {"tick": now, "fsync": now, "reack": now, "watchdog": -1e9, "disk_retry": -1e9,
+                  "write_error_log": -1e9}
         while True:
             try:
                 self._writer_step(clocks)
@@ -324,25 +515,20 @@ class Collector:
             except Exception as e:  # noqa: BLE001 - handed to whoever waits on the future
                 fut.set_exception(e)
         self._ingest_some()
+        self._write_quarantine()
         now = self._mono()
+        wd = self._notifier.watchdog_interval_s
+        if wd is not None and now - clocks["watchdog"] >= wd:
+            # From the writer thread on purpose: if ingest hangs, systemd restarts the service.
+            clocks["watchdog"] = now
+            self._notifier.watchdog()
         if now - clocks["tick"] >= TICK_S or self._stopping is not None:
             clocks["tick"] = now
             moved: set[str] = set()
             if self._run is None:
                 moved = self._tracker.mark_durable()
             else:
-                try:
-                    self._run.flush()
-                    if now - clocks["fsync"] >= self.cfg.fsync_interval_s:
-                        self._run.fsync()
-                        clocks["fsync"] = now
-                        moved = self._tracker.mark_durable()
-                except OSError as e:  # e.g. disk full: keep the rows buffered, ack nothing
-                    self._write_errors += 1
-                    if now - clocks.get("write_error_log", -1e9) > 10:
-                        clocks["write_error_log"] = now
-                        log.error("cannot write run %s: %s (retrying; nothing is acknowledged "  # noqa: TRY400 - known condition, no traceback
-                                  "until it works)", self._run.run_id, e)
+                moved = self._persist(now, clocks)
             if now - clocks["reack"] >= 2.0:  # repeat acks now and then: an agent may have missed one
                 clocks["reack"] = now
                 with self._lock:
@@ -350,6 +536,48 @@ class Collector:
             self._publish_acks(moved)
             if self._stopping is not None:
                 self._maybe_finish_stop(now)
+
+    def _persist(self, now: float, clocks: dict[str, float]) -> set[str]:
+        """Write buffered rows; at fsync time: fsync files, then state.json, then (and only then)
+        move the ack watermarks. Disk full: roll back, keep rows in memory, retry, ack nothing."""
+        run = self._run
+        if run.disk_full and now - clocks["disk_retry"] < DISK_RETRY_S and self._stopping is None:
+            return set()
+        try:
+            run.flush()
+            due = now - clocks["fsync"] >= self.cfg.fsync_interval_s
+            if (due and self._dirty) or run.disk_full or self._stopping is not None:
+                run.fsync()
+                run.write_state(self._state())
+                self._dirty = False
+                clocks["fsync"] = now
+                if run.disk_full:
+                    run.disk_full = False
+                    log.warning("run %s: writing again, disk space is back (%d batches were "
+                                "refused meanwhile; agents re-send them)", run.run_id, self._deferred)
+                    self._notifier.status(f"recording run {run.run_id}")
+                return self._tracker.mark_durable()
+        except OSError as e:
+            clocks["disk_retry"] = now
+            if is_disk_full(e):
+                if not run.disk_full:
+                    run.disk_full = True
+                    log.error("run %s: disk full (%s); stopped writing, holding up to %d MiB in "  # noqa: TRY400 - known condition
+                              "memory unacknowledged and retrying every %.0f s", run.run_id, e.strerror,
+                              self._max_buffer >> 20, DISK_RETRY_S)
+                    self._notifier.status(f"DISK FULL: run {run.run_id} is not being written")
+            else:
+                self._write_errors += 1
+                if now - clocks["write_error_log"] > 10:
+                    clocks["write_error_log"] = now
+                    log.error("cannot write run %s: %s (retrying; nothing is acknowledged "  # noqa: TRY400 - known condition
+                              "until it works)", run.run_id, e)
+        return set()
+
+    def _state(self) -> dict[str, Any]:
+        return self._run.state({"tracker": self._tracker.to_state(), "lost_base": self._lost_base,
+                                "clock": self._clock_log, "restarts": self._restarts,
+                                "quarantined_bytes": self._quarantined_bytes})
 
     def _ingest_some(self) -> None:
         try:
@@ -364,12 +592,27 @@ class Collector:
             pass
         now = self._mono()
         run, tracker, live = self._run, self._tracker, self._live
+        # While the disk refuses rows, memory holds them up to a bound; past it, batches are
+        # refused before dedupe, so they stay unacknowledged and the agents send them again.
+        full = run is not None and run.buffered >= self._max_buffer
+        with self._lock:
+            alive = dict(self._alive)
+        self._dirty = True  # even a duplicate may carry a higher floor
         for b in batches:
+            if full:
+                self._deferred += 1
+                continue
             new_stream = b.stream not in tracker.streams
-            if not tracker.accept(b.stream, b.seq):
+            if not tracker.accept(b.stream, b.seq, b.floor):
                 continue
             if new_stream:
                 self._want_agent_info(b.agent_id)
+            if not alive.get(b.agent_id):
+                n = self._unknown_agents.get(b.agent_id, 0)
+                if n == 0:
+                    log.warning("data from agent %s, which has no liveliness token (not a running "
+                                "agent of this site?); recorded and counted as unknown_agent", b.agent_id)
+                self._unknown_agents[b.agent_id] = n + 1
             if b.rows:
                 sl = live.get((b.agent_id, b.sensor))
                 if sl is None:
@@ -380,6 +623,32 @@ class Collector:
                 else:
                     self._discarded += len(b.rows)
 
+    def _write_quarantine(self) -> None:
+        recs = []
+        try:
+            while len(recs) < 1000:
+                recs.append(self._quarantine.get_nowait())
+        except queue.Empty:
+            pass
+        if not recs or self._run is None:
+            return  # without a run, rejects are only counted
+        lines = []
+        for rec in recs:
+            line = wire.to_json(rec) + b"\n"
+            if self._quarantined_bytes + len(line) > self._quarantine_max:
+                self._quarantine_dropped += 1
+                continue
+            self._quarantined_bytes += len(line)
+            lines.append(line)
+        if not lines:
+            return
+        try:
+            with (self._run.dir / "rejected.jsonl").open("ab") as f:
+                f.write(b"".join(lines))
+        except OSError as e:
+            self._quarantine_dropped += len(lines)
+            log.warning("could not write %s/rejected.jsonl: %s", self._run.dir, e)
+
     def _want_agent_info(self, agent: str) -> None:
         with self._lock:
             if agent in self._agent_info or agent in self._info_pending:
@@ -389,15 +658,22 @@ class Collector:
 
     def _publish_acks(self, agents: set[str]) -> None:
         for agent in agents:
-            msg = self._tracker.ack_message(agent)
-            if msg is None or not msg["streams"]:
-                continue
-            try:
-                self._session.put(wire.ack_key(self.cfg.site, agent), wire.to_json(msg))
-            except Exception as e:  # noqa: BLE001 - the next tick retries
-                log.warning("could not publish ack for %s: %s", agent, e)
+            for msg in self._tracker.ack_messages(agent):
+                if not msg["streams"]:
+                    continue
+                try:
+                    self._session.put(wire.ack_key(self.cfg.site, agent), wire.to_json(msg))
+                except Exception as e:  # noqa: BLE001 - the next tick retries
+                    log.warning("could not publish ack for %s: %s", agent, e)
 
-    def _do_start(self, name: str | None) -> dict[str, Any]:
+    def _add_clock(self, samples: dict[str, dict[str, Any]]) -> None:
+        if self._run is None:
+            return
+        for agent, smp in samples.items():
+            self._clock_log.setdefault(agent, []).append(smp)
+        self._dirty = True
+
+    def _do_start(self, name: str | None, clock_samples: dict[str, dict[str, Any]]) -> dict[str, Any]:
         if self._run is not None:
             raise CollectorError(f"run {self._run.run_id} is already active; stop it first")
         t_ns = self._clock()
@@ -408,9 +684,21 @@ class Collector:
                 break
             run_id = f"{base}-{i}"
         meta = {"site": self.cfg.site, "software_version": software_version()}
-        self._run = RunWriter(self.cfg.data_dir, run_id, name or "", t_ns, meta)
-        log.info("run %s started in %s", run_id, self._run.dir)
-        return {"run_id": run_id, "run_dir": str(self._run.dir.resolve())}
+        run = RunWriter(self.cfg.data_dir, run_id, name or "", t_ns, meta, write=self._file_write)
+        self._lost_base = {"/".join(k): st.lost_total() for k, st in self._tracker.streams.items()}
+        self._clock_log = {a: [smp] for a, smp in clock_samples.items()}
+        self._restarts = self._quarantined_bytes = self._quarantine_dropped = 0
+        self._deferred = 0
+        self._run = run
+        try:
+            run.write_state(self._state())
+        except OSError as e:
+            self._run = None
+            raise CollectorError(f"cannot write {run.dir / STATE_FILE}: {e.strerror or e}") from None
+        self._run_active = True
+        log.info("run %s started in %s", run_id, run.dir)
+        self._notifier.status(f"recording run {run_id}")
+        return {"run_id": run_id, "run_dir": str(run.dir.resolve())}
 
     def _do_stop(self, fut: Future, reason: str, missing_ok: bool) -> None:
         if self._run is None:
@@ -428,20 +716,34 @@ class Collector:
         st = self._stopping
         waited = now - st.requested
         settled = (waited >= self._drain_grace and self._data.empty()
-                   and self._tracker.open_gaps() == 0)
+                   and self._tracker.open_gaps() == 0 and not self._run.disk_full)
         if not settled and waited < self._drain_timeout:
             return
         run = self._run
-        self._stopping = self._run = None
+        if run.disk_full:
+            st.future.set_exception(CollectorError(
+                f"run {run.run_id}: the disk is full; free space and stop again (nothing was lost "
+                f"so far: {run.buffered} bytes are held in memory)"))
+            self._stopping = None
+            return
         try:
-            run.close()
+            run.fsync()
+            run.write_state(self._state())
             self._tracker.mark_durable()
             summary = self._finish_yaml(run, st.reason)
-        except Exception as e:  # noqa: BLE001 - reported to the caller of stop
+            state = self._state()
+            state["active"] = False
+            run.write_state(state)
+            run.close()
+        except Exception as e:  # noqa: BLE001 - reported to the caller of stop; the run stays active
+            self._stopping = None
             st.future.set_exception(CollectorError(f"could not finalise run {run.run_id}: {e}"))
             return
+        self._stopping = self._run = None
+        self._run_active = False
         self._publish_acks({a for a, _b, _s in self._tracker.streams})
         log.info("run %s stopped: %d readings", run.run_id, run.readings)
+        self._notifier.status("idle: no run active")
         st.future.set_result({"run_id": run.run_id, "run_dir": str(run.dir.resolve()),
                               "readings": run.readings, **summary})
 
@@ -449,7 +751,7 @@ class Collector:
         with self._lock:
             infos = {a: dict(i) for a, i in self._agent_info.items()}
         agents: dict[str, Any] = {}
-        gaps_total = missing_total = 0
+        gaps_total = missing_total = lost_total = 0
         for sensor, stats in sorted(run.sensors.items()):
             info = infos.get(stats.agent_id, {})
             a = agents.setdefault(stats.agent_id, {
@@ -457,30 +759,36 @@ class Collector:
                 "backend": info.get("backend"), "boot_ids": [], "sensors": {}})
             adapter = next((ad for ad in info.get("adapters", []) if isinstance(ad, dict)
                             and str(ad.get("mac", "")).replace(":", "").lower() == sensor), {})
-            gaps = missing = 0
+            gaps = missing = lost = 0
             for (ag, boot, sn), ss in self._tracker.streams.items():
                 if ag == stats.agent_id and sn == sensor:
                     gaps += ss.gaps
                     missing += self._tracker.missing((ag, boot, sn))
+                    lost += ss.lost_total() - self._lost_base.get(f"{ag}/{boot}/{sn}", 0)
                     if boot not in a["boot_ids"]:
                         a["boot_ids"].append(boot)
             gaps_total += gaps
             missing_total += missing
+            lost_total += lost
             a["sensors"][sensor] = {"adapter": adapter.get("name"), "mac": sensor,
                                     "backend": adapter.get("backend", info.get("backend")),
                                     "mode": adapter.get("mode"), "readings": stats.readings,
                                     "batches": stats.batches, "gaps": gaps,
-                                    "missing_batches": missing}
+                                    "missing_batches": missing, "lost_batches": lost}
+        for agent, samples in self._clock_log.items():
+            agents.setdefault(agent, {"hostname": infos.get(agent, {}).get("hostname"),
+                                      "boot_ids": [], "sensors": {}})["clock"] = samples
         extra = {"stopped_by": reason, "gaps": gaps_total, "missing_batches": missing_total,
-                 "duplicates_dropped": self._tracker.duplicates,
-                 "rejected_payloads": self.rejects.snapshot()}
+                 "lost_batches": lost_total, "duplicates_dropped": self._tracker.duplicates,
+                 "rejected_payloads": self.rejects.snapshot(), "restarts": self._restarts}
         run.write_yaml(stop_ns=self._clock(), agents=agents, extra=extra)
-        return {"gaps": gaps_total, "missing_batches": missing_total}
+        return {"gaps": gaps_total, "missing_batches": missing_total, "lost_batches": lost_total}
 
     def _do_status(self) -> dict[str, Any]:
         now = self._mono()
         with self._lock:
             alive = dict(self._alive)
+            overflow = self._overflow
         agents: dict[str, Any] = {a: {"alive": v, "sensors": {}} for a, v in alive.items()}
         for (agent, sensor), sl in sorted(self._live.items()):
             ag = agents.setdefault(agent, {"alive": alive.get(agent, False), "sensors": {}})
@@ -493,10 +801,33 @@ class Collector:
             r = self._run
             run = {"run_id": r.run_id, "name": r.name, "run_dir": str(r.dir.resolve()),
                    "start": iso_utc(r.start_ns), "readings": r.readings,
-                   "sensors": len(r.sensors), "stopping": self._stopping is not None}
+                   "sensors": len(r.sensors), "stopping": self._stopping is not None,
+                   "restarts": self._restarts, "buffered_bytes": r.buffered,
+                   "clock": {a: v[-1] for a, v in self._clock_log.items() if v}}
         return {"run": run, "agents": agents, "discarded_no_run": self._discarded,
                 "duplicates_dropped": self._tracker.duplicates,
-                "rejected_payloads": self.rejects.snapshot(), "queue": self._data.qsize(), "write_errors": self._write_errors}
+                "rejected_payloads": self.rejects.snapshot(), "queue": self._data.qsize(),
+                "write_errors": self._write_errors,
+                "disk_full": self._run is not None and self._run.disk_full,
+                "deferred_batches": self._deferred, "queue_overflow": overflow,
+                "unknown_agents": dict(self._unknown_agents),
+                "quarantine_dropped": self._quarantine_dropped}
+
+
+def clock_sample(msg: dict[str, Any], t1: int, t4: int, at: str) -> dict[str, Any]:
+    """One clock measurement from an agent's reply (t1 echoed, t2, t3) and our t4, all Unix ns."""
+    t2, t3 = msg.get("t2"), msg.get("t3")
+    if msg.get("t1") != t1:
+        raise wire.InvalidField("clock reply does not echo our t1")
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in (t2, t3)):
+        raise wire.InvalidField("clock reply needs integer t2 and t3 (ns)")
+    chrony = msg.get("chrony")
+    if chrony is not None and not isinstance(chrony, dict):
+        raise wire.InvalidField("clock reply chrony must be an object or null")
+    offset = ((t2 - t1) + (t3 - t4)) / 2
+    rtt = (t4 - t1) - (t3 - t2)
+    return {"at": at, "offset_ms": round(offset / 1e6, 3), "rtt_ms": round(rtt / 1e6, 3),
+            "chrony": chrony}
 
 
 def _request_name(req: dict[str, Any]) -> str | None:
@@ -504,3 +835,13 @@ def _request_name(req: dict[str, Any]) -> str | None:
     if name is not None and not isinstance(name, str):
         raise CollectorError("start: name must be a string or null")
     return name
+
+
+def _request_clock_limits(req: dict[str, Any]) -> tuple[float | None, bool]:
+    max_off, strict = req.get("max_offset_ms"), req.get("strict", False)
+    if max_off is not None and (isinstance(max_off, bool) or not isinstance(max_off, int | float)
+                                or max_off < 0):
+        raise CollectorError("start: max_offset_ms must be a non-negative number or null")
+    if not isinstance(strict, bool):
+        raise CollectorError("start: strict must be true or false")
+    return (None if max_off is None else float(max_off)), strict

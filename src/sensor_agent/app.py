@@ -1,5 +1,7 @@
-"""Runs one agent: picks the backend, opens the Zenoh session, pumps readings into batches,
-answers status queries, and on the end of a replay waits for the collector's acknowledgements.
+"""Runs one agent: picks the backend, opens the spool and the Zenoh session (retrying in the
+background while the router is unreachable), pumps readings into batches, keeps re-sending what
+is unacknowledged, tells systemd how it is doing, and on the end of a replay waits for the
+collector's acknowledgements.
 
 The only place that knows the order of start-up and shut-down.
 """
@@ -17,16 +19,22 @@ from dataclasses import dataclass
 from typing import Any
 
 from ble_groundtruth import __version__
+from ble_groundtruth.sdnotify import Notifier
 from ble_groundtruth.wire import Reading
 from ble_groundtruth.zenoh_config import SessionSpec, build_config
+from sensor_agent.clockhealth import read_chrony
 from sensor_agent.config import AgentConfig, AllowList
 from sensor_agent.errors import AckTimeout, AgentError, BackendError
 from sensor_agent.scanning.base import AdapterInfo, Clocks, ScannerBackend
+from sensor_agent.spool import Spool
 
 log = logging.getLogger(__name__)
 
 RATE_WINDOW_S = 5  # adverts/s in the status is averaged over this many whole seconds
 ACK_POLL_S = 0.02
+HOUSEKEEPING_S = 0.5  # spool fsync and re-send checks run this often
+CHRONY_REFRESH_S = 60.0
+CONNECT_RETRY_MAX_S = 5.0
 
 
 def new_boot_id() -> str:
@@ -49,7 +57,9 @@ def make_backend(cfg: AgentConfig, clocks: Clocks) -> ScannerBackend:
     if cfg.backend == "bleak":
         from sensor_agent.scanning.bleak_backend import BleakBackend
 
-        return BleakBackend(cfg.adapters, cfg.scan_mode, clocks)
+        return BleakBackend(cfg.adapters, cfg.scan_mode, clocks,
+                            watchdog_silence_s=cfg.watchdog.silent_s,
+                            power_cycle_after=cfg.watchdog.power_cycle_after)
     raise BackendError(f"unknown backend {cfg.backend!r}")
 
 
@@ -96,7 +106,8 @@ class Agent:
     """One running agent; ``run()`` returns when the source finishes or ``stop()`` is called."""
 
     def __init__(self, cfg: AgentConfig, backend: ScannerBackend, clocks: Clocks | None = None,
-                 boot_id: str | None = None) -> None:
+                 boot_id: str | None = None, notifier: Notifier | None = None,
+                 resend_s: float | None = None) -> None:
         self.cfg = cfg
         self.backend = backend
         self.clocks = clocks or Clocks()
@@ -106,6 +117,11 @@ class Agent:
         self.readings = 0
         self._stop = asyncio.Event()
         self._publisher: Any = None
+        self._spool: Spool | None = None
+        self._session: Any = None
+        self._chrony: dict[str, Any] | None = None
+        self.notifier = notifier or Notifier()
+        self.resend_s = resend_s
 
     def stop(self) -> None:
         """Ask ``run()`` to stop (safe to call from a signal handler on the loop)."""
@@ -129,43 +145,58 @@ class Agent:
         adapters = []
         for info in self.backend.adapters:
             st = self.stats.get(info.mac)
-            adapters.append(_adapter_status(info, st, now_mono, self.backend.restarts(info.mac)))
+            a = _adapter_status(info, st, now_mono, self.backend.restarts(info.mac))
+            a["power_cycles"] = self.backend.power_cycles(info.mac)
+            adapters.append(a)
+        pub = self._publisher
         return {"agent_id": self.cfg.agent_id, "boot_id": self.boot_id, "version": __version__,
                 "backend": self.cfg.backend, "hostname": socket.gethostname(),
                 "started_ns": self.started_ns, "now_ns": self.clocks.wall_ns(),
-                "adapters": adapters}
+                "adapters": adapters, "spool": self.spool_status(),
+                "resent": 0 if pub is None else pub.resent, "chrony": self._chrony}
+
+    def spool_status(self) -> dict[str, Any] | None:
+        """The spool's counters for the status reply; None when running without a spool."""
+        if self._spool is None:
+            return None
+        st = self._spool.stats()
+        return {"dir": st.directory, "bytes": st.bytes, "max_bytes": st.max_bytes,
+                "records": st.records, "streams": st.streams,
+                "dropped_oldest": st.dropped_oldest, "unspooled": st.unspooled,
+                "disk_full": st.disk_full, "writing": st.writing, "last_error": st.last_error}
 
     # -- lifecycle --------------------------------------------------------------------------
 
     async def run(self, *, wait_ack: bool = True) -> RunResult:
-        import zenoh
-
-        from sensor_agent.publisher import Publisher
+        from sensor_agent.publisher import RESEND_S, Publisher
 
         cfg = self.cfg
         await asyncio.to_thread(self.backend.check)  # bad input fails before connecting
-        spec = SessionSpec(mode="client", connect=tuple(cfg.connect), tls=cfg.tls)
-        try:
-            session = await asyncio.to_thread(zenoh.open, build_config(spec))
-        except zenoh.ZError as e:
-            # Zenoh appends the Rust source location after two spaces; the reason comes first.
-            reason = str(e).splitlines()[0].split("  at ")[0].strip() if str(e) else ""
-            raise AgentError(f"cannot open a Zenoh session to {', '.join(cfg.connect)}: "
-                             f"{reason or 'connection failed'} (is the collector running?)"
-                             ) from None
+        if cfg.spool.dir is not None:
+            # fsync from the housekeeping timer (a worker thread), not inside append() on the loop
+            self._spool = await asyncio.to_thread(
+                Spool, cfg.spool.dir, cfg.spool.max_mb * 1024 * 1024, fsync_interval_s=None)
         acknowledged = False
+        tasks: list[asyncio.Task[Any]] = []
         try:
             self.started_ns = self.clocks.wall_ns()
-            self._publisher = Publisher(session, site=cfg.site, agent_id=cfg.agent_id,
-                                        boot_id=self.boot_id, wall_ns=self.clocks.wall_ns,
-                                        status=self.status)
-            log.info("agent %s (boot %s) on %s, backend %s", cfg.agent_id, self.boot_id,
-                     ", ".join(cfg.connect), cfg.backend)
+            self._publisher = Publisher(
+                site=cfg.site, agent_id=cfg.agent_id, boot_id=self.boot_id,
+                wall_ns=self.clocks.wall_ns, mono_ns=self.clocks.mono_ns, spool=self._spool,
+                status=self.status, chrony=lambda: self._chrony,
+                resend_s=RESEND_S if self.resend_s is None else self.resend_s)
+            log.info("agent %s (boot %s) on %s, backend %s, spool %s", cfg.agent_id, self.boot_id,
+                     ", ".join(cfg.connect), cfg.backend,
+                     "off" if cfg.spool.dir is None else cfg.spool.dir)
+            if not await self._try_open(first=True):
+                tasks.append(asyncio.create_task(self._connect_loop(), name="zenoh-connect"))
+            tasks.append(asyncio.create_task(self._housekeeping(), name="housekeeping"))
             try:
                 await self.backend.start(self._sink)
                 for a in self.backend.adapters:
                     self.stats.setdefault(a.mac, AdapterStats())
                     log.info("adapter %s (%s) %s", a.name, a.mac, a.mode)
+                self.notifier.ready(self._summary())
                 finished = await self._pump()
             finally:
                 await self.backend.stop()
@@ -174,10 +205,88 @@ class Agent:
                 await self._wait_acked(cfg.ack_timeout_s)
                 acknowledged = True
         finally:
+            self.notifier.stopping(f"stopping: {self.readings} readings")
+            for t in tasks:
+                t.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await t
             if self._publisher is not None:
                 self._publisher.close()
-            await asyncio.to_thread(session.close)
+            if self._spool is not None:
+                await asyncio.to_thread(self._spool.close)
+            if self._session is not None:
+                await asyncio.to_thread(self._session.close)
+            self.notifier.close()
         return RunResult(self.readings, acknowledged)
+
+    async def _try_open(self, *, first: bool = False) -> bool:
+        """Open the client session and attach the publisher; False while the router is
+        unreachable (the caller retries). Other Zenoh errors (bad TLS files ...) are fatal."""
+        import zenoh
+
+        cfg = self.cfg
+        spec = SessionSpec(mode="client", connect=tuple(cfg.connect), tls=cfg.tls)
+        try:
+            session = await asyncio.to_thread(zenoh.open, build_config(spec))
+        except zenoh.ZError as e:
+            # Zenoh appends the Rust source location after two spaces; the reason comes first.
+            reason = str(e).splitlines()[0].split("  at ")[0].strip() if str(e) else ""
+            if "Unable to connect" in reason or "Timeout" in reason:
+                if first:
+                    log.warning("cannot reach the Zenoh router at %s yet (%s); recording "
+                                "and retrying in the background", ", ".join(cfg.connect), reason)
+                return False
+            raise AgentError(f"cannot open a Zenoh session to {', '.join(cfg.connect)}: "
+                             f"{reason or 'connection failed'}") from None
+        self._session = session
+        self._publisher.attach(session)
+        if not first:
+            log.info("connected to the Zenoh router at %s", ", ".join(cfg.connect))
+        return True
+
+    async def _connect_loop(self) -> None:
+        """Keep trying to open the session (backoff up to CONNECT_RETRY_MAX_S) until it opens.
+        Once open, Zenoh's client reconnects by itself after an outage."""
+        delay = 0.25
+        while True:
+            await self.clocks.sleep(delay)
+            if await self._try_open():
+                return
+            delay = min(CONNECT_RETRY_MAX_S, delay * 2)
+
+    async def _housekeeping(self) -> None:
+        """Spool fsync, re-sends, chrony, and systemd's watchdog/status, each on its own period."""
+        pub, spool, notifier = self._publisher, self._spool, self.notifier
+        wd = notifier.watchdog_interval_s
+        now = self.clocks.mono_ns
+        next_chrony = next_wd = next_status = 0
+        while True:
+            t = now()
+            if t >= next_chrony:
+                next_chrony = t + int(CHRONY_REFRESH_S * 1e9)
+                self._chrony = await asyncio.to_thread(read_chrony)
+            if spool is not None:
+                await asyncio.to_thread(spool.sync)
+            await asyncio.to_thread(pub.resend_due)
+            t = now()
+            if wd is not None and t >= next_wd:
+                notifier.watchdog()
+                next_wd = t + int(wd * 1e9)
+            if t >= next_status:
+                notifier.status(self._summary())
+                next_status = t + int(self.cfg.status_interval_s * 1e9)
+            await self.clocks.sleep(min(HOUSEKEEPING_S, wd or HOUSEKEEPING_S))
+
+    def _summary(self) -> str:
+        """One line for systemd's STATUS=."""
+        pub = self._publisher
+        parts = [f"{self.readings} readings", f"{len(self.backend.adapters)} adapter(s)",
+                 "connected" if pub is not None and pub.connected() else "not connected"]
+        sp = self.spool_status()
+        if sp is not None:
+            parts.append(f"spool {sp['records']} unacked, {sp['bytes'] // 1024} KiB"
+                         + (", DISK FULL" if sp["disk_full"] else ""))
+        return "; ".join(parts)
 
     async def _pump(self) -> bool:
         """Flush every batch_ms until the source finishes (True) or stop() (False)."""
@@ -216,13 +325,13 @@ class Agent:
         """Wait (bounded) until the collector acknowledged every published batch, else AckTimeout."""
         deadline = self.clocks.mono_ns() + int(timeout_s * 1e9)
         while True:
-            pending = self._publisher.unacked()
+            pending = self._publisher.outstanding()
             if not pending:
                 log.info("every batch acknowledged by the collector")
                 return
             if self.clocks.mono_ns() >= deadline or self._stop.is_set():
-                missing = sum(p - a for p, a in pending.values())
-                acked_any = bool(self._publisher.acked())
+                missing = sum(pending.values())
+                acked_any = self._publisher.any_ack()
                 hint = "" if acked_any else " (no acknowledgement at all: is a collector running?)"
                 log.warning("%d batch(es) of %d stream(s) not acknowledged", missing, len(pending))
                 raise AckTimeout(f"the collector did not acknowledge {missing} batch(es) of "

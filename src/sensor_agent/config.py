@@ -67,6 +67,12 @@ class SpoolConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class WatchdogConfig:
+    silent_s: float = 60.0  # no advertisement for this long -> restart that adapter's scanner
+    power_cycle_after: int = 2  # still silent after this many restarts -> power-cycle the adapter
+
+
+@dataclass(frozen=True, slots=True)
 class AgentConfig:
     agent_id: str
     site: str = "default"
@@ -79,6 +85,7 @@ class AgentConfig:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     simulated: SimulatedConfig = field(default_factory=SimulatedConfig)
     spool: SpoolConfig = field(default_factory=SpoolConfig)
+    watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
     tls: TlsFiles | None = None
     status_interval_s: float = 5.0
     ack_timeout_s: float = 30.0  # replay end: how long to wait for the collector's acks
@@ -102,6 +109,8 @@ class AgentConfig:
                           "floor_dbm": sim.floor_dbm},
             "spool": {"dir": None if self.spool.dir is None else str(self.spool.dir),
                       "max_mb": self.spool.max_mb},
+            "watchdog": {"silent_s": self.watchdog.silent_s,
+                         "power_cycle_after": self.watchdog.power_cycle_after},
             "tls": None if self.tls is None else {"root_ca": self.tls.root_ca,
                                                   "cert": self.tls.cert, "key": self.tls.key},
             "status_interval_s": self.status_interval_s,
@@ -223,7 +232,7 @@ def _adapter(f: _Fields, v: Any, name: str) -> str:
 
 
 _TOP_KEYS = ("agent_id", "site", "connect", "backend", "batch_ms", "adapters", "scan_mode",
-             "allow", "replay", "simulated", "spool", "tls", "status_interval_s", "ack_timeout_s")
+             "allow", "replay", "simulated", "spool", "watchdog", "tls", "status_interval_s", "ack_timeout_s")
 _SIM_KEYS = ("seed", "sensors", "site", "beacons", "path", "t0", "events", "rate_hz", "tx_1m",
              "path_loss_exponent", "sigma_db", "drop_prob", "floor_dbm")
 
@@ -274,6 +283,13 @@ def parse_config(data: Any, source: str = "agent.yaml", base_dir: Path | None = 
         sdir = s.get("dir")
         out["spool"] = SpoolConfig(None if sdir is None else f.path(sdir, "spool.dir"),
                                    f.pos_int(s.get("max_mb", 256), "spool.max_mb"))
+    if "watchdog" in d:
+        w = f.mapping(d["watchdog"], "watchdog", ("silent_s", "power_cycle_after"))
+        pca = w.get("power_cycle_after", 2)
+        if isinstance(pca, bool) or not isinstance(pca, int) or pca < 0:
+            raise f.fail("watchdog.power_cycle_after", "an integer >= 0", pca)
+        out["watchdog"] = WatchdogConfig(
+            f.number(w.get("silent_s", 60.0), "watchdog.silent_s", lo=0.0, lo_open=True), pca)
     if d.get("tls") is not None:
         t = f.mapping(d["tls"], "tls", ("root_ca", "cert", "key"))
         for k in ("root_ca", "cert", "key"):

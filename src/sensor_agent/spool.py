@@ -536,6 +536,32 @@ class Spool:
         with self._lock:
             return dict(self._acked)
 
+    def lowest_pending(self, stream: str) -> int | None:
+        """The lowest unacknowledged seq of ``stream`` still on disk, or None (the publisher's
+        floor: nothing below it can be re-sent from the spool)."""
+        with self._lock:
+            a = self._acked.get(stream, -1)
+            for seg in self._segments:
+                for first, last in seg.runs.get(stream, ()):
+                    if last > a:
+                        return max(first, a + 1)
+            return None
+
+    def pending_streams(self) -> dict[str, tuple[int, int]]:
+        """Streams with unacknowledged records on disk: stream -> (lowest, highest) such seq."""
+        with self._lock:
+            out: dict[str, tuple[int, int]] = {}
+            for seg in self._segments:
+                for stream, rs in seg.runs.items():
+                    a = self._acked.get(stream, -1)
+                    for first, last in rs:
+                        if last > a:
+                            lo, hi = max(first, a + 1), last
+                            if stream in out:
+                                lo, hi = min(lo, out[stream][0]), max(hi, out[stream][1])
+                            out[stream] = (lo, hi)
+            return out
+
     def _delete_acked_segments(self) -> None:
         for seg in [s for s in self._segments if s is not self._active]:
             if not seg.unacked_streams(self._acked):

@@ -20,7 +20,9 @@ def agent_env() -> dict[str, str]:
 
 
 class FakeCollector:
-    """Receives batches and acknowledges them per the contract (highest contiguous seq)."""
+    """Receives batches and acknowledges them per the contract: per (agent, boot) stream the
+    highest seq with every earlier one received, skipping over seqs below the batch's floor;
+    one ack message per boot of the agent."""
 
     def __init__(self, endpoint: str, site: str, ack: bool = True) -> None:
         self.site = site
@@ -28,21 +30,29 @@ class FakeCollector:
         self.session = zenoh.open(build_config(SessionSpec(mode="router", listen=[endpoint])))
         self.sub = self.session.declare_subscriber(wire.data_selector(site))
         self.batches: list[wire.Batch] = []
+        self.payloads: list[bytes] = []
         self._seen: dict[tuple[str, str, str], set[int]] = {}
+        self._mark: dict[tuple[str, str, str], int] = {}
 
-    def _contiguous(self, seqs: set[int]) -> int:
-        n = -1
-        while n + 1 in seqs:
+    def watermark(self, stream: tuple[str, str, str]) -> int:
+        n = self._mark.get(stream, -1)
+        seen = self._seen.get(stream, set())
+        while n + 1 in seen:
             n += 1
+        self._mark[stream] = n
         return n
 
     def poll(self) -> None:
         while (sample := self.sub.try_recv()) is not None:
-            b = wire.from_wire(sample.payload.to_bytes())
+            data = sample.payload.to_bytes()
+            b = wire.from_wire(data)
             self.batches.append(b)
+            self.payloads.append(data)
             self._seen.setdefault(b.stream, set()).add(b.seq)
+            if b.floor > 0:
+                self._mark[b.stream] = max(self._mark.get(b.stream, -1), b.floor - 1)
             if self.ack:
-                streams = {s: self._contiguous(q) for (a, boot, s), q in self._seen.items()
+                streams = {s: self.watermark((a, boot, s)) for (a, boot, s) in list(self._seen)
                            if a == b.agent_id and boot == b.boot_id}
                 self.session.put(wire.ack_key(self.site, b.agent_id),
                                  wire.to_json({"boot": b.boot_id, "streams": streams}))

@@ -84,16 +84,21 @@ def test_no_wait_ack_exits_0_without_collector_acks(endpoint: str, dataset_dir: 
     assert sum(len(b.readings) for b in collector.batches) == 118
 
 
-def test_unreachable_router_is_one_line(dataset_dir: Path, tmp_path: Path) -> None:
+def test_unreachable_router_keeps_recording_then_one_line(dataset_dir: Path, tmp_path: Path) -> None:
+    """No router at all: the agent still starts and records (it would publish once the router
+    comes); a replay then ends with the bounded ack wait and one line, not a traceback."""
     from conftest import free_port
 
     f = dataset_dir / "trk" / "straight_01" / "sensor10_0.00_0.00_0.00.mbd"
     log = tmp_path / "agent.log"
     with log.open("w") as out:
         rc = subprocess.run(AGENT + ["run", "--connect", f"tcp/127.0.0.1:{free_port()}",
-                                     "--replay", str(f)], stdout=out, stderr=out, env=agent_env(),
-                            timeout=60).returncode
+                                     "--replay", str(f), "--replay-speed", "0",
+                                     "--ack-timeout", "1"], stdout=out, stderr=out,
+                            env=agent_env(), timeout=60).returncode
     text = log.read_text()
     assert rc == 1
-    assert "cannot open a Zenoh session to tcp/127.0.0.1:" in text
+    assert "cannot reach the Zenoh router at tcp/127.0.0.1:" in text
+    assert "did not acknowledge 1 batch(es) of 1 stream(s)" in text
+    assert "no acknowledgement at all" in text
     assert "Traceback" not in text

@@ -51,6 +51,7 @@ class FakeAgent:
         self.agent, self.site, self.boot = agent, site, boot
         self.session = zenoh.open(build_config(SessionSpec(mode="client", connect=[endpoint], tls=tls)))
         self.acks: dict[str, int] = {}
+        self.boot_acks: dict[str, dict[str, int]] = {}  # every boot's acks (contract 2)
         self.ack_msgs: list[dict] = []
         self._lock = threading.Lock()
         self._ack_sub = self.session.declare_subscriber(wire.ack_key(site, agent), self._on_ack)
@@ -60,12 +61,29 @@ class FakeAgent:
         msg = json.loads(sample.payload.to_bytes())
         with self._lock:
             self.ack_msgs.append(msg)
+            self.boot_acks.setdefault(msg["boot"], {}).update(msg["streams"])
             if msg["boot"] == self.boot:
                 self.acks.update(msg["streams"])
 
     def acked(self, sensor: str) -> int:
         with self._lock:
             return self.acks.get(sensor, -1)
+
+    def acked_boot(self, boot: str, sensor: str) -> int:
+        with self._lock:
+            return self.boot_acks.get(boot, {}).get(sensor, -1)
+
+    def serve_clock(self, offset_ns: int = 0, chrony: dict | None = None) -> None:
+        """Answer the collector's clock exchange like an agent whose clock is `offset_ns` ahead."""
+        key = wire.agent_clock_key(self.site, self.agent)
+
+        def on_query(q: zenoh.Query) -> None:
+            t2 = time.time_ns() + offset_ns
+            t1 = json.loads(q.payload.to_bytes())["t1"]
+            reply = {"t1": t1, "t2": t2, "t3": time.time_ns() + offset_ns, "chrony": chrony}
+            q.reply(key, wire.to_json(reply))
+
+        self._clock_q = self.session.declare_queryable(key, on_query)
 
     def declare_token(self) -> None:
         self.token = self.session.liveliness().declare_token(wire.agent_token_key(self.site, self.agent))
@@ -80,4 +98,6 @@ class FakeAgent:
         if self.token is not None:
             self.token.undeclare()
         self._ack_sub.undeclare()
+        if getattr(self, "_clock_q", None) is not None:
+            self._clock_q.undeclare()
         self.session.close()

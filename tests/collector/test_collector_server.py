@@ -197,7 +197,8 @@ def test_agent_status_goes_into_run_yaml(agent, client) -> None:
     a = doc["agents"]["pi-01"]
     assert (a["hostname"], a["version"], a["backend"], a["boot_ids"]) == ("pi-kitchen", "9.9", "replay", [agent.boot])
     assert a["sensors"][A] == {"adapter": "hci0", "mac": A, "backend": "replay", "mode": "passive",
-                               "readings": 5, "batches": 1, "gaps": 0, "missing_batches": 0}
+                               "readings": 5, "batches": 1, "gaps": 0, "missing_batches": 0,
+                               "lost_batches": 0}
 
 
 def test_close_finalises_the_active_run(tmp_path, endpoint) -> None:

@@ -3,6 +3,7 @@ run directories and config files."""
 
 from __future__ import annotations
 
+import os
 import struct
 
 import pytest
@@ -223,29 +224,40 @@ def test_config_insecure_allows_lan_listen(tmp_path) -> None:
     assert cfg.listen == ("tcp/0.0.0.0:7447",)
 
 
-class _FullDisk:
-    """Stands in for a file on a full disk: every write fails."""
+class _Disk:
+    """os.write with a switch: when full, a write gets some bytes in, then fails like ENOSPC."""
 
-    def write(self, data: bytes) -> int:
-        raise OSError(28, "No space left on device")
+    def __init__(self) -> None:
+        self.full = False
 
-    def flush(self) -> None:
-        pass
+    def __call__(self, fd: int, data: bytes) -> int:
+        if self.full:
+            if len(data) > 7:
+                return os.write(fd, data[:7])  # a partial write first, as a real disk may do
+            raise OSError(28, "No space left on device")
+        return os.write(fd, data)
 
 
 def test_failed_write_keeps_rows_for_the_retry(tmp_path) -> None:
-    w = RunWriter(tmp_path, "r", "r", 1_795_318_500 * 10**9, {})
+    disk = _Disk()
+    w = RunWriter(tmp_path, "r", "r", 1_795_318_500 * 10**9, {}, write=disk)
     b = make_batch(0, n=3)
     rows = decode(wire.to_wire(b)).rows
-    w.append("pi-01", b.sensor, format_rows(b.sensor, rows[:2]), 2)
-    app = w.appenders[b.sensor]
-    real, app._f = app._f, _FullDisk()
+    w.append("pi-01", b.sensor, format_rows(b.sensor, rows[:1]), 1)
+    w.flush()
+    path = w.dir / "rssi" / f"{b.sensor}.mbd"
+    good = path.read_bytes()
+    w.append("pi-01", b.sensor, format_rows(b.sensor, rows[1:2]), 1)
+    disk.full = True
     with pytest.raises(OSError, match="No space"):
         w.flush()
+    assert path.read_bytes() == good  # the partial write was rolled back to the last whole line
+    assert w.appenders[b.sensor].size == len(good)
     w.append("pi-01", b.sensor, format_rows(b.sensor, rows[2:]), 1)
-    app._f = real  # space again
+    assert w.buffered > 0
+    disk.full = False  # space again
     w.close()
-    assert (w.dir / "rssi" / f"{b.sensor}.mbd").read_text().splitlines() == \
+    assert path.read_text().splitlines() == \
         [format_row(r.t_ns, b.sensor, r.beacon, r.rssi).strip() for r in b.readings]
 
 

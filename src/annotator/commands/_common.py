@@ -7,6 +7,7 @@ from contextlib import contextmanager
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from annotator.errors import AnnotatorError
 from ble_groundtruth.formats.devices import SiteConfigError
@@ -23,5 +24,7 @@ def one_line_errors() -> Iterator[None]:
     try:
         yield
     except KNOWN_ERRORS as e:
-        console.print(f"[red]error:[/red] {e}", highlight=False)
+        # escape: messages quote formats like "[x, y]" that rich would eat as markup;
+        # soft_wrap: one line however narrow the terminal.
+        console.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
         raise typer.Exit(1) from None

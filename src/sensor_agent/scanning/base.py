@@ -69,3 +69,7 @@ class ScannerBackend(abc.ABC):
     def restarts(self, adapter_mac: str) -> int:
         """How many times the backend restarted this adapter's scanner (watchdog)."""
         return 0
+
+    def power_cycles(self, adapter_mac: str) -> int:
+        """How many times the watchdog power-cycled this adapter."""
+        return 0

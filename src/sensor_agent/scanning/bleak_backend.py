@@ -2,7 +2,8 @@
 
 The only module that imports bleak (and talks to BlueZ over D-Bus). Adapters are identified by
 the address BlueZ reports in ``org.bluez.Adapter1.Address``; that MAC is the sensor id.
-A watchdog restarts a scanner that has gone silent, and counts the restarts for the status.
+A watchdog restarts a scanner that has gone silent; if restarting does not help it power-cycles
+the adapter over D-Bus (``Adapter1.Powered``), finding it again by MAC since hciN may change.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from bleak.assigned_numbers import AdvertisementDataType
 from bleak.backends.device import BLEDevice
 from bleak.backends.scanner import AdvertisementData
 from bleak.exc import BleakError
-from dbus_fast import BusType, Message, MessageType
+from dbus_fast import BusType, Message, MessageType, Variant
 from dbus_fast.aio import MessageBus
 from dbus_fast.errors import DBusError
 
@@ -49,6 +50,13 @@ PASSIVE_OR_PATTERNS = [
 
 WATCHDOG_SILENCE_S = 60.0  # an adapter with nothing heard for this long gets its scanner restarted
 WATCHDOG_CHECK_S = 5.0
+POWER_CYCLE_AFTER = 2  # scanner restarts without an advert before the adapter is power-cycled
+PROPERTIES_IFACE = "org.freedesktop.DBus.Properties"
+# BlueZ answers these while an adapter is busy changing state; they clear by themselves.
+RECOVERABLE_ERRORS = frozenset({"org.bluez.Error.InProgress", "org.bluez.Error.NotReady",
+                                "org.bluez.Error.Busy"})
+POWER_RETRIES = 5
+POWER_BACKOFF_S = 0.25
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,6 +139,8 @@ class _AdapterScanner:
         self.scanner: BleakScanner | None = None
         self.last_mono_ns: int | None = None
         self.restarts = 0
+        self.power_cycles = 0
+        self.silent_restarts = 0  # restarts since the last advertisement
 
     def _new_scanner(self) -> BleakScanner:
         bluez: dict = {"adapter": self.adapter.name}
@@ -163,13 +173,15 @@ class BleakBackend(ScannerBackend):
     name = "bleak"
 
     def __init__(self, adapters: Sequence[str] = (), scan_mode: str = "active",
-                 clocks: Clocks | None = None, watchdog_silence_s: float = WATCHDOG_SILENCE_S) -> None:
+                 clocks: Clocks | None = None, watchdog_silence_s: float = WATCHDOG_SILENCE_S,
+                 power_cycle_after: int = POWER_CYCLE_AFTER) -> None:
         if scan_mode not in ("active", "passive"):
             raise BackendError(f"scan mode must be active or passive, got {scan_mode!r}")
         self.wanted = tuple(adapters)
         self.scan_mode = scan_mode
         self.clocks = clocks or Clocks()
         self.watchdog_silence_s = watchdog_silence_s
+        self.power_cycle_after = power_cycle_after
         self._scanners: list[_AdapterScanner] = []
         self._sink: AdvertSink | None = None
         self._watchdog: asyncio.Task[None] | None = None
@@ -181,6 +193,9 @@ class BleakBackend(ScannerBackend):
 
     def restarts(self, adapter_mac: str) -> int:
         return next((s.restarts for s in self._scanners if s.adapter.address == adapter_mac), 0)
+
+    def power_cycles(self, adapter_mac: str) -> int:
+        return next((s.power_cycles for s in self._scanners if s.adapter.address == adapter_mac), 0)
 
     async def start(self, sink: AdvertSink) -> None:
         self._sink = sink
@@ -212,6 +227,7 @@ class BleakBackend(ScannerBackend):
         # Stamp first: the reception time is the whole point of the dataset.
         t_ns, mono = self.clocks.wall_ns(), self.clocks.mono_ns()
         s.last_mono_ns = mono
+        s.silent_restarts = 0
         try:
             beacon = normalize_mac(device.address)
         except WireError:
@@ -223,22 +239,37 @@ class BleakBackend(ScannerBackend):
             self._sink(s.adapter.address, reading)
 
     async def _watch(self) -> None:
-        """Restart scanners that have been silent too long (BlueZ discovery sometimes stalls)."""
+        """Restart scanners that have been silent too long (BlueZ discovery sometimes stalls);
+        power-cycle the adapter when restarting alone did not bring advertisements back."""
         silence_ns = int(self.watchdog_silence_s * 1e9)
         while True:
-            await self.clocks.sleep(min(WATCHDOG_CHECK_S, self.watchdog_silence_s))
+            await self.clocks.sleep(min(WATCHDOG_CHECK_S, self.watchdog_silence_s / 2))
             now = self.clocks.mono_ns()
             for s in self._scanners:
-                if s.last_mono_ns is not None and now - s.last_mono_ns > silence_ns:
-                    log.warning("adapter %s silent for %.0f s; restarting its scanner",
-                                s.adapter.name, (now - s.last_mono_ns) / 1e9)
-                    await s.stop()
+                if s.last_mono_ns is None or now - s.last_mono_ns <= silence_ns:
+                    continue
+                silent_s = (now - s.last_mono_ns) / 1e9
+                await s.stop()
+                if s.silent_restarts >= self.power_cycle_after:
+                    log.warning("adapter %s (%s) still silent after %d scanner restart(s); "
+                                "power-cycling it", s.adapter.name, s.adapter.address,
+                                s.silent_restarts)
+                    s.power_cycles += 1
+                    s.silent_restarts = 0
                     try:
-                        await s.start()
+                        s.adapter = await power_cycle(s.adapter.address, self.clocks)
                     except BackendError as e:
                         log.warning("%s; will retry", e)
+                else:
+                    log.warning("adapter %s silent for %.0f s; restarting its scanner",
+                                s.adapter.name, silent_s)
                     s.restarts += 1
-                    s.last_mono_ns = now
+                    s.silent_restarts += 1
+                try:
+                    await s.start()
+                except BackendError as e:
+                    log.warning("%s; will retry", e)
+                s.last_mono_ns = self.clocks.mono_ns()
 
     async def stop(self) -> None:
         if self._watchdog is not None:
@@ -249,3 +280,50 @@ class BleakBackend(ScannerBackend):
         self._sink = None
         for s in self._scanners:
             await s.stop()
+
+
+async def _find_by_mac(address: str) -> BluezAdapter | None:
+    return next((a for a in await list_adapters() if a.address == address), None)
+
+
+async def _set_powered(bus: MessageBus, path: str, on: bool, clocks: Clocks) -> None:
+    """Properties.Set(Adapter1.Powered), retrying (with backoff) while BlueZ says it is busy."""
+    delay = POWER_BACKOFF_S
+    for attempt in range(POWER_RETRIES):
+        reply = await bus.call(Message(
+            destination=BLUEZ, path=path, interface=PROPERTIES_IFACE, member="Set",
+            signature="ssv", body=[ADAPTER_IFACE, "Powered", Variant("b", on)]))
+        if reply.message_type != MessageType.ERROR:
+            return
+        if reply.error_name not in RECOVERABLE_ERRORS or attempt == POWER_RETRIES - 1:
+            detail = reply.body[0] if reply.body else ""
+            raise BackendError(f"cannot power {'on' if on else 'off'} adapter {path}: "
+                               f"{reply.error_name} {detail}".strip())
+        log.debug("adapter %s: %s while powering %s; retrying in %.2f s", path,
+                  reply.error_name, "on" if on else "off", delay)
+        await clocks.sleep(delay)
+        delay *= 2
+
+
+async def power_cycle(address: str, clocks: Clocks | None = None) -> BluezAdapter:
+    """Power the adapter with this MAC off and on again over D-Bus; returns it as found
+    afterwards (its object path, hciN, may have changed). BackendError if it cannot be done."""
+    clocks = clocks or Clocks()
+    found = await _find_by_mac(address)
+    if found is None:
+        raise BackendError(f"adapter {address} is not known to BlueZ (unplugged?)")
+    try:
+        bus = await MessageBus(bus_type=BusType.SYSTEM).connect()
+    except (OSError, ValueError, DBusError) as e:
+        raise BackendError(f"cannot connect to the D-Bus system bus ({e}); is dbus running?") from e
+    try:
+        await _set_powered(bus, found.path, False, clocks)
+        await _set_powered(bus, found.path, True, clocks)
+    finally:
+        bus.disconnect()
+    again = await _find_by_mac(address)
+    if again is None:
+        raise BackendError(f"adapter {address} disappeared while being power-cycled")
+    if again.name != found.name:
+        log.warning("adapter %s is now %s (was %s)", address, again.name, found.name)
+    return again

@@ -1,0 +1,122 @@
+"""`annotator demo`: the README's first command; capture, render, annotate and score with no hardware."""
+
+from __future__ import annotations
+
+import datetime as dt
+import signal
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from annotator.commands._common import console, one_line_errors
+
+out_console = Console()
+
+
+def _utc(t_ns: int | None) -> str:
+    if t_ns is None:
+        return "-"
+    return dt.datetime.fromtimestamp(t_ns / 1e9, tz=dt.UTC).strftime("%H:%M:%S.%f")[:-3]
+
+
+def capture_table(cap: Any) -> Table:
+    table = Table(title=f"capture: {sum(f.rows for f in cap.files)} readings in {cap.run_dir}")
+    for col, just in (("file (rssi/)", "left"), ("rows", "right"), ("first (UTC)", "left"),
+                      ("last (UTC)", "left")):
+        table.add_column(col, justify=just, overflow="fold")
+    for f in cap.files:
+        table.add_row(f.path.name, str(f.rows), _utc(f.first_ns), _utc(f.last_ns))
+    return table
+
+
+def result_table(summary: dict[str, Any]) -> Table:
+    e, c = summary["error_cm"], summary["coverage"]
+    table = Table(title="annotation against the known truth", show_header=False)
+    table.add_column("what")
+    table.add_column("value", overflow="fold")
+
+    def cm(v: float | None) -> str:
+        return "-" if v is None else f"{v:.2f} cm"
+
+    table.add_row("position error (labelled readings)",
+                  f"median {cm(e['median'])}, p95 {cm(e['p95'])}, max {cm(e['max'])} (n = {e['n']})")
+    table.add_row("labelled in the tracked span",
+                  f"{c['labelled_of_tracked_span']:.1%} ({c['labelled']} of {c['readings_of_beacon']} "
+                  "readings of the beacon)")
+    for name, s in summary["sync"].items():
+        sigma = "" if s["sigma_ms"] is None else f" ± {s['sigma_ms']:.1f} ms"
+        table.add_row(f"{name} video start", f"found {s['found']:.4f}, true {s['true']:.4f}: error "
+                      f"{s['error_ms']:+.1f} ms{sigma} ({s['method']})")
+    return table
+
+
+def demo(
+    out: Annotated[Path, typer.Option("--out", help="Folder for everything the demo writes (created; "
+                                                    "must not hold an earlier demo).")] = Path("demo-output"),
+    duration: Annotated[float, typer.Option(
+        help="Seconds of video (the capture runs ~6 s longer). Render and tracking time grow with it.")] = 30.0,
+    end_cover: Annotated[bool, typer.Option(
+        "--end-cover/--no-end-cover", help="A second hands-cover event 3 s before the end (lets the "
+                                           "annotator fit clock drift when the two are >= 10 s apart).")] = True,
+    jobs: Annotated[int, typer.Option(help="Processes for rendering and tracking (one per camera).")] = 2,
+    seed: Annotated[int, typer.Option(help="Seed of the simulated radio and the render noise.")] = 0,
+) -> None:
+    """Run the whole pipeline on this machine with no hardware, then score it.
+
+    1. a collector and three simulated sensor agents (pi-1..pi-3, 4 tetam sensors each) record a run
+       over loopback Zenoh while a beacon walks a loop, with hands over it 2 s after the start;
+    2. the same walk is rendered as front/back camera video (the back camera starts 0.35 s later);
+    3. `annotator run` (sync.mode auto: it is not told when the videos started) labels the readings;
+    4. the labels are compared with the true path: position error, coverage, sync error.
+
+    Writes OUT/capture (the run), OUT/experiment (videos, experiment.yaml), OUT/results (annotated
+    files, report.json, plots), OUT/logs and OUT/demo_summary.json.
+    """
+    with one_line_errors():
+        from annotator.demo import DemoError, DemoSettings, run_demo
+
+        if jobs < 1:
+            raise DemoError("--jobs must be >= 1")
+        # SIGTERM (a closed terminal, `kill`) takes the same way out as Ctrl-C, so the
+        # collector and agents are stopped too.
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
+        settings = DemoSettings(out=out.absolute(), duration_s=duration, end_cover=end_cover, jobs=jobs,
+                                seed=seed)
+        with Progress(TextColumn("{task.description:>12}"), BarColumn(),
+                      TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn(),
+                      console=console) as bar:
+            tasks: dict[str, Any] = {}
+
+            def progress(name: str, done: int, total: int) -> None:
+                if name not in tasks:
+                    tasks[name] = bar.add_task(name, total=total)
+                bar.update(tasks[name], completed=done, total=total)
+
+            def note(text: str) -> None:
+                bar.console.print(escape(text), highlight=False, soft_wrap=True)
+
+            def on_capture(cap: Any) -> None:
+                bar.console.print(capture_table(cap))
+
+            try:
+                result = run_demo(settings, progress, note, on_capture)
+            except KeyboardInterrupt:
+                # The child processes are already stopped (annotator.demo cleans up on any exit).
+                raise DemoError("interrupted; the collector and agents were stopped") from None
+        s = result.summary
+        out_console.print(result_table(s))
+        out_console.print(f"results:  {result.results}  (report.json, annotated/, annotated.parquet)",
+                          highlight=False, soft_wrap=True)
+        for p in s["plots"]:
+            out_console.print(f"plot:     {p}", highlight=False, soft_wrap=True)
+        out_console.print(f"summary:  {result.summary_path}   (demo took {s['wall_time_s']:.0f} s)",
+                          highlight=False, soft_wrap=True)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("demo")(demo)

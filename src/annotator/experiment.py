@@ -1,0 +1,277 @@
+"""Loading an experiment: experiment.yaml, the rig, camera calibrations and the marker map.
+
+Every path inside a YAML file is relative to that file; every problem is one ConfigError line.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from annotator.errors import ConfigError
+from ble_groundtruth.formats.markers import MarkerPose, read_marker_map
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class CameraCalibration:
+    """Pinhole intrinsics plus OpenCV distortion coefficients for one camera."""
+
+    camera_matrix: np.ndarray  # 3x3
+    dist_coeffs: np.ndarray  # (n,) OpenCV order k1 k2 p1 p2 [k3 ...]
+    width: int
+    height: int
+    source: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class RigCamera:
+    """One camera of the bundle: its calibration and where it sits on the bundle."""
+
+    name: str
+    calibration: CameraCalibration
+    R_bundle_camera: np.ndarray  # camera-frame vectors -> bundle frame
+    t_bundle_camera: np.ndarray  # camera centre in the bundle frame, metres
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    cameras: dict[str, RigCamera]
+    source: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class MarkerSetup:
+    markers: dict[int, MarkerPose]
+    dictionary: str  # e.g. "DICT_6X6_50"
+    length: float  # printed outer black square, metres
+
+
+@dataclass(frozen=True, eq=False)
+class Experiment:
+    path: Path
+    markers: MarkerSetup
+    rig: Rig
+    videos: dict[str, Path]
+    rssi: Path | None
+    sync_mode: str
+    video_start: dict[str, float] | None  # wall time of each video's first frame (manual sync)
+    sync: dict[str, Any] = field(default_factory=dict)  # the raw sync section, for auto sync
+
+
+# --- YAML plumbing --------------------------------------------------------------------------
+
+def _yaml_loader() -> type:
+    import yaml
+
+    class _Loader(yaml.SafeLoader):
+        """SafeLoader that also understands OpenCV's !!opencv-matrix tag."""
+
+    def _matrix(loader: yaml.SafeLoader, node: yaml.Node) -> dict[str, Any]:
+        return dict(loader.construct_mapping(node, deep=True))
+
+    _Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", _matrix)
+    _Loader.add_constructor("tag:yaml.org,2002:opencv-nd-matrix", _matrix)
+    return _Loader
+
+
+# OpenCV writes "%YAML:1.0" (not valid YAML) or "%YAML 1.2" (PyYAML speaks 1.1): drop the directive.
+_DIRECTIVE = re.compile(r"^%YAML[: ]\s*\d+\.\d+\s*$", re.MULTILINE)
+
+
+def load_yaml(path: Path, what: str) -> Any:
+    """Parse a YAML file (OpenCV FileStorage flavour included); one-line ConfigError on failure."""
+    import yaml
+
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as e:
+        raise ConfigError(f"cannot read {what} {path}: {e.strerror}") from None
+    text = _DIRECTIVE.sub("", text, count=1)
+    try:
+        return yaml.load(text, Loader=_yaml_loader())  # noqa: S506 - SafeLoader subclass
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f":{mark.line + 1}" if mark is not None else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise ConfigError(f"{path}{where}: not valid YAML ({problem})") from None
+
+
+def _mapping(obj: Any, source: str, what: str) -> dict[str, Any]:
+    if not isinstance(obj, dict):
+        raise ConfigError(f"{source}: {what} must be a mapping")
+    return obj
+
+
+def _matrix(value: Any, source: str, key: str, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """A matrix written as !!opencv-matrix / ROS {rows, cols, data} / nested lists."""
+    try:
+        if isinstance(value, dict):
+            data = np.asarray(value["data"], dtype=float)
+            rows, cols = int(value.get("rows", 1)), int(value.get("cols", data.size))
+            arr = data.reshape(rows, cols)
+        else:
+            arr = np.asarray(value, dtype=float)
+    except (KeyError, TypeError, ValueError) as e:
+        raise ConfigError(f"{source}: {key}: not a numeric matrix ({e})") from None
+    if shape is not None and arr.size == int(np.prod(shape)):
+        arr = arr.reshape(shape)
+    if shape is not None and arr.shape != shape:
+        raise ConfigError(f"{source}: {key}: expected shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ConfigError(f"{source}: {key}: contains non-finite numbers")
+    return arr
+
+
+# --- calibration ----------------------------------------------------------------------------
+
+def parse_calibration(obj: Any, source: str) -> CameraCalibration:
+    """OpenCV FileStorage calibration or ROS camera_info, already parsed from YAML."""
+    d = _mapping(obj, source, "a camera calibration")
+    for key in ("camera_matrix", "distortion_coefficients", "image_width", "image_height"):
+        if key not in d:
+            raise ConfigError(f"{source}: missing '{key}' (need an OpenCV FileStorage or ROS camera_info calibration)")
+    K = _matrix(d["camera_matrix"], source, "camera_matrix", (3, 3))
+    dist = _matrix(d["distortion_coefficients"], source, "distortion_coefficients").ravel()
+    if dist.size not in (0, 4, 5, 8, 12, 14):
+        raise ConfigError(f"{source}: distortion_coefficients: {dist.size} values; OpenCV takes 4, 5, 8, 12 or 14")
+    model = d.get("distortion_model", "plumb_bob")
+    if model not in ("plumb_bob", "rational_polynomial"):
+        raise ConfigError(f"{source}: distortion_model {model!r} is not supported (plumb_bob, rational_polynomial)")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
+        raise ConfigError(f"{source}: camera_matrix: need fx, fy > 0 and K[2][2] = 1")
+    try:
+        width, height = int(d["image_width"]), int(d["image_height"])
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: image_width / image_height must be integers") from None
+    if width <= 0 or height <= 0:
+        raise ConfigError(f"{source}: image_width / image_height must be positive")
+    if dist.size == 0:
+        dist = np.zeros(5)
+    return CameraCalibration(K, dist, width, height, source)
+
+
+def load_calibration(path: str | Path) -> CameraCalibration:
+    path = Path(path)
+    return parse_calibration(load_yaml(path, "camera calibration"), str(path))
+
+
+# --- rig ------------------------------------------------------------------------------------
+
+def _rotation(value: Any, source: str, key: str) -> np.ndarray:
+    R = _matrix(value, source, key, (3, 3))
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+        raise ConfigError(f"{source}: {key}: not a rotation (need R^T R = I and det +1)")
+    # Re-orthonormalise: a YAML file written with 6-digit numbers is a rotation only to ~1e-6.
+    u, _, vt = np.linalg.svd(R)
+    return u @ vt
+
+
+def parse_rig(obj: Any, path: Path) -> Rig:
+    source = str(path)
+    d = _mapping(obj, source, "the rig")
+    cams = d.get("cameras")
+    if not isinstance(cams, dict) or not cams:
+        raise ConfigError(f"{source}: expected a non-empty 'cameras:' mapping")
+    out: dict[str, RigCamera] = {}
+    for name, spec in cams.items():
+        where = f"{source}: cameras.{name}"
+        spec = _mapping(spec, where, "a camera")
+        for key in ("calibration", "R_bundle_camera", "t_bundle_camera"):
+            if key not in spec:
+                raise ConfigError(f"{where}: missing '{key}'")
+        cal_path = path.parent / str(spec["calibration"])
+        if not cal_path.is_file():
+            raise ConfigError(f"{where}.calibration: no such file {cal_path}")
+        out[str(name)] = RigCamera(
+            name=str(name),
+            calibration=load_calibration(cal_path),
+            R_bundle_camera=_rotation(spec["R_bundle_camera"], where, "R_bundle_camera"),
+            t_bundle_camera=_matrix(spec["t_bundle_camera"], where, "t_bundle_camera", (3,)),
+        )
+    return Rig(out, source)
+
+
+def load_rig(path: str | Path) -> Rig:
+    path = Path(path)
+    return parse_rig(load_yaml(path, "rig"), path)
+
+
+# --- experiment -----------------------------------------------------------------------------
+
+def _markers(value: Any, base: Path, source: str) -> MarkerSetup:
+    d = _mapping(value, source, "markers")
+    for key in ("file", "dictionary", "length"):
+        if key not in d:
+            raise ConfigError(f"{source}: markers: missing '{key}'")
+    import cv2
+
+    dictionary = str(d["dictionary"])
+    if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
+        raise ConfigError(f"{source}: markers.dictionary: unknown ArUco dictionary {dictionary!r}")
+    try:
+        length = float(d["length"])
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: markers.length must be a number (metres)") from None
+    if not length > 0:
+        raise ConfigError(f"{source}: markers.length must be positive (metres)")
+    # MarkerMapError is a known error too; the CLI prints it as one line.
+    return MarkerSetup(read_marker_map(base / str(d["file"])), dictionary, length)
+
+
+def parse_experiment(obj: Any, path: Path) -> Experiment:
+    source = str(path)
+    d = _mapping(obj, source, "the experiment")
+    base = path.parent
+    for key in ("markers", "rig", "videos"):
+        if key not in d:
+            raise ConfigError(f"{source}: missing '{key}'")
+    markers = _markers(d["markers"], base, source)
+    rig_path = base / str(d["rig"])
+    if not rig_path.is_file():
+        raise ConfigError(f"{source}: rig: no such file {rig_path}")
+    rig = load_rig(rig_path)
+    videos_raw = _mapping(d["videos"], source, "videos")
+    unknown = sorted(set(map(str, videos_raw)) - set(rig.cameras))
+    if unknown:
+        raise ConfigError(f"{source}: videos: camera(s) {', '.join(unknown)} not in the rig ({rig_path.name})")
+    if not videos_raw:
+        raise ConfigError(f"{source}: videos: no video given")
+    videos = {str(k): base / str(v) for k, v in videos_raw.items()}
+    for name, vp in videos.items():
+        if not vp.is_file():
+            raise ConfigError(f"{source}: videos.{name}: no such file {vp}")
+    rssi = base / str(d["rssi"]) if d.get("rssi") is not None else None
+
+    sync = _mapping(d.get("sync", {"mode": "manual"}), source, "sync")
+    mode = str(sync.get("mode", "manual"))
+    if mode not in ("manual", "auto"):
+        raise ConfigError(f"{source}: sync.mode must be 'manual' or 'auto', not {mode!r}")
+    video_start: dict[str, float] | None = None
+    if "video_start" in sync:
+        starts = _mapping(sync["video_start"], source, "sync.video_start")
+        try:
+            video_start = {str(k): float(v) for k, v in starts.items()}
+        except (TypeError, ValueError):
+            raise ConfigError(f"{source}: sync.video_start: values must be Unix seconds") from None
+        missing = sorted(set(videos) - set(video_start))
+        if missing:
+            raise ConfigError(f"{source}: sync.video_start: no start time for {', '.join(missing)}")
+    elif mode == "manual":
+        raise ConfigError(f"{source}: sync.mode is manual but sync.video_start is missing")
+    return Experiment(path, markers, rig, videos, rssi, mode, video_start, dict(sync))
+
+
+def load_experiment(path: str | Path) -> Experiment:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"no such experiment file: {path}")
+    exp = parse_experiment(load_yaml(path, "experiment"), path)
+    log.debug("experiment %s: cameras %s, %d markers", path, list(exp.videos), len(exp.markers.markers))
+    return exp

@@ -1,0 +1,191 @@
+"""Offline smoothing of per-frame bundle poses: RTS on position, local fits on SO(3) for rotation.
+
+Position: constant-velocity Kalman filter (filterpy) with each frame's own measurement
+covariance, Mahalanobis gating of outliers, then a Rauch-Tung-Striebel backward pass.
+Rotation: at each output time, a weighted local-linear fit of rotation-vector offsets around a
+robust local mean (scipy Rotation), so rotations stay rotations and turns do not lag.
+Pure functions on arrays; times in seconds; a time with no support comes back as NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.kalman import predict, rts_smoother, update
+from scipy.spatial.transform import Rotation
+
+CHI2_3DOF_999 = 16.27  # 99.9 % gate for a 3-d innovation
+
+
+@dataclass(frozen=True, slots=True)
+class SmootherSettings:
+    accel_psd: float = 0.5  # white-acceleration spectral density, m^2/s^3 (a person carrying a rig)
+    min_sigma_m: float = 0.002  # floor on a measurement's position sigma
+    max_gap_s: float = 0.6  # no output across a longer run without measurements
+    max_extrapolate_s: float = 0.1  # output this far beyond the first / last measurement of a run
+    max_meas_sigma_m: float = 0.15  # measurements vaguer than this (a lone far marker) are ignored
+    max_out_sigma_m: float = 0.05  # output times whose smoothed sigma exceeds this become gaps
+    gate_chi2: float = CHI2_3DOF_999
+    rot_bandwidth_s: float = 0.08  # Gaussian kernel sigma of the rotation fit
+    rot_gate_deg: float = 3.0  # a rotation this far from its neighbours' fit is an outlier
+
+
+def _segments(t: np.ndarray, max_gap: float) -> list[tuple[int, int]]:
+    """Index ranges [i, j) of measurement runs without a gap longer than max_gap."""
+    if len(t) == 0:
+        return []
+    cuts = np.flatnonzero(np.diff(t) > max_gap) + 1
+    edges = np.concatenate([[0], cuts, [len(t)]])
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+
+def _cv_model(dt: float, q: float) -> tuple[np.ndarray, np.ndarray]:
+    F = np.eye(6)
+    F[:3, 3:] = dt * np.eye(3)
+    Q = np.zeros((6, 6))
+    Q[:3, :3] = q * dt ** 3 / 3 * np.eye(3)
+    Q[:3, 3:] = Q[3:, :3] = q * dt ** 2 / 2 * np.eye(3)
+    Q[3:, 3:] = q * dt * np.eye(3)
+    return F, Q
+
+
+def smooth_positions(t_meas: np.ndarray, z: np.ndarray, cov: np.ndarray, t_out: np.ndarray,
+                     settings: SmootherSettings | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Smoothed positions at ``t_out``.
+
+    ``t_meas`` (N,) sorted, ``z`` (N, 3), ``cov`` (N, 3, 3). Returns positions (M, 3) and their
+    1-sigma (M,) (NaN outside the measured spans), and the (N,) mask of measurements accepted by
+    the gate.
+    """
+    s = settings or SmootherSettings()
+    t_meas, t_out = np.asarray(t_meas, float), np.asarray(t_out, float)
+    out = np.full((len(t_out), 3), np.nan)
+    sig = np.full(len(t_out), np.nan)
+    accepted = np.zeros(len(t_meas), dtype=bool)
+    H = np.hstack([np.eye(3), np.zeros((3, 3))])
+    floor = s.min_sigma_m ** 2 * np.eye(3)
+    for a, b in _segments(t_meas, s.max_gap_s):
+        lo, hi = t_meas[a], t_meas[b - 1]
+        q_idx = np.flatnonzero((t_out >= lo) & (t_out <= hi))
+        # One time grid holding both measurements (kind 0) and output times (kind 1).
+        times = np.concatenate([t_meas[a:b], t_out[q_idx]])
+        kind = np.concatenate([np.zeros(b - a, int), np.ones(len(q_idx), int)])
+        ref = np.concatenate([np.arange(a, b), q_idx])
+        order = np.lexsort((kind, times))
+        times, kind, ref = times[order], kind[order], ref[order]
+        n = len(times)
+        x = np.concatenate([z[a], np.zeros(3)])
+        P = np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
+        Xs, Ps = np.zeros((n, 6)), np.zeros((n, 6, 6))
+        Fs, Qs = np.zeros((n, 6, 6)), np.zeros((n, 6, 6))
+        Fs[0] = np.eye(6)
+        prev = times[0]
+        for k in range(n):
+            F, Q = _cv_model(times[k] - prev, s.accel_psd)
+            prev = times[k]
+            if k > 0:
+                x, P = predict(x, P, F, Q)
+                Fs[k - 1], Qs[k - 1] = F, Q  # module rts_smoother: Fs[k] takes step k to k+1
+            if kind[k] == 0:
+                i = ref[k]
+                R = cov[i] + floor
+                y = z[i] - H @ x
+                S = H @ P @ H.T + R
+                d2 = float(y @ np.linalg.solve(S, y))
+                # The first measurement of a run cannot be judged against a 1 m prior; accept it.
+                if d2 <= s.gate_chi2 or k == 0:
+                    x, P = update(x, P, z[i], R, H)
+                    accepted[i] = True
+            Xs[k], Ps[k] = x, P
+        Xs, Ps, _, _ = rts_smoother(Xs, Ps, Fs, Qs)
+        q_rows = kind == 1
+        out[ref[q_rows]] = Xs[q_rows, :3]
+        sig[ref[q_rows]] = np.sqrt(np.trace(Ps[q_rows, :3, :3], axis1=1, axis2=2) / 3)
+    return out, sig, accepted
+
+
+def supported(t_meas: np.ndarray, t_out: np.ndarray, max_gap: float, max_extrapolate: float) -> np.ndarray:
+    """Output times that lie between two measurements closer than max_gap, or near one measurement."""
+    t_meas = np.asarray(t_meas, float)
+    if len(t_meas) == 0:
+        return np.zeros(len(t_out), dtype=bool)
+    i = np.searchsorted(t_meas, t_out)
+    prev = t_meas[np.clip(i - 1, 0, len(t_meas) - 1)]
+    nxt = t_meas[np.clip(i, 0, len(t_meas) - 1)]
+    exact = np.isclose(nxt, t_out, rtol=0, atol=1e-9)
+    inside = (i > 0) & (i < len(t_meas)) & (nxt - prev <= max_gap)
+    near = np.minimum(np.abs(t_out - prev), np.abs(nxt - t_out)) <= max_extrapolate
+    return exact | inside | near
+
+
+def _fit_many(t0: np.ndarray, t: np.ndarray, rot: Rotation, weight: np.ndarray, h: float,
+              exclude_self: bool) -> tuple[Rotation | None, np.ndarray]:
+    """Weighted local-linear rotation fits at all times ``t0`` at once.
+
+    Each fit uses the K measurements nearest in index (enough to span +-3h), Gaussian weights in
+    time times ``weight`` (0 = ignore). Offsets are rotation vectors relative to a reference
+    (first the best-weighted measurement, then the first fit: one re-linearisation), so the
+    straight-line fit in the tangent space follows steady turns without lag. Returns the fits
+    and a mask of times that had any support.
+    """
+    n, m = len(t), len(t0)
+    if n == 0 or m == 0:
+        return None, np.zeros(m, dtype=bool)
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    dt_typ = float(np.percentile(steps, 10)) if len(steps) else 1.0
+    k = int(min(n, max(4, np.ceil(6 * h / max(dt_typ, 1e-6)) + 2), 400))
+    first = np.clip(np.searchsorted(t, t0) - k // 2, 0, n - k)
+    idx = first[:, None] + np.arange(k)[None, :]  # (m, k)
+    dt = t[idx] - t0[:, None]
+    w = np.exp(-0.5 * (dt / h) ** 2) * weight[idx] * (np.abs(dt) <= 3 * h)
+    if exclude_self:
+        w = np.where(np.abs(dt) < 1e-12, 0.0, w)
+    ok = w.sum(1) > 0
+    w = np.where(ok[:, None], w, 1.0)  # keep the algebra finite; those rows are dropped after
+    wsum = w.sum(1, keepdims=True)
+    ref = rot[idx[np.arange(m), np.argmax(w, axis=1)]]
+    flat = rot[idx.ravel()]
+    A_t = np.stack([np.ones_like(dt), dt], axis=2)  # (m, k, 2) design: offset + rate
+    AtWA = np.einsum("mki,mk,mkj->mij", A_t, w, A_t)
+    # Guard against a window whose weight sits at a single time (rate not identifiable).
+    AtWA += np.eye(2)[None] * np.array([1e-12, 1e-9])[None, :, None]
+    for _ in range(2):
+        ref_rep = Rotation.from_quat(np.repeat(ref.as_quat(), k, axis=0))
+        v = (ref_rep.inv() * flat).as_rotvec().reshape(m, k, 3)
+        AtWv = np.einsum("mki,mk,mkc->mic", A_t, w, v)
+        coef = np.linalg.solve(AtWA, AtWv)  # (m, 2, 3)
+        offset = np.where((w > 0).sum(1)[:, None] >= 3, coef[:, 0], (w[:, :, None] * v).sum(1) / wsum)
+        ref = ref * Rotation.from_rotvec(offset)
+    return ref, ok
+
+
+def smooth_rotations(t_meas: np.ndarray, rot: Rotation, var: np.ndarray, t_out: np.ndarray,
+                     settings: SmootherSettings | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Smoothed rotation matrices (M, 3, 3) at ``t_out`` (NaN where no measurement is near), and
+    the (N,) mask of accepted measurements.
+
+    ``var`` (N,) is each measurement's rotation variance (rad^2), used as an inverse weight.
+    A measurement farther than ``rot_gate_deg`` from the fit of its neighbours is rejected.
+    """
+    s = settings or SmootherSettings()
+    t_meas = np.asarray(t_meas, float)
+    t_out = np.asarray(t_out, float)
+    h = s.rot_bandwidth_s
+    inv_var = 1.0 / np.maximum(np.asarray(var, float), np.radians(0.01) ** 2)
+    accepted = np.ones(len(t_meas), dtype=bool)
+    out = np.full((len(t_out), 3, 3), np.nan)
+    if len(t_meas) == 0:
+        return out, accepted
+    gate = np.radians(s.rot_gate_deg)
+    for _ in range(2):  # a second round once gross outliers no longer pull the fits
+        fits, ok = _fit_many(t_meas, t_meas, rot, inv_var * accepted, h, exclude_self=True)
+        if fits is None:
+            break
+        angle = (fits.inv() * rot).magnitude()
+        accepted = ~ok | (angle <= gate)
+    fits, ok = _fit_many(t_out, t_meas, rot, inv_var * accepted, h, exclude_self=False)
+    if fits is not None:
+        out[ok] = fits.as_matrix()[ok]
+    return out, accepted

@@ -1,0 +1,83 @@
+"""End to end: `annotator simulate` renders a short two-camera experiment, `annotator track` follows it.
+
+Asserts the rig method's accuracy against the renderer's truth and that covered lenses give gaps.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _track_helpers import errors_against_truth
+from typer.testing import CliRunner
+
+from annotator.cli import app
+from annotator.trajectory_io import read_trajectory
+
+pytestmark = pytest.mark.slow
+T0 = 1_700_000_000.0
+COVER = (1.0, 1.0)  # hands over both lenses from 1 s to 2 s
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("render")
+    res = CliRunner().invoke(app, ["simulate", "--out", str(out), "--duration", "7", "--seed", "1",
+                                   "--cover", f"{COVER[0]}:{COVER[1]}", "--jobs", "2"])
+    assert res.exit_code == 0, res.output
+    return out
+
+
+@pytest.fixture(scope="module")
+def rig_track(rendered) -> Path:
+    out = rendered / "rig"
+    res = CliRunner().invoke(app, ["track", str(rendered / "experiment.yaml"), "--out", str(out), "--jobs", "2"])
+    assert res.exit_code == 0, res.output
+    return out / "trajectory.csv"
+
+
+def test_rig_method_meets_the_accuracy_target(rendered, rig_track):
+    traj, truth = read_trajectory(rig_track), read_trajectory(rendered / "truth.csv")
+    # One row per frame of either camera, at the frame's wall time.
+    assert len(traj) == len(truth)
+    assert np.allclose(traj.t, truth.t, atol=1e-5)
+    pos, rot = errors_against_truth(traj, truth)
+    assert len(pos) > 0.3 * len(traj), "too few frames got a pose"
+    assert np.median(pos) <= 0.015
+    assert np.percentile(pos, 95) <= 0.05
+    assert np.median(rot) < 0.5
+    R = traj.rotation[traj.valid]
+    assert np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max() < 1e-9
+    assert np.allclose(np.linalg.det(R), 1.0, atol=1e-9)
+    assert {"markers", "rms_px", "sigma_m"} <= set(traj.quality)
+
+
+def test_covered_lenses_leave_nan_rows_not_invented_poses(rig_track):
+    traj = read_trajectory(rig_track)
+    rel = traj.t - T0
+    covered = (rel > COVER[0] + 0.15) & (rel < COVER[0] + COVER[1] - 0.15)
+    assert covered.sum() > 20
+    assert not traj.valid[covered].any()
+
+
+def test_paper_method_runs_on_the_same_videos(rendered):
+    out = rendered / "paper"
+    res = CliRunner().invoke(app, ["track", str(rendered / "experiment.yaml"), "--out", str(out),
+                                   "--method", "paper", "--batch-frames", "10"])
+    assert res.exit_code == 0, res.output
+    traj = read_trajectory(out / "trajectory.csv")
+    assert traj.valid.sum() >= 5
+    assert np.allclose(np.diff(traj.t[:3]), 10 / 30, atol=0.02)  # one row per batch of F frames
+    pos, _ = errors_against_truth(traj, read_trajectory(rendered / "truth.csv"))
+    assert np.median(pos) < 2.0  # the anchor method is coarse; it must still be in the right place
+
+
+def test_bad_experiment_is_one_red_line_and_exit_1(tmp_path):
+    (tmp_path / "experiment.yaml").write_text("markers: {file: nope.dat, dictionary: DICT_6X6_50, length: 0.3}\n"
+                                              "rig: rig.yaml\nvideos: {}\n")
+    res = CliRunner().invoke(app, ["track", str(tmp_path / "experiment.yaml"), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 1
+    assert "nope.dat" in res.output
+    assert "Traceback" not in res.output
+    assert not (tmp_path / "o" / "trajectory.csv").exists()
