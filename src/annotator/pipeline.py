@@ -80,7 +80,8 @@ def process_video(path: Path, camera: RigCamera, markers: MarkerSetup, t_start: 
     ts, dets, poses, mposes = [], [], [], []
     total = info.frame_count if settings.max_frames is None else min(info.frame_count, settings.max_frames)
     prior = None
-    for k, (pts, frame) in enumerate(iter_frames(path, gray=True)):
+    threads = 1 if settings.jobs > 1 else None  # one process per video already keeps cores busy
+    for k, (pts, frame) in enumerate(iter_frames(path, gray=True, threads=threads)):
         if settings.max_frames is not None and k >= settings.max_frames:
             break
         if k == 0 and (frame.shape[1], frame.shape[0]) != (cal.width, cal.height):

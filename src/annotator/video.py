@@ -21,10 +21,11 @@ class VideoInfo:
     frame_count: int  # what the container claims; may be approximate
 
 
-def _open(path: Path) -> cv2.VideoCapture:
+def _open(path: Path, threads: int | None = None) -> cv2.VideoCapture:
     if not Path(path).is_file():
         raise AnnotatorError(f"no such video: {path}")
-    cap = cv2.VideoCapture(str(path))
+    params = [] if threads is None else [cv2.CAP_PROP_N_THREADS, int(threads)]
+    cap = cv2.VideoCapture(str(path), cv2.CAP_ANY, params)
     if not cap.isOpened():
         raise AnnotatorError(f"{path}: cannot open as video (unknown container or codec)")
     return cap
@@ -40,14 +41,16 @@ def video_info(path: str | Path) -> VideoInfo:
         cap.release()
 
 
-def iter_frames(path: str | Path, gray: bool = False) -> Iterator[tuple[float, np.ndarray]]:
+def iter_frames(path: str | Path, gray: bool = False,
+                threads: int | None = None) -> Iterator[tuple[float, np.ndarray]]:
     """Yield (pts_seconds, frame) in decode order; pts is relative to the stream start.
 
     After ``read()``, CAP_PROP_POS_MSEC is the presentation time of the frame just returned,
-    so dropped or variable-rate frames keep their true times.
+    so dropped or variable-rate frames keep their true times. ``threads`` caps the decoder's
+    threads (1 when videos are already decoded in parallel processes: less CPU per frame).
     """
     path = Path(path)
-    cap = _open(path)
+    cap = _open(path, threads)
     try:
         while True:
             ok, frame = cap.read()

@@ -87,6 +87,8 @@ def serve(
     except CollectorError as e:
         raise _fail(e) from None
     console.print(f"collector listening on {', '.join(cfg.listen)}, site {cfg.site!r}, data in {cfg.data_dir}")
+    if collector.resumed_run is not None:
+        err_console.print(f"[yellow]resumed run {collector.resumed_run} (the collector was not stopped cleanly)")
     try:
         _wait_for_signal()
     finally:

@@ -50,6 +50,7 @@ log = logging.getLogger(__name__)
 
 COMMANDS = ("start", "stop", "status", "runs")
 TICK_S = 0.2  # flush + ack period while data arrives
+REACK_S = 2.0  # acks are repeated this often, in case an agent missed one
 RATE_WINDOW_S = 5.0
 RSSI_HISTORY = 40  # readings kept per sensor for the live sparkline
 QUEUE_MAX = 20_000  # batches between the Zenoh callbacks and the writer
@@ -151,11 +152,14 @@ class Collector:
         self._live: dict[tuple[str, str], SensorLive] = {}
         self._discarded = 0
         self._write_errors = 0
+        self._write_failing = False  # the last write attempt failed (not for lack of space)
         self._deferred = 0  # batches refused unacked while rows piled up in memory (disk full)
         self._unknown_agents: dict[str, int] = {}
+        self._recent: dict[str, float] = {}  # agent -> monotonic time of its last batch
         self._lost_base: dict[str, int] = {}  # per stream, lost seqs before the run started
         self._clock_log: dict[str, list[dict[str, Any]]] = {}
         self._restarts = 0
+        self._resumed: str | None = None
         self._dirty = False  # something to persist since the last state.json
         self._quarantined_bytes = 0
         self._quarantine_dropped = 0
@@ -204,6 +208,11 @@ class Collector:
         self._notifier.ready(f"serving site {site} on {', '.join(self.cfg.listen)}")
         return self
 
+    @property
+    def resumed_run(self) -> str | None:
+        """The run id ``open()`` resumed after an unclean stop, if any."""
+        return self._resumed
+
     def _resume_unfinished_run(self) -> None:
         """Continue the run a killed collector left active (state.json), before any data flows."""
         import yaml
@@ -220,9 +229,12 @@ class Collector:
                 log.warning("run %s was also left active; only the newest run (%s) is resumed",
                             state.get("run_id"), self._run.run_id)
                 continue
+            if state.get("run_id") != run_dir.name:
+                raise CollectorError(f"{run_dir / STATE_FILE}: run_id {state.get('run_id')!r} is not "
+                                     "its directory's name; move the file aside to start fresh")
             try:
                 tracker = StreamTracker.from_state(state["tracker"])
-                run = RunWriter(self.cfg.data_dir, state["run_id"], state["name"],
+                run = RunWriter(self.cfg.data_dir, run_dir.name, state["name"],
                                 int(state["start_ns"]), dict(state["meta"]), resume=state,
                                 write=self._file_write)
             except (KeyError, TypeError, ValueError) as e:
@@ -231,11 +243,15 @@ class Collector:
                 raise CollectorError(f"cannot resume run {run_dir}: {e}") from None
             self._run, self._tracker = run, tracker
             self._run_active = True
+            self._resumed = run.run_id
             self._lost_base = {k: int(v) for k, v in state.get("lost_base", {}).items()}
             self._clock_log = {k: list(v) for k, v in state.get("clock", {}).items()}
             self._restarts = int(state.get("restarts", 0)) + 1
             self._quarantined_bytes = int(state.get("quarantined_bytes", 0))
-            run.write_state(self._state())
+            try:
+                run.write_state(self._state())
+            except OSError as e:  # the old state still matches the repaired files; go on
+                log.warning("could not update %s: %s", run_dir / STATE_FILE, e)
             log.warning("resumed run %s after an unclean stop (restart %d): %d readings on disk",
                         run.run_id, self._restarts, run.readings)
         for r in list_runs(self.cfg.data_dir):
@@ -275,6 +291,8 @@ class Collector:
                   max_offset_ms: float | None = None, strict: bool = False) -> dict[str, Any]:
         """Start a run; agents' clocks are measured first. With ``strict``, an agent whose clock
         is off by more than ``max_offset_ms`` refuses the start (CollectorError)."""
+        if self._run_active:  # answer at once, without asking the agents anything first
+            return self._call(lambda: self._do_start(name, {}), timeout)
         self._refresh_agents()
         samples = self.measure_clocks()
         warnings = []
@@ -529,10 +547,12 @@ class Collector:
                 moved = self._tracker.mark_durable()
             else:
                 moved = self._persist(now, clocks)
-            if now - clocks["reack"] >= 2.0:  # repeat acks now and then: an agent may have missed one
+            if now - clocks["reack"] >= REACK_S:  # repeat acks: an agent may have missed one
                 clocks["reack"] = now
                 with self._lock:
                     moved |= {a for a, alive in self._alive.items() if alive}
+                # Also agents heard from lately whose token is missing or late.
+                moved |= {a for a, t in self._recent.items() if now - t < 60}
             self._publish_acks(moved)
             if self._stopping is not None:
                 self._maybe_finish_stop(now)
@@ -541,10 +561,12 @@ class Collector:
         """Write buffered rows; at fsync time: fsync files, then state.json, then (and only then)
         move the ack watermarks. Disk full: roll back, keep rows in memory, retry, ack nothing."""
         run = self._run
-        if run.disk_full and now - clocks["disk_retry"] < DISK_RETRY_S and self._stopping is None:
+        if ((run.disk_full or self._write_failing) and now - clocks["disk_retry"] < DISK_RETRY_S
+                and self._stopping is None):
             return set()
         try:
             run.flush()
+            self._write_failing = False
             due = now - clocks["fsync"] >= self.cfg.fsync_interval_s
             if (due and self._dirty) or run.disk_full or self._stopping is not None:
                 run.fsync()
@@ -562,12 +584,13 @@ class Collector:
             if is_disk_full(e):
                 if not run.disk_full:
                     run.disk_full = True
-                    log.error("run %s: disk full (%s); stopped writing, holding up to %d MiB in "  # noqa: TRY400 - known condition
+                    log.error("run %s: disk full (%s); stopped writing, holding up to %.1f MiB in "  # noqa: TRY400 - known condition
                               "memory unacknowledged and retrying every %.0f s", run.run_id, e.strerror,
-                              self._max_buffer >> 20, DISK_RETRY_S)
+                              self._max_buffer / 2**20, DISK_RETRY_S)
                     self._notifier.status(f"DISK FULL: run {run.run_id} is not being written")
             else:
                 self._write_errors += 1
+                self._write_failing = True
                 if now - clocks["write_error_log"] > 10:
                     clocks["write_error_log"] = now
                     log.error("cannot write run %s: %s (retrying; nothing is acknowledged "  # noqa: TRY400 - known condition
@@ -594,12 +617,15 @@ class Collector:
         run, tracker, live = self._run, self._tracker, self._live
         # While the disk refuses rows, memory holds them up to a bound; past it, batches are
         # refused before dedupe, so they stay unacknowledged and the agents send them again.
-        full = run is not None and run.buffered >= self._max_buffer
+        # The memory bound applies only while writes fail; otherwise the next tick writes it all.
+        capped = run is not None and (run.disk_full or self._write_failing)
+        buffered = run.buffered if capped else 0
         with self._lock:
             alive = dict(self._alive)
         self._dirty = True  # even a duplicate may carry a higher floor
         for b in batches:
-            if full:
+            self._recent[b.agent_id] = now
+            if capped and buffered >= self._max_buffer:
                 self._deferred += 1
                 continue
             new_stream = b.stream not in tracker.streams
@@ -619,7 +645,9 @@ class Collector:
                     sl = live[(b.agent_id, b.sensor)] = SensorLive(b.agent_id)
                 sl.add(now, b.rows)
                 if run is not None:
-                    run.append(b.agent_id, b.sensor, format_rows(b.sensor, b.rows), len(b.rows))
+                    text = format_rows(b.sensor, b.rows)
+                    run.append(b.agent_id, b.sensor, text, len(b.rows))
+                    buffered += len(text) if capped else 0
                 else:
                     self._discarded += len(b.rows)
 
@@ -689,6 +717,7 @@ class Collector:
         self._clock_log = {a: [smp] for a, smp in clock_samples.items()}
         self._restarts = self._quarantined_bytes = self._quarantine_dropped = 0
         self._deferred = 0
+        self._write_failing = False
         self._run = run
         try:
             run.write_state(self._state())

@@ -190,7 +190,7 @@ class Agent:
                      "off" if cfg.spool.dir is None else cfg.spool.dir)
             if not await self._try_open(first=True):
                 tasks.append(asyncio.create_task(self._connect_loop(), name="zenoh-connect"))
-            tasks.append(asyncio.create_task(self._housekeeping(), name="housekeeping"))
+            tasks += self._housekeeping_tasks()
             try:
                 await self.backend.start(self._sink)
                 for a in self.backend.adapters:
@@ -254,28 +254,47 @@ class Agent:
                 return
             delay = min(CONNECT_RETRY_MAX_S, delay * 2)
 
-    async def _housekeeping(self) -> None:
-        """Spool fsync, re-sends, chrony, and systemd's watchdog/status, each on its own period."""
-        pub, spool, notifier = self._publisher, self._spool, self.notifier
-        wd = notifier.watchdog_interval_s
-        now = self.clocks.mono_ns
-        next_chrony = next_wd = next_status = 0
+    async def _every(self, period_s: float, work) -> None:
+        """Run ``work()`` (blocking: in a worker thread), then sleep ``period_s``, forever."""
         while True:
-            t = now()
-            if t >= next_chrony:
-                next_chrony = t + int(CHRONY_REFRESH_S * 1e9)
-                self._chrony = await asyncio.to_thread(read_chrony)
-            if spool is not None:
-                await asyncio.to_thread(spool.sync)
-            await asyncio.to_thread(pub.resend_due)
-            t = now()
-            if wd is not None and t >= next_wd:
+            try:
+                await asyncio.to_thread(work)
+            except Exception:  # noqa: BLE001 - one failed round must not end re-sending for good
+                log.exception("%s failed; trying again in %.1f s", getattr(work, "__name__", work),
+                              period_s)
+            await self.clocks.sleep(period_s)
+
+    async def _systemd(self) -> None:
+        """WATCHDOG=1 at half of WatchdogSec= and a STATUS= line, from the event loop itself
+        (so a stuck loop stops the pings). Its own task: a long re-send pass must not delay it."""
+        notifier = self.notifier
+        wd = notifier.watchdog_interval_s
+        period = min(HOUSEKEEPING_S, wd) if wd is not None else HOUSEKEEPING_S
+        next_status = 0
+        while True:
+            if wd is not None:
                 notifier.watchdog()
-                next_wd = t + int(wd * 1e9)
+            t = self.clocks.mono_ns()
             if t >= next_status:
                 notifier.status(self._summary())
                 next_status = t + int(self.cfg.status_interval_s * 1e9)
-            await self.clocks.sleep(min(HOUSEKEEPING_S, wd or HOUSEKEEPING_S))
+            await self.clocks.sleep(period)
+
+    def _refresh_chrony(self) -> None:
+        self._chrony = read_chrony()
+
+    def _housekeeping_tasks(self) -> list[asyncio.Task[Any]]:
+        """Spool fsync, re-sends, chrony and systemd pings, each on its own period."""
+        tasks = [asyncio.create_task(self._every(HOUSEKEEPING_S, self._publisher.resend_due),
+                                     name="resend"),
+                 asyncio.create_task(self._every(CHRONY_REFRESH_S, self._refresh_chrony),
+                                     name="chrony")]
+        if self.notifier.enabled:
+            tasks.append(asyncio.create_task(self._systemd(), name="systemd"))
+        if self._spool is not None:
+            tasks.append(asyncio.create_task(self._every(HOUSEKEEPING_S, self._spool.sync),
+                                             name="spool-sync"))
+        return tasks
 
     def _summary(self) -> str:
         """One line for systemd's STATUS=."""

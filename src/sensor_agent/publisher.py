@@ -32,6 +32,8 @@ HEARTBEAT_S = 1.0
 MAX_BATCH_READINGS = 5000
 # A stream whose acknowledgement has not moved for this long (while connected) is re-sent.
 RESEND_S = 5.0
+# Passes that bring no acknowledgement (collector rejecting us, ACL) back off up to this.
+RESEND_MAX_S = 60.0
 
 
 def stream_id(boot_id: str, sensor: str) -> str:
@@ -78,6 +80,7 @@ class Publisher:
         self._published: dict[str, int] = {}  # sensor -> last seq built (this boot)
         self._sid_acked: dict[str, int] = {}  # stream id (any boot) -> acked seq
         self._progress: dict[str, int] = {}  # stream id -> mono ns of the last ack advance / re-send
+        self._interval: dict[str, int] = {}  # stream id -> current re-send interval (ns), backed off
         self._old_boots: set[str] = set()
         self.resent = 0
         # Held for a whole re-send pass; close() takes it so no pass outlives the publishers.
@@ -234,7 +237,8 @@ class Publisher:
     def _resend_pass(self) -> int:
         now = self.mono_ns()
         with self._lock:
-            due = {sid for sid, t in self._progress.items() if now - t >= self.resend_ns}
+            due = {sid for sid, t in self._progress.items()
+                   if now - t >= self._interval.get(sid, self.resend_ns)}
         if not due:
             return 0
         sent = 0
@@ -262,8 +266,12 @@ class Publisher:
             for sid in due:
                 if self._still_pending(sid):
                     self._progress[sid] = done
+                    # reset by the next ack that moves; doubled while passes bring nothing
+                    self._interval[sid] = min(int(RESEND_MAX_S * 1e9),
+                                              2 * self._interval.get(sid, self.resend_ns))
                 else:
                     self._progress.pop(sid, None)
+                    self._interval.pop(sid, None)
             self.resent += sent
         if sent:
             log.info("re-sent %d unacknowledged batch(es) of %d stream(s)", sent, len(due))
@@ -302,6 +310,7 @@ class Publisher:
                     advanced.append((sid, seq))
                     if sid in self._progress:
                         self._progress[sid] = now
+                    self._interval.pop(sid, None)
                     if boot == self.boot_id:
                         self._acked[mac] = seq
         if self.spool is not None:

@@ -5,6 +5,8 @@ come again, unacknowledged batches are re-sent after an outage, and the clock qu
 from __future__ import annotations
 
 import asyncio
+import errno
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -22,7 +24,7 @@ from sensor_agent.clockhealth import parse_chronyc_tracking
 from sensor_agent.config import AgentConfig, SpoolConfig
 from sensor_agent.publisher import CACHE_SAMPLES, Publisher, stream_id
 from sensor_agent.scanning.base import AdapterInfo, AdvertSink, ScannerBackend
-from sensor_agent.spool import Spool
+from sensor_agent.spool import FileOps, Spool
 
 SENSOR = "b827eb4521b4"
 BOOT = "00112233aabbccdd"
@@ -354,3 +356,101 @@ def test_chronyc_tracking_partial_or_garbage() -> None:
     got = parse_chronyc_tracking("Stratum : x\nSystem time : nope\nLeap status : Not synchronised\n")
     assert (got["stratum"], got["system_time_offset_s"], got["leap_status"]) == (
         None, None, "Not synchronised")
+
+
+class FullDisk(FileOps):
+    """Writes fail with ENOSPC once ``free`` bytes are used (the spool's fault-injection seam)."""
+
+    def __init__(self, free: int) -> None:
+        self.free = free
+
+    def write(self, fd: int, data: bytes | memoryview) -> int:
+        if self.free <= 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        n = min(len(data), self.free)
+        self.free -= n
+        return os.write(fd, data[:n])
+
+    def ftruncate(self, fd: int, length: int) -> None:
+        self.free += os.fstat(fd).st_size - length
+        os.ftruncate(fd, length)
+
+
+def test_full_disk_under_the_spool_still_publishes_and_can_resend(endpoint: str, tmp_path: Path) -> None:
+    """Spool writes fail: batches are still published, kept in memory for re-sending, counted,
+    and the floor still covers them; what was spooled before the disk filled stays intact."""
+    r = router(endpoint)
+    sub = r.declare_subscriber(wire.data_selector("lab"))
+    c = client(endpoint)
+    spool = Spool(tmp_path / "spool", 1 << 20, files=FullDisk(2000), fsync_interval_s=None)
+    t = [0]
+    pub = Publisher(c, site="lab", agent_id="pi-01", boot_id=BOOT, wall_ns=lambda: T,
+                    mono_ns=lambda: t[0], spool=spool, resend_s=5.0)
+    got: list[wire.Batch] = []
+
+    def drain() -> None:
+        while (s := sub.try_recv()) is not None:
+            got.append(wire.from_wire(s.payload.to_bytes()))
+
+    try:
+        for i in range(40):  # ~110 bytes a record: the disk fills after ~17 of them
+            pub.add(SENSOR, make_reading(i))
+            pub.flush()
+        wait_for(lambda: len(got) == 40, poll=drain)
+        assert [b.seq for b in got] == list(range(40))
+        st = spool.stats()
+        assert st.disk_full
+        assert st.unspooled > 0
+        on_disk = [q for _s, q, _p in spool.pending()]
+        assert on_disk == list(range(len(on_disk)))  # whole records only, from seq 0
+        assert len(on_disk) + st.unspooled == 40
+        assert {b.floor for b in got} == {0}  # nothing acknowledged, everything still held
+        # No ack for 5 s: everything is sent again, from the spool and from memory.
+        got.clear()
+        t[0] += 6 * 10**9
+        assert pub.resend_due() == 40
+        wait_for(lambda: len(got) == 40, poll=drain)
+        assert sorted(b.seq for b in got) == list(range(40))
+        r.put(wire.ack_key("lab", "pi-01"), wire.to_json({"boot": BOOT, "streams": {SENSOR: 39}}))
+        wait_for(lambda: pub.unacked() == {})
+        assert list(spool.pending()) == []
+        t[0] += 6 * 10**9
+        assert pub.resend_due() == 0
+    finally:
+        pub.close()
+        spool.close()
+        c.close()
+        sub.undeclare()
+        r.close()
+
+
+def test_resend_waits_for_silence_and_backs_off_while_nothing_is_acknowledged(endpoint: str) -> None:
+    r = router(endpoint)
+    c = client(endpoint)
+    t = [0]
+    pub = Publisher(c, site="lab", agent_id="pi-01", boot_id=BOOT, wall_ns=lambda: T,
+                    mono_ns=lambda: t[0], resend_s=5.0)
+    s = 10**9
+    try:
+        wait_for(pub.connected)
+        for i in range(3):
+            pub.add(SENSOR, make_reading(i))
+            pub.flush()
+        t[0] = 4 * s
+        assert pub.resend_due() == 0  # in flight, not yet overdue
+        t[0] = 5 * s
+        assert pub.resend_due() == 3
+        t[0] = 14 * s
+        assert pub.resend_due() == 0  # no ack came: the next pass waits twice as long
+        t[0] = 15 * s
+        assert pub.resend_due() == 3
+        r.put(wire.ack_key("lab", "pi-01"), wire.to_json({"boot": BOOT, "streams": {SENSOR: 0}}))
+        wait_for(lambda: pub.acked() == {SENSOR: 0})  # progress: back to 5 s, 2 batches left
+        t[0] = 19 * s
+        assert pub.resend_due() == 0
+        t[0] = 20 * s
+        assert pub.resend_due() == 2
+    finally:
+        pub.close()
+        c.close()
+        r.close()

@@ -1,5 +1,5 @@
-"""Powering an adapter over D-Bus: BlueZ's 'busy' answers are retried with backoff, anything else
-is one clear error (a fake bus stands in for dbus-fast's MessageBus)."""
+"""The watchdog's settings, and powering an adapter over D-Bus: BlueZ's 'busy' answers are retried
+with backoff, anything else is one clear error (a fake bus stands in for dbus-fast's MessageBus)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from types import SimpleNamespace
 import pytest
 from dbus_fast import MessageType
 
-from sensor_agent.errors import BackendError
+from sensor_agent.config import parse_config
+from sensor_agent.errors import BackendError, ConfigError
 from sensor_agent.scanning.base import Clocks
 from sensor_agent.scanning.bleak_backend import POWER_RETRIES, _set_powered
 
@@ -58,3 +59,16 @@ def test_retries_are_bounded() -> None:
     with pytest.raises(BackendError, match="InProgress"):
         run(bus, True)
     assert len(bus.calls) == POWER_RETRIES
+
+
+def test_watchdog_config_validated() -> None:
+    cfg = parse_config({"watchdog": {"silent_s": 20, "power_cycle_after": 3}})
+    assert (cfg.watchdog.silent_s, cfg.watchdog.power_cycle_after) == (20.0, 3)
+    assert parse_config({}).watchdog.silent_s == 60.0
+    for bad, msg in [({"silent_s": 0}, "watchdog.silent_s must be a number > 0, got 0"),
+                     ({"silent_s": "x"}, "watchdog.silent_s must be a number > 0, got 'x'"),
+                     ({"power_cycle_after": -1}, "watchdog.power_cycle_after must be an integer >= 0"),
+                     ({"power_cycle_after": 1.5}, "watchdog.power_cycle_after must be an integer >= 0"),
+                     ({"restart": 1}, "unknown key 'watchdog.restart'")]:
+        with pytest.raises(ConfigError, match=msg.replace(".", r"\.").replace("(", r"\(")):
+            parse_config({"watchdog": bad}, "agent.yaml")

@@ -23,8 +23,6 @@ dbus = pytest.importorskip("dbus")
 dbusmock = pytest.importorskip("dbusmock")
 
 from ble_groundtruth.wire import Reading  # noqa: E402
-from sensor_agent.config import parse_config  # noqa: E402
-from sensor_agent.errors import ConfigError  # noqa: E402
 from sensor_agent.scanning.bleak_backend import BleakBackend  # noqa: E402
 
 DEVICE_IFACE = "org.bluez.Device1"
@@ -144,15 +142,3 @@ def test_adapter_still_silent_is_power_cycled_and_refound_by_mac(bluez, mock_log
     assert sets[:2] == ["Set /org/bluez/hci10 org.bluez.Adapter1.Powered False",
                         "Set /org/bluez/hci10 org.bluez.Adapter1.Powered True"]
 
-
-def test_watchdog_config_validated() -> None:
-    cfg = parse_config({"watchdog": {"silent_s": 20, "power_cycle_after": 3}})
-    assert (cfg.watchdog.silent_s, cfg.watchdog.power_cycle_after) == (20.0, 3)
-    assert parse_config({}).watchdog.silent_s == 60.0
-    for bad, msg in [({"silent_s": 0}, "watchdog.silent_s must be a number > 0, got 0"),
-                     ({"silent_s": "x"}, "watchdog.silent_s must be a number > 0, got 'x'"),
-                     ({"power_cycle_after": -1}, "watchdog.power_cycle_after must be an integer >= 0"),
-                     ({"power_cycle_after": 1.5}, "watchdog.power_cycle_after must be an integer >= 0"),
-                     ({"restart": 1}, "unknown key 'watchdog.restart'")]:
-        with pytest.raises(ConfigError, match=msg.replace(".", r"\.").replace("(", r"\(")):
-            parse_config({"watchdog": bad}, "agent.yaml")

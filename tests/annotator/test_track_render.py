@@ -43,6 +43,8 @@ def test_rig_method_meets_the_accuracy_target(rendered, rig_track):
     assert len(traj) == len(truth)
     assert np.allclose(traj.t, truth.t, atol=1e-5)
     pos, rot = errors_against_truth(traj, truth)
+    print(f"rig: {len(pos)}/{len(traj)} rows posed, position median {100 * np.median(pos):.2f} cm, "
+          f"p95 {100 * np.percentile(pos, 95):.2f} cm, rotation median {np.median(rot):.3f} deg")
     assert len(pos) > 0.3 * len(traj), "too few frames got a pose"
     assert np.median(pos) <= 0.015
     assert np.percentile(pos, 95) <= 0.05
@@ -70,6 +72,7 @@ def test_paper_method_runs_on_the_same_videos(rendered):
     assert traj.valid.sum() >= 5
     assert np.allclose(np.diff(traj.t[:3]), 10 / 30, atol=0.02)  # one row per batch of F frames
     pos, _ = errors_against_truth(traj, read_trajectory(rendered / "truth.csv"))
+    print(f"paper: {len(pos)} batches, position median {100 * np.median(pos):.1f} cm")
     assert np.median(pos) < 2.0  # the anchor method is coarse; it must still be in the right place
 
 
@@ -81,3 +84,12 @@ def test_bad_experiment_is_one_red_line_and_exit_1(tmp_path):
     assert "nope.dat" in res.output
     assert "Traceback" not in res.output
     assert not (tmp_path / "o" / "trajectory.csv").exists()
+
+
+def test_parallel_and_serial_runs_agree(rendered, rig_track):
+    out = rendered / "serial"
+    res = CliRunner().invoke(app, ["track", str(rendered / "experiment.yaml"), "--out", str(out), "--jobs", "1"])
+    assert res.exit_code == 0, res.output
+    a, b = read_trajectory(rig_track), read_trajectory(out / "trajectory.csv")
+    assert np.array_equal(a.valid, b.valid)
+    assert np.allclose(a.position[a.valid], b.position[b.valid], atol=1e-6)

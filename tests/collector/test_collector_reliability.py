@@ -294,9 +294,11 @@ def test_disk_full_holds_acks_and_resumes_without_loss(make_collector, agent) ->
         ag.put(b)
     wait_for(lambda: ag.acked(A) == 9, what="acks before the disk fills")
     disk.full = True
-    for b in sent[10:40]:
+    for b in sent[10:20]:
         ag.put(b)
     wait_for(lambda: c.status()["disk_full"], what="disk_full in status")
+    for b in sent[20:40]:  # beyond what memory may hold (2000 bytes) while the disk is full
+        ag.put(b)
     wait_for(lambda: c.status()["deferred_batches"] > 0, what="batches refused beyond the memory bound")
     assert ag.acked(A) == 9  # nothing written, nothing acknowledged
     mbd = Path(run["run_dir"]) / "rssi" / f"{A}.mbd"
@@ -435,7 +437,27 @@ def test_resume_refuses_a_corrupt_state_in_one_line(tmp_path, endpoint) -> None:
     run_dir = tmp_path / "data" / "20261122T031500Z-x"
     (run_dir / "rssi").mkdir(parents=True)
     (run_dir / "run.yaml").write_text("id: x\nstop: null\n")
-    (run_dir / STATE_FILE).write_text(json.dumps({"version": 1, "active": True, "run_id": "x"}))
+    (run_dir / STATE_FILE).write_text(json.dumps({"version": 1, "active": True, "run_id": run_dir.name}))
     with pytest.raises(CollectorError, match=r"state\.json: cannot resume the run: KeyError") as e:
         Collector(CollectorConfig(data_dir=tmp_path / "data", listen=(endpoint,))).open()
     assert "\n" not in str(e.value)
+
+
+def test_cli_start_warns_or_refuses_on_clock_offset(make_collector, agent, endpoint) -> None:
+    c = make_collector()
+    off = agent()
+    off.serve_clock(offset_ns=200_000_000)
+    off.declare_token()
+    wait_for(lambda: c.status()["agents"].get("pi-01", {}).get("alive"), what="agent alive")
+    r = _cli("start", "--name", "x", "--strict", "--connect", endpoint)
+    assert r.returncode == 1
+    assert r.stderr.strip().startswith("start: agent pi-01: clock offset +")
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert c.status()["run"] is None
+    r = _cli("start", "--name", "x", "--max-offset-ms", "50", "--connect", endpoint)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == c.status()["run"]["run_id"]
+    assert r.stderr.strip().startswith("warning: agent pi-01: clock offset +")
+    r = _cli("start", "--name", "y", "--max-offset-ms", "500", "--connect", endpoint)
+    assert r.returncode == 1  # a run is active: answered at once, one line
+    assert "is already active" in r.stderr

@@ -770,6 +770,13 @@ def fuzz_scenario(root: Path, scale: Scale, *, n_data: int, n_queries: int) -> R
         _finish(rig, run_dir, agent, scale.duration_s / max(scale.speed, 0.1) + 150, res)
         res.problems += check_rejected(run_dir, min(stats.data_invalid, 200))
         res.notes["rejected_lines"] = _lines(run_dir / "rejected.jsonl")
+        reasons = rejected_reasons(run_dir)
+        res.notes["reasons"] = dict(sorted(reasons.items()))
+        # Bad magic, wrong version, truncated, invalid fields, oversized, absurd readings and
+        # key/meta mismatches were all sent: a collector lumping them together counts "per reason"
+        # in name only.
+        if len(reasons) < 4:
+            res.problems.append(f"rejected.jsonl names only these reasons: {sorted(reasons)}")
         if "Traceback" in rig.collector.log_path.read_text(errors="replace"):
             res.problems.append("the collector logged a traceback:\n" + rig.collector.tail(60))
     except (AssertionError, CollectorError) as e:
@@ -793,6 +800,18 @@ def _sum_counts(v: Any) -> int:
 
 def _lines(p: Path) -> int:
     return p.read_bytes().count(b"\n") if p.exists() else 0
+
+
+def rejected_reasons(run_dir: Path) -> Counter[str]:
+    out: Counter[str] = Counter()
+    p = run_dir / "rejected.jsonl"
+    if p.exists():
+        for raw in p.read_bytes().split(b"\n")[:-1]:
+            try:
+                out[str(json.loads(raw).get("reason"))] += 1
+            except (ValueError, AttributeError):
+                out["(unparseable line)"] += 1
+    return out
 
 
 REJECT_FIELDS = ("at_ns", "key", "reason", "error", "size", "payload_b64")
