@@ -54,7 +54,25 @@ def render(status: dict[str, Any]) -> Group:
     rejected = status.get("rejected_payloads") or {}
     foot = Text(f"rejected payloads: {sum(rejected.values())}  duplicates dropped: "
                 f"{status.get('duplicates_dropped', 0)}", style="dim")
-    return Group(head, table, foot)
+    return Group(head, *_alerts(status), table, foot)
+
+
+def _alerts(status: dict[str, Any]) -> list[Text]:
+    """Conditions an operator must act on (or know about), one line each."""
+    out = []
+    if status.get("disk_full"):
+        out.append(Text("DISK FULL: rows are held in memory and not acknowledged until space "
+                        "returns", style="bold red"))
+    if status.get("write_errors"):
+        out.append(Text(f"{status['write_errors']} failed writes (see the collector's log)", style="red"))
+    run = status.get("run") or {}
+    if run.get("restarts"):
+        out.append(Text(f"run resumed after {run['restarts']} unclean collector stop(s)", style="yellow"))
+    unknown = status.get("unknown_agents") or {}
+    if unknown:
+        out.append(Text(f"data from agents without a liveliness token: {', '.join(sorted(unknown))}",
+                        style="yellow"))
+    return out
 
 
 def _alive(a: dict[str, Any]) -> str:

@@ -461,3 +461,41 @@ def test_cli_start_warns_or_refuses_on_clock_offset(make_collector, agent, endpo
     r = _cli("start", "--name", "y", "--max-offset-ms", "500", "--connect", endpoint)
     assert r.returncode == 1  # a run is active: answered at once, one line
     assert "is already active" in r.stderr
+
+
+def test_status_view_shows_disk_full_restarts_and_unknown_agents() -> None:
+    from rich.console import Console
+
+    from collector.live import render
+
+    status = {"run": {"run_id": "r", "readings": 1, "restarts": 2}, "agents": {},
+              "disk_full": True, "unknown_agents": {"pi-99": 3}}
+    console = Console(width=120, record=True)
+    console.print(render(status))
+    text = console.export_text()
+    assert "DISK FULL: rows are held in memory" in text
+    assert "run resumed after 2 unclean collector stop(s)" in text
+    assert "data from agents without a liveliness token: pi-99" in text
+    console = Console(width=120, record=True)
+    console.print(render({"run": None, "agents": {}}))
+    assert "DISK FULL" not in console.export_text()
+
+
+class _Sample:
+    """The two attributes of a zenoh.Sample the data callback reads."""
+
+    def __init__(self, key: str, payload: bytes) -> None:
+        self.key_expr = key
+        self.payload = type("P", (), {"to_bytes": lambda _self: payload})()
+
+
+def test_full_receive_queue_drops_unacknowledged_after_waiting(tmp_path, caplog) -> None:
+    # Not opened: no writer drains the queue, as when it is far behind.
+    c = Collector(CollectorConfig(data_dir=tmp_path), queue_max=2)
+    key = wire.data_key("default", "pi-01", A)
+    for i in range(4):
+        c._on_sample(_Sample(key, wire.to_wire(make_batch(i, sensor=A))))
+    status = c._do_status()
+    assert (status["queue"], status["queue_overflow"]) == (2, 2)
+    assert c._tracker.streams == {}  # dropped before dedupe: nothing will be acknowledged for them
+    assert sum("receive queue full" in r.message for r in caplog.records) == 1  # rate-limited

@@ -554,10 +554,13 @@ def collector_outage(root: Path, scale: Scale, *, mode: str, outage_s: float,
     return res
 
 
-def agent_restart(root: Path, scale: Scale) -> Result:
+def agent_restart(root: Path, scale: Scale, *, pause_s: float = 2.0) -> Result:
     """kill -9 of a streaming agent; restarted with the same id and spool dir (replaying a second,
     later file): everything in the spool at the kill and everything of the second file arrives
-    exactly once."""
+    exactly once.
+
+    The collector is frozen (SIGSTOP) for `pause_s` before the kill and thawed right after it, so
+    the agent dies with seconds of unacknowledged batches in its spool, not just the last few."""
     rig = Rig(root)
     sensors, beacons = sensor_macs(scale.sensors), beacon_macs(scale.beacons)
     t0 = time.time_ns()
@@ -575,12 +578,16 @@ def agent_restart(root: Path, scale: Scale) -> Result:
         a1 = rig.agent(first.paths, speed=scale.speed, name="agent-boot1")
         a1.start()
         rig.wait_recording(run_dir, max(1, len(first.rows) // 3), timeout=60 + scale.duration_s)
+        if pause_s > 0:
+            rig.collector.signal(signal.SIGSTOP)
+            time.sleep(pause_s)
         a1.kill9()
+        on_disk_at_kill = sum(read_rows(run_dir)[0].values())
+        rig.collector.signal(signal.SIGCONT)
         assert a1.spool_dir is not None
         spooled = spool_batches(a1.spool_dir)
         boots = {s.split("/")[0] for s, _, _ in spooled}
         spooled_rows = batch_rows(p for _, _, p in spooled)
-        on_disk_at_kill = sum(read_rows(run_dir)[0].values())
         res.notes.update(spooled_batches=len(spooled), spooled_rows=len(spooled_rows),
                          rows_at_kill=on_disk_at_kill)
         if not spooled_rows:
