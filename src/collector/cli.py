@@ -16,10 +16,12 @@ from rich.markup import escape
 from rich.table import Table
 
 from collector.errors import CollectorError
+from collector.fleet import app as fleet_app
 
 app = typer.Typer(name="collector", no_args_is_help=True, pretty_exceptions_show_locals=False,
                   help="Receives BLE RSSI batches from sensor agents over Zenoh and writes one "
                        ".mbd file per sensor per capture run.")
+app.add_typer(fleet_app, name="fleet", help="The fleet in a deploy/ inventory: agents alive, versions, adapters, clocks.")
 console = Console()
 err_console = Console(stderr=True)
 

@@ -970,3 +970,71 @@ def full_disk(root: Path, scale: Scale, *, hold_s: float, size: str = "2m",
     finally:
         umount(disk)
     return res
+
+
+# --- absurd readings -------------------------------------------------------------------------
+
+
+def absurd_readings(root: Path, *, batches: int = 40) -> Result:
+    """Batches that are valid to the wire format but carry readings from 2001 or 2099 (a day or
+    more from the collector's clock), on their own stream next to a sane one: the sane stream is
+    recorded whole; the absurd readings end in rejected.jsonl, never in a run file."""
+    import zenoh
+
+    from ble_groundtruth.zenoh_config import SessionSpec, build_config
+
+    rig = Rig(root)
+    agent, boot = "pi-02", "a5a5a5a5a5a5a5a5"
+    sane_sensor, odd_sensor = sensor_macs(2, prefix="5a5e00")
+    res = Result("absurd timestamps", Tally())
+    run_dir: Path | None = None
+    expected: set[str] = set()
+    now = time.time_ns()
+    day = 86_400 * 10**9
+    try:
+        rig.collector.start()
+        run_dir = rig.start_run("absurd")
+        session = zenoh.open(build_config(SessionSpec(mode="client", connect=[rig.endpoint])))
+        try:
+            token = session.liveliness().declare_token(wire.agent_token_key(SITE, agent))
+            block = zenoh.CongestionControl.BLOCK
+            for seq in range(batches):
+                rs = tuple(wire.Reading(now + seq * 10**8 + k, "e78f13cccccc", -60 - k)
+                           for k in range(2))
+                expected |= {format_row(r.t_ns, sane_sensor, r.beacon, r.rssi).rstrip("\n")
+                             for r in rs}
+                session.put(wire.data_key(SITE, agent, sane_sensor),
+                            wire.to_wire(wire.Batch(agent, boot, sane_sensor, seq, rs)),
+                            congestion_control=block)
+                t = 978_307_200 * 10**9 + seq if seq % 2 else 4_070_908_800 * 10**9 + seq
+                odd = wire.Batch(agent, boot, odd_sensor, seq, (wire.Reading(t, "e78f13cccccc", -70),))
+                session.put(wire.data_key(SITE, agent, odd_sensor), wire.to_wire(odd),
+                            congestion_control=block)
+            wait_until(lambda: count_lines(run_dir) >= len(expected), 30, "the sane stream")
+            time.sleep(1.5)  # let the collector finish with the absurd stream too
+            token.undeclare()
+        finally:
+            session.close()
+        stopped = rig.stop_run()
+        res.notes["stop_readings"] = stopped.get("readings")
+        rows, _ = read_rows(run_dir, [odd_sensor])
+        far = [r for r in rows if abs(parse_line(r).t_ns - now) > day]
+        res.notes["absurd_recorded"] = len(far)
+        if far:
+            res.problems.append(f"{len(far)} readings a day or more from now were recorded, "
+                                f"e.g. {far[0]}")
+        keys = [json.loads(raw).get("key") for raw in
+                (run_dir / "rejected.jsonl").read_bytes().split(b"\n")[:-1]] \
+            if (run_dir / "rejected.jsonl").exists() else []
+        quarantined = sum(1 for k in keys if k == wire.data_key(SITE, agent, odd_sensor))
+        res.notes["quarantined"] = quarantined
+        if quarantined < batches:
+            res.problems.append(f"only {quarantined} of {batches} absurd batches are in "
+                                "rejected.jsonl")
+    except (AssertionError, CollectorError) as e:
+        res.problems.append(f"{e}\n{rig.diagnostics()}")
+    finally:
+        rig.close()
+    if run_dir is not None:
+        res.tally = tally(run_dir, expected, [sane_sensor])
+    return res

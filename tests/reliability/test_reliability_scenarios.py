@@ -11,7 +11,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from harness import Result, Scale, agent_restart, collector_outage, full_disk, fuzz_scenario
+from harness import (
+    Result,
+    Scale,
+    absurd_readings,
+    agent_restart,
+    collector_outage,
+    full_disk,
+    fuzz_scenario,
+)
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -76,3 +84,9 @@ def test_full_disk_under_the_agent_spool_loses_nothing(tmp_path: Path) -> None:
         pytest.skip(res.notes["skipped"])
     _assert_clean(res)
     assert res.notes["status_says_full"]
+
+
+def test_readings_with_absurd_timestamps_are_quarantined_not_recorded(tmp_path: Path) -> None:
+    # Valid to the wire format (2000..2100) but decades from the collector's clock.
+    res = absurd_readings(tmp_path)
+    _assert_clean(res)
