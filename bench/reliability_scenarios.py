@@ -2,14 +2,15 @@
 than the tests: real `collector serve` and `sensor-agent run` processes on loopback Zenoh.
 
     python bench/reliability_scenarios.py [--sensors 8] [--beacons 3] [--seconds 60]
-                                          [--only kill9,stop30,kill30,kill90,agent,fuzz,disk]
+                                          [--only kill9,stop30,kill30,kill90,agent,fuzz,disk,adisk]
 
 Scenarios: collector kill -9 restarted after 3 s; collector unreachable 30 s (SIGSTOP/SIGCONT);
 collector kill -9 restarted after 30 s, and after 90 s (beyond the publisher's in-memory cache,
 so only the spool covers it); agent kill -9 + restart on the same spool; a fuzz of hostile
-payloads on data and control keys; the collector's data dir on a 2 MiB tmpfs that fills up
-mid-run (root only). Then the outage the default spool (256 MiB) covers at 12 sensors x 10 Hz,
-from the spool bytes per batch measured during the outages.
+payloads on data and control keys; the collector's data dir (2 MiB) or the agent's spool (1 MiB)
+on a tmpfs that fills up mid-run and is freed 10 s later (root only). Then the outage the
+default spool (256 MiB) covers at 12 sensors x 10 Hz, from the spool bytes per batch measured
+during the outages.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ def main() -> int:
     ap.add_argument("--beacons", type=int, default=3)
     ap.add_argument("--seconds", type=float, default=60.0, help="stream length per scenario")
     ap.add_argument("--fuzz", type=int, default=10_000, help="hostile data payloads")
-    ap.add_argument("--only", default="kill9,stop30,kill30,kill90,agent,fuzz,disk")
+    ap.add_argument("--only", default="kill9,stop30,kill30,kill90,agent,fuzz,disk,adisk")
     ap.add_argument("--keep", action="store_true", help="keep the work folder (logs, runs)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -66,7 +67,8 @@ def main() -> int:
                                              name="collector kill9, back 90s"),
         "agent": lambda d: agent_restart(d, scale),
         "fuzz": lambda d: fuzz_scenario(d, scale, n_data=args.fuzz, n_queries=1000),
-        "disk": lambda d: full_disk(d, scale, hold_s=10.0),
+        "disk": lambda d: full_disk(d, scale, hold_s=10.0, side="collector"),
+        "adisk": lambda d: full_disk(d, scale, hold_s=10.0, size="1m", side="agent"),
     }
     print(f"{args.sensors} sensors x {args.beacons} beacons x 10 Hz, {args.seconds:g} s streams; "
           f"work folder {work}")

@@ -87,7 +87,7 @@ def test_no_wait_ack_exits_0_without_collector_acks(endpoint: str, dataset_dir: 
 def test_unreachable_router_keeps_recording_then_one_line(dataset_dir: Path, tmp_path: Path) -> None:
     """No router at all: the agent still starts and records (it would publish once the router
     comes); a replay then ends with the bounded ack wait and one line, not a traceback."""
-    from conftest import free_port
+    from loopback import free_port
 
     f = dataset_dir / "trk" / "straight_01" / "sensor10_0.00_0.00_0.00.mbd"
     log = tmp_path / "agent.log"

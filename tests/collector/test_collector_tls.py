@@ -17,7 +17,7 @@ from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import Unreachable
 from collector.server import Collector
-from conftest import free_port
+from loopback import free_port
 
 
 def files(d: Path, cn: str) -> TlsFiles:

@@ -87,6 +87,6 @@ def test_full_disk_under_the_agent_spool_loses_nothing(tmp_path: Path) -> None:
 
 
 def test_readings_with_absurd_timestamps_are_quarantined_not_recorded(tmp_path: Path) -> None:
-    # Valid to the wire format (2000..2100) but decades from the collector's clock.
+    # Valid to the wire format (2000..2100) but decades ahead of the collector's clock.
     res = absurd_readings(tmp_path)
     _assert_clean(res)
