@@ -18,7 +18,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import metadata
 from typing import Any
 
@@ -55,6 +55,7 @@ RATE_WINDOW_S = 5.0
 RSSI_HISTORY = 40  # readings kept per sensor for the live sparkline
 QUEUE_MAX = 20_000  # batches between the Zenoh callbacks and the writer
 QUEUE_WAIT_S = 0.5  # a callback waits this long for room (back-pressure) before dropping unacked
+FUTURE_LIMIT_NS = 24 * 3600 * 10**9  # readings further ahead than this are absurd
 MAX_BUFFER_BYTES = 64 * 1024 * 1024  # rows held in memory while the disk refuses them
 DISK_RETRY_S = 1.0
 QUARANTINE_MAX_BYTES = 16 * 1024 * 1024  # per run; beyond it rejects are only counted
@@ -350,6 +351,7 @@ class Collector:
         except Exception as e:  # noqa: BLE001 - a callback must not die on one bad sample
             self._reject("malformed", key, f"{type(e).__name__}: {e}", payload)
             return
+        batch = self._drop_future_readings(batch, key, payload)
         try:
             # Waiting here is the back-pressure: Zenoh (BLOCK congestion control) slows the senders.
             self._data.put(batch, timeout=QUEUE_WAIT_S)
@@ -364,6 +366,23 @@ class Collector:
                 n = self._overflow
             log.warning("receive queue full (%d batches): dropped a batch of %s unacknowledged "
                         "(%d so far); the writer cannot keep up", self._data.maxsize, key, n)
+
+    def _drop_future_readings(self, batch: RawBatch, key: str, payload: bytes) -> RawBatch:
+        """Readings stamped more than FUTURE_LIMIT_NS ahead of our clock are quarantined, the
+        rest of the batch is kept: the batch itself is still handled (and acknowledged), so a
+        broken clock on one agent cannot stall its stream. Old timestamps are legitimate
+        (``--replay-keep-time`` of a past recording), so only the future counts as absurd."""
+        limit = self._clock() + FUTURE_LIMIT_NS
+        if not batch.rows or max(r[0] for r in batch.rows) <= limit:
+            return batch
+        good = [r for r in batch.rows if r[0] <= limit]
+        bad = len(batch.rows) - len(good)
+        first = min(r[0] for r in batch.rows if r[0] > limit)
+        self._reject("future_timestamp", key,
+                     f"{bad} of {len(batch.rows)} readings of seq {batch.seq} stamped "
+                     f"{wire.format_ts(first)}, more than a day ahead of the collector's clock",
+                     payload)
+        return replace(batch, rows=good)
 
     def _reject(self, reason: str, key: str, message: str, payload: bytes) -> None:
         """Count, log (rate-limited) and queue for <run>/rejected.jsonl; never raises."""
