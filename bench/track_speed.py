@@ -34,7 +34,7 @@ def cpu_seconds() -> float:
 
 def decode_only(path: Path) -> int:
     # The same decoder settings as tracking with jobs > 1 uses (one decoder thread per process).
-    return sum(1 for _ in iter_frames(path, gray=True, threads=1))
+    return sum(1 for _ in iter_frames(path, gray=True, threads=1, luma=True))
 
 
 def render(out: Path, duration: float, fps: float) -> None:

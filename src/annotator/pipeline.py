@@ -5,6 +5,8 @@ bundle pose from that camera. Then, for method ``rig``: choose between mirror so
 single-marker frames -> smooth (pass 1) -> joint two-camera solves of near-simultaneous frames,
 motion-compensated with the pass-1 trajectory -> smooth again. Method ``paper``: per-marker poses
 -> batches -> selection -> random-walk Kalman filter.
+With jobs > 1 one process pool serves the whole run: the videos, then the joint solves and the
+rotation half of each smoothing pass.
 """
 
 from __future__ import annotations
@@ -12,8 +14,9 @@ from __future__ import annotations
 import dataclasses
 import logging
 import queue
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing import Manager
 from pathlib import Path
@@ -81,7 +84,7 @@ def process_video(path: Path, camera: RigCamera, markers: MarkerSetup, t_start: 
     total = info.frame_count if settings.max_frames is None else min(info.frame_count, settings.max_frames)
     prior = None
     threads = 1 if settings.jobs > 1 else None  # one process per video already keeps cores busy
-    for k, (pts, frame) in enumerate(iter_frames(path, gray=True, threads=threads)):
+    for k, (pts, frame) in enumerate(iter_frames(path, gray=True, threads=threads, luma=True)):
         if settings.max_frames is not None and k >= settings.max_frames:
             break
         if k == 0 and (frame.shape[1], frame.shape[0]) != (cal.width, cal.height):
@@ -115,18 +118,19 @@ def _job(args: tuple[Any, ...]) -> CameraFrames:
     return process_video(path, camera, markers, t_start, settings, report)
 
 
-def _all_videos(exp: Experiment, settings: TrackSettings, progress: Progress | None) -> list[CameraFrames]:
+def _all_videos(exp: Experiment, settings: TrackSettings, progress: Progress | None,
+                pool: ProcessPoolExecutor | None = None) -> list[CameraFrames]:
     if exp.video_start is None:
         raise NoDataError(f"{exp.path}: no video start times; run the sync step first (sync.mode auto)")
     names = list(exp.videos)
-    if settings.jobs <= 1 or len(names) == 1:
+    if pool is None or len(names) == 1:
         out = []
         for name in names:
             cb = None if progress is None else (lambda d, n, name=name: progress(name, d, n))
             out.append(process_video(exp.videos[name], exp.rig.cameras[name], exp.markers,
                                      exp.video_start[name], settings, cb))
         return out
-    with Manager() as mgr, ProcessPoolExecutor(max_workers=min(settings.jobs, len(names))) as pool:
+    with Manager() as mgr:
         q = mgr.Queue()
         futures = [pool.submit(_job, (exp.videos[n], exp.rig.cameras[n], exp.markers, exp.video_start[n],
                                       settings, q)) for n in names]
@@ -145,6 +149,16 @@ def _all_videos(exp: Experiment, settings: TrackSettings, progress: Progress | N
             if progress is not None:
                 progress(name, done, total)
         return [f.result() for f in futures]
+
+
+@contextmanager
+def _worker_pool(settings: TrackSettings) -> Iterator[ProcessPoolExecutor | None]:
+    """One process pool for the whole run (videos, then joint solves); None with jobs 1."""
+    if settings.jobs <= 1:
+        yield None
+        return
+    with ProcessPoolExecutor(max_workers=settings.jobs) as pool:
+        yield pool
 
 
 # --- stage 2 (rig): ambiguity, smoothing, joint solves -----------------------------------------------
@@ -199,8 +213,12 @@ def resolve_ambiguities(items: list[tuple[float, BundlePose]], window_s: float) 
     return sorted(out, key=lambda it: it[0])
 
 
-def smooth(meas: Measurements, t_out: np.ndarray, s: SmootherSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Positions (M, 3), rotations (M, 3, 3) and position sigma (M,) at t_out; NaN where unsupported."""
+def smooth(meas: Measurements, t_out: np.ndarray, s: SmootherSettings,
+           pool: ProcessPoolExecutor | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions (M, 3), rotations (M, 3, 3) and position sigma (M,) at t_out; NaN where unsupported.
+
+    With a pool, the rotation fit runs in a worker while this process filters the positions.
+    """
     if len(meas.t) == 0:
         return np.full((len(t_out), 3), np.nan), np.full((len(t_out), 3, 3), np.nan), np.full(len(t_out), np.nan)
     # Vague measurements (a lone far marker) would only bridge gaps with guesses.
@@ -208,9 +226,11 @@ def smooth(meas: Measurements, t_out: np.ndarray, s: SmootherSettings) -> tuple[
     meas = _select(meas, ~vague)
     if len(meas.t) == 0:
         return np.full((len(t_out), 3), np.nan), np.full((len(t_out), 3, 3), np.nan), np.full(len(t_out), np.nan)
-    pos, sig, ok_p = smooth_positions(meas.t, meas.p, meas.cov[:, 3:, 3:], t_out, s)
     var = np.trace(meas.cov[:, :3, :3], axis1=1, axis2=2) / 3
-    R, ok_r = smooth_rotations(meas.t, Rotation.from_matrix(meas.R), var, t_out, s)
+    rot_args = (meas.t, Rotation.from_matrix(meas.R), var, t_out, s)
+    rot_future = None if pool is None else pool.submit(smooth_rotations, *rot_args)
+    pos, sig, ok_p = smooth_positions(meas.t, meas.p, meas.cov[:, 3:, 3:], t_out, s)
+    R, ok_r = smooth_rotations(*rot_args) if rot_future is None else rot_future.result()
     log.info("smoother kept %d/%d positions, %d/%d rotations", ok_p.sum(), len(ok_p), ok_r.sum(), len(ok_r))
     ok = supported(meas.t[ok_p & ok_r], t_out, s.max_gap_s, s.max_extrapolate_s)
     bad = ~ok | ~np.isfinite(pos).all(1) | ~np.isfinite(R).all((1, 2)) | ~(sig <= s.max_out_sigma_m)
@@ -238,8 +258,25 @@ def interp_poses(times: np.ndarray, t_grid: np.ndarray, pos: np.ndarray,
     return R_out, p_out, ok
 
 
+def _solve_chunk(args: tuple[Any, ...]) -> list[BundlePose | None]:
+    room, solver, problems = args
+    return [solve_bundle_pose(obs, room, solver, prior=prior, prior_first=True) for obs, prior in problems]
+
+
+def _solve_all(problems: list[tuple[list[CameraObservation], tuple[np.ndarray, np.ndarray]]], room: MarkerRoom,
+               solver: SolverSettings, pool: ProcessPoolExecutor | None, jobs: int) -> list[BundlePose | None]:
+    """Joint solves (each independent of the others), in the pool's processes when there is one."""
+    if pool is None or len(problems) < 64:  # a handful of solves costs less than shipping them
+        return _solve_chunk((room, solver, problems))
+    # A few chunks per worker even out uneven chunks on a loaded machine.
+    bounds = np.linspace(0, len(problems), 2 * jobs + 1).astype(int)
+    chunks = [(room, solver, problems[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+    return [pose for part in pool.map(_solve_chunk, chunks) for pose in part]
+
+
 def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: MarkerRoom, settings: TrackSettings,
-                       t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray) -> list[tuple[float, BundlePose]]:
+                       t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
+                       pool: ProcessPoolExecutor | None = None) -> list[tuple[float, BundlePose]]:
     """Joint solves pairing each frame of the first camera with the other cameras' nearest frames.
 
     The other camera saw the room at a slightly different time; its extrinsics are moved by the
@@ -262,6 +299,7 @@ def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: Marker
     need = np.array([float(cf.t[j]) for cams in pairs for cf, j in cams])
     R_at, p_at, ok_at = interp_poses(need, t_grid, pos, R)
     lookup = {float(tt): n for n, tt in enumerate(need)}
+    tasks: list[tuple[float, list[CameraObservation], tuple[np.ndarray, np.ndarray], list[tuple[int, int]]]] = []
     for k, t in enumerate(base.t):
         cams = pairs[k]
         n0 = lookup[float(t)]
@@ -286,9 +324,11 @@ def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: Marker
             obs.append(observe(cf.detections[j], room, cam.calibration, R_bc, t_bc))
         if sum(len(o.ids) for o in obs) == 0:
             continue
-        pose = solve_bundle_pose(obs, room, settings.solver, prior=at_t, prior_first=True)
+        tasks.append((float(t), obs, at_t, joined))
+    solved = _solve_all([(obs, at_t) for _, obs, at_t, _ in tasks], room, settings.solver, pool, settings.jobs)
+    for (t, _, _, joined), pose in zip(tasks, solved, strict=True):
         if pose is not None:
-            out.append((float(t), pose))
+            out.append((t, pose))
             for ci, j in joined:
                 used_other[ci].add(j)
     # Frames of the other cameras not paired with any base frame keep their own solves.
@@ -300,18 +340,19 @@ def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: Marker
     return out
 
 
-def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings, t_out: np.ndarray) -> Trajectory:
+def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings, t_out: np.ndarray,
+               pool: ProcessPoolExecutor | None = None) -> Trajectory:
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
     s = settings.smoother
     singles = [(float(t), p) for cf in frames for t, p in zip(cf.t, cf.poses, strict=True) if p is not None]
     if not singles:
         raise NoDataError(f"{exp.path}: no marker from the map was detected in any video")
     meas = _stack(resolve_ambiguities(singles, s.max_gap_s))
-    pos, R, sig = smooth(meas, t_out, s)
+    pos, R, sig = smooth(meas, t_out, s, pool)
     if settings.joint and len(frames) > 1:
-        joint = resolve_ambiguities(joint_measurements(frames, exp, room, settings, t_out, pos, R), s.max_gap_s)
+        joint = resolve_ambiguities(joint_measurements(frames, exp, room, settings, t_out, pos, R, pool), s.max_gap_s)
         meas = _stack(joint)
-        pos, R, sig = smooth(meas, t_out, s)
+        pos, R, sig = smooth(meas, t_out, s, pool)
     # Quality columns from the measurement at each output time (0 markers where there was none).
     idx = np.searchsorted(meas.t, t_out)
     idx = np.clip(idx, 0, max(len(meas.t) - 1, 0))
@@ -338,7 +379,8 @@ def track_experiment(exp: Experiment, settings: TrackSettings | None = None,
     settings = settings or TrackSettings()
     if settings.method not in ("rig", "paper"):
         raise ValueError(f"unknown method {settings.method!r}")
-    return frames_to_trajectory(_all_videos(exp, settings, progress), exp, settings)
+    with _worker_pool(settings) as pool:
+        return frames_to_trajectory(_all_videos(exp, settings, progress, pool), exp, settings, pool)
 
 
 # --- `annotator run`: track -> sync -> label -> outputs ---------------------------------------
@@ -364,14 +406,15 @@ class RunResult:
     report: dict[str, Any]
 
 
-def frames_to_trajectory(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings) -> Trajectory:
-    """Stage 2 of tracking on frames whose times are already wall-clock."""
+def frames_to_trajectory(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings,
+                         pool: ProcessPoolExecutor | None = None) -> Trajectory:
+    """Stage 2 of tracking on frames whose times are already wall-clock (joint solves in ``pool``)."""
     if not any(len(cf.t) for cf in frames):
         raise NoDataError(f"{exp.path}: the videos hold no frames")
     if settings.method == "paper":
         return _track_paper(frames, settings)
     t_out = np.unique(np.concatenate([cf.t for cf in frames]))
-    return _track_rig(frames, exp, settings, t_out)
+    return _track_rig(frames, exp, settings, t_out, pool)
 
 
 def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings | None = None,
@@ -410,7 +453,8 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
         rssi_events = detect_rssi_events(table.t_seconds(), table.rssi, table.sensor,
                                          name=f"RSSI of beacon {beacon}", min_duration=cover_s[0],
                                          max_duration=cover_s[1])
-        frames = _all_videos(replace(exp, video_start={n: 0.0 for n in exp.videos}), track, progress)
+        with _worker_pool(track) as pool:
+            frames = _all_videos(replace(exp, video_start={n: 0.0 for n in exp.videos}), track, progress, pool)
         series = {}
         for cf in frames:
             n = len(cf.t)
@@ -429,8 +473,10 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
         frames = [replace(cf, t=sync.clocks[cf.camera].to_rssi(cf.t)) for cf in frames]
     else:
         sync = manual_sync(exp.video_start or {})
-        frames = _all_videos(exp, track, progress)
-    traj = frames_to_trajectory(frames, exp, track)
+        with _worker_pool(track) as pool:
+            frames = _all_videos(exp, track, progress, pool)
+    with _worker_pool(track) as pool:
+        traj = frames_to_trajectory(frames, exp, track, pool)
 
     poses = Poses(traj.t, traj.position, traj.rotation, sigma=traj.quality.get("sigma_m"),
                   markers=traj.quality.get("markers"))

@@ -154,6 +154,32 @@ def test_frames_come_with_container_timestamps(tmp_path):
     assert gray.ndim == 2
 
 
+def test_luma_frames_match_grey_frames_at_the_same_times(tmp_path):
+    # An odd width and a textured image: a wrong plane stride or chroma mix-up would show.
+    w = cv2.VideoWriter(str(tmp_path / "v.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (200, 120))
+    rng = np.random.default_rng(1)
+    base = cv2.resize(rng.integers(0, 256, (15, 25, 3), dtype=np.uint8), (200, 120), interpolation=cv2.INTER_NEAREST)
+    for i in range(5):
+        w.write(np.roll(base, 8 * i, axis=1))
+    w.release()
+    grey = list(iter_frames(tmp_path / "v.mp4", gray=True))
+    luma = list(iter_frames(tmp_path / "v.mp4", gray=True, threads=1, luma=True))
+    assert [t for t, _ in luma] == [t for t, _ in grey]
+    for (_, g), (_, y) in zip(grey, luma, strict=True):
+        assert y.shape == g.shape == (120, 200)
+        assert y.dtype == np.uint8
+        # Video-range luma is grey scaled into 16..235: a straight line through the pixel pairs.
+        fit = np.polyfit(g.ravel().astype(float), y.ravel().astype(float), 1)
+        assert fit[0] == pytest.approx(219 / 255, abs=0.03)
+        assert fit[1] == pytest.approx(16, abs=3)
+        assert np.corrcoef(g.ravel(), y.ravel())[0, 1] > 0.99
+
+
+def test_luma_of_a_missing_video_is_a_one_line_error(tmp_path):
+    with pytest.raises(AnnotatorError, match="no such video"):
+        list(iter_frames(tmp_path / "none.mp4", gray=True, luma=True))
+
+
 def test_unreadable_video_is_a_one_line_error(tmp_path):
     (tmp_path / "bad.mp4").write_bytes(b"not a video")
     with pytest.raises(AnnotatorError, match="cannot open as video"):
