@@ -22,6 +22,7 @@ from multiprocessing import Manager
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -157,8 +158,13 @@ def _worker_pool(settings: TrackSettings) -> Iterator[ProcessPoolExecutor | None
     if settings.jobs <= 1:
         yield None
         return
-    with ProcessPoolExecutor(max_workers=settings.jobs) as pool:
+    with ProcessPoolExecutor(max_workers=settings.jobs, initializer=_single_threaded_worker) as pool:
         yield pool
+
+
+def _single_threaded_worker() -> None:
+    # The pool already keeps every core busy; OpenCV's own threads on top only contend for them.
+    cv2.setNumThreads(1)
 
 
 # --- stage 2 (rig): ambiguity, smoothing, joint solves -----------------------------------------------
@@ -363,11 +369,14 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
 
 
 def _track_paper(frames: list[CameraFrames], settings: TrackSettings) -> Trajectory:
+    # All cameras' frames go in together: paper_track orders them in time and counts them as one stream.
     t = np.concatenate([cf.t for cf in frames])
     poses = [mp for cf in frames for mp in cf.marker_poses]
     if not any(len(mp.distance) for mp in poses):
         raise NoDataError("no marker from the map was detected in any video")
-    tb, pos, rot, used = paper_track(t, poses, frames[0].frame_interval, settings.paper)
+    tb, pos, rot, used = paper_track(t, poses, settings.paper)
+    if not len(tb):
+        raise NoDataError(f"{len(t)} frames in all are fewer than one batch of {settings.paper.frames}")
     bad = used == 0
     pos[bad], rot[bad] = np.nan, np.nan
     return Trajectory(tb, pos, rot, {"markers": used.astype(float)})

@@ -69,11 +69,16 @@ def test_paper_method_runs_on_the_same_videos(rendered):
                                    "--method", "paper", "--batch-frames", "10"])
     assert res.exit_code == 0, res.output
     traj = read_trajectory(out / "trajectory.csv")
+    truth = read_trajectory(rendered / "truth.csv")
     assert traj.valid.sum() >= 5
-    assert np.allclose(np.diff(traj.t[:3]), 10 / 30, atol=0.02)  # one row per batch of F frames
-    pos, _ = errors_against_truth(traj, read_trajectory(rendered / "truth.csv"))
+    # truth.csv has a row per frame of either camera in time order: a batch is 10 of them
+    # whatever the camera, stamped with the time of its 10th.
+    assert len(traj) == len(truth) // 10
+    np.testing.assert_allclose(traj.t, truth.t[9::10][:len(traj)], atol=1e-5)
+    pos, _ = errors_against_truth(traj, truth)
     print(f"paper: {len(pos)} batches, position median {100 * np.median(pos):.1f} cm")
-    assert np.median(pos) < 2.0  # the anchor method is coarse; it must still be in the right place
+    # The anchor method lags (random-walk filter); at 0.4 m/s that is tens of cm, not metres.
+    assert np.median(pos) < 0.6
 
 
 def test_bad_experiment_is_one_red_line_and_exit_1(tmp_path):

@@ -10,7 +10,7 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from annotator.commands._common import one_line_errors
+from annotator.commands._common import default_jobs, one_line_errors
 
 
 class Method(StrEnum):
@@ -31,23 +31,30 @@ def track(
     method: Annotated[Method, typer.Option(
         help="rig: joint multi-marker PnP over both cameras + RTS/SO(3) smoother (accurate). "
              "paper: the per-marker averaging + Kalman filter of Daniş et al. 2022, for comparison.")] = Method.rig,
-    jobs: Annotated[int, typer.Option(help="Decode and detect this many videos in parallel processes.")] = 1,
-    downscale: Annotated[float, typer.Option(
-        help="Detect markers on frames scaled by this factor (e.g. 0.5 for 1080p), then refine "
-             "corners at full resolution. 1 = full resolution.")] = 1.0,
+    jobs: Annotated[int | None, typer.Option(
+        help="Worker processes: the videos are decoded and detected in parallel, then the joint "
+             "solves share them.", show_default="one per core")] = None,
+    downscale: Annotated[float | None, typer.Option(
+        help="Detect markers on frames scaled by this factor, then refine the corners at full "
+             "resolution. 1 = detect at full resolution.",
+        show_default="halve while wider than 1280 px, so 0.5 for 1080p")] = None,
     corner_refine: Annotated[CornerRefine, typer.Option(help="ArUco corner refinement.")] = CornerRefine.subpix,
     board_refine: Annotated[bool, typer.Option(
         help="Recover missed markers by projecting the known room (refineDetectedMarkers).")] = True,
-    fast_detect: Annotated[bool, typer.Option(
-        help="Threshold once per frame (window 7 px) instead of three times: ~3x faster detection, "
-             "slightly fewer markers found.")] = False,
+    thorough_detect: Annotated[bool, typer.Option(
+        help="Threshold every frame at three window sizes (OpenCV's default) instead of one. By "
+             "default only frames where one window finds fewer than two markers get the three; "
+             "this is ~2x slower detection for ~1-2 % more markers.")] = False,
     joint: Annotated[bool, typer.Option(
         help="rig: solve near-simultaneous frames of all cameras jointly (motion-compensated).")] = True,
     max_frames: Annotated[int | None, typer.Option(help="Stop each video after this many frames.")] = None,
-    batch_frames: Annotated[int, typer.Option(help="paper: F, frames per batch.")] = 15,
+    batch_frames: Annotated[int, typer.Option(
+        help="paper: F, frames per batch, counted over all cameras in time order "
+             "(15 at two 30 fps cameras = 0.25 s).")] = 15,
     close: Annotated[int, typer.Option(help="paper: C, poses kept from the closest markers.")] = 20,
     keep: Annotated[int, typer.Option(help="paper: U, poses left after outlier elimination.")] = 10,
-    q: Annotated[float, typer.Option(help="paper: Kalman measurement noise.")] = 0.15,
+    q: Annotated[float, typer.Option(help="paper: Kalman measurement noise (q I).")] = 0.15,
+    process_noise: Annotated[float, typer.Option(help="paper: Kalman process noise (random walk).")] = 0.01,
 ) -> None:
     """Track the camera-beacon bundle through the marker room; writes DIR/trajectory.csv.
 
@@ -63,18 +70,20 @@ def track(
 
     console = Console(stderr=True)
     with one_line_errors():
+        jobs = default_jobs() if jobs is None else jobs
         if jobs < 1:
             raise ConfigError("--jobs must be at least 1")
-        if not 0 < downscale <= 1:
+        if downscale is not None and not 0 < downscale <= 1:
             raise ConfigError("--downscale must be in (0, 1]")
-        if not (batch_frames >= 1 and close >= 1 and 1 <= keep <= close and q > 0):
-            raise ConfigError("paper parameters: need F >= 1, 1 <= U <= C and q > 0")
+        if not (batch_frames >= 1 and close >= 1 and 1 <= keep <= close and q > 0 and process_noise >= 0):
+            raise ConfigError("paper parameters: need --batch-frames >= 1, 1 <= --keep <= --close, --q > 0 "
+                              "and --process-noise >= 0")
         exp = load_experiment(experiment)
         settings = TrackSettings(
             method=method.value, jobs=jobs, joint=joint, max_frames=max_frames,
             detector=DetectorSettings(exp.markers.dictionary, corner_refine.value, downscale, board_refine,
-                                      (7, 7, 10) if fast_detect else (3, 23, 10)),
-            paper=PaperSettings(frames=batch_frames, close=close, keep=keep, q=q))
+                                      (3, 23, 10) if thorough_detect else (7, 7, 10)),
+            paper=PaperSettings(frames=batch_frames, close=close, keep=keep, q=q, process=process_noise))
         with Progress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn(),
                       TimeRemainingColumn(), console=console) as bar:
             tasks = {name: bar.add_task(name, total=None) for name in exp.videos}

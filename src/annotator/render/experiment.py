@@ -31,6 +31,7 @@ from annotator.render.textures import (
     background_panorama,
     skin_texture,
 )
+from annotator.render.trajectory import PolylineTrajectory
 from ble_groundtruth.formats.markers import MarkerPose, read_marker_map
 from ble_groundtruth.sites import site_dir
 
@@ -201,6 +202,13 @@ def experiment_yaml(video_start: dict[str, float], dictionary: str, length: floa
     )
 
 
+def path_yaml(waypoints: Sequence[Sequence[float]]) -> str:
+    """The planned path in the YAML `annotator evaluate --path` reads."""
+    pts = ", ".join(f"[{float(x)!r}, {float(y)!r}]" for x, y in waypoints)
+    return ("# Planned path of this render (room xy, m): `annotator evaluate TRAJ.csv --path path.yaml`.\n"
+            f"waypoints: [{pts}]\n")
+
+
 def render_experiment(
     out_dir: str | Path,
     pose_at: PoseAt,
@@ -225,7 +233,8 @@ def render_experiment(
 
     The front video starts at t_span[0], the back one `start_offset` s later; every frame lies
     inside t_span. `covers` are (start, duration) in seconds after t_span[0]: both lenses are
-    covered by a hand at the same wall time. Returns the paths written.
+    covered by a hand at the same wall time. A `PolylineTrajectory` also gets its planned path
+    written to path.yaml. Returns the paths written.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -259,6 +268,10 @@ def render_experiment(
     all_t = np.unique(np.concatenate([j.times for j in job_list]))
     pos, rot = pose_at(all_t)
     (out / "truth.csv").write_text(format_truth(all_t, np.asarray(pos, float), rot), encoding="utf-8")
+    if isinstance(pose_at, PolylineTrajectory):
+        (out / "path.yaml").write_text(path_yaml(pose_at.waypoints), encoding="utf-8")
+    else:  # a path.yaml left by an earlier render into the same folder would not belong to this one
+        (out / "path.yaml").unlink(missing_ok=True)
 
     frames = _run_jobs(job_list, jobs, progress)
     log.info("rendered %s into %s", frames, out)

@@ -1,7 +1,8 @@
-"""A default ground-truth trajectory for renders: a rounded-rectangle loop through the tetam room.
+"""Ground-truth trajectories for renders in the tetam room: the default rounded-rectangle loop,
+and polylines walked like the paper's planned paths (presets ``rectangle`` and ``zigzag``).
 
 Heading follows the path; yaw, pitch and roll wobble a little, the height drifts between
-about 1.3 and 1.8 m. Callable on an array of wall times like any `pose_at`.
+about 1.3 and 1.8 m. Each is callable on an array of wall times like any `pose_at`.
 """
 
 from __future__ import annotations
@@ -61,11 +62,99 @@ class LoopTrajectory:
         x = np.interp(s, length, xy[:, 0])
         y = np.interp(s, length, xy[:, 1])
         tau = t - self.t0
-        z = self.height + self.height_swing * np.sin(2 * np.pi * tau / 11.0)
-        wy, wp, wr = np.radians(self.wobble_deg)
-        yaw = np.interp(s, length, heading) + 2 * np.pi * laps + wy * np.sin(2 * np.pi * 0.17 * tau)
-        pitch = wp * np.sin(2 * np.pi * 0.23 * tau + 0.7)
-        roll = wr * np.sin(2 * np.pi * 0.31 * tau + 1.9)
-        # Intrinsic z-y'-x'': R_world_bundle = Rz(yaw) Ry(pitch) Rx(roll).
-        rot = Rotation.from_euler("ZYX", np.column_stack([yaw, pitch, roll]))
+        z = _height(tau, self.height, self.height_swing)
+        rot = _wobbly_rotation(np.interp(s, length, heading) + 2 * np.pi * laps, tau, self.wobble_deg)
         return np.column_stack([x, y, z]), rot
+
+
+def _height(tau: np.ndarray, height: float, swing: float) -> np.ndarray:
+    return height + swing * np.sin(2 * np.pi * tau / 11.0)
+
+
+def _wobbly_rotation(heading: np.ndarray, tau: np.ndarray, wobble_deg: tuple[float, float, float]) -> Rotation:
+    """R_world_bundle with the bundle's x along ``heading`` plus a slow yaw/pitch/roll wobble."""
+    wy, wp, wr = np.radians(wobble_deg)
+    yaw = heading + wy * np.sin(2 * np.pi * 0.17 * tau)
+    pitch = wp * np.sin(2 * np.pi * 0.23 * tau + 0.7)
+    roll = wr * np.sin(2 * np.pi * 0.31 * tau + 1.9)
+    # Intrinsic z-y'-x'': R_world_bundle = Rz(yaw) Ry(pitch) Rx(roll).
+    return Rotation.from_euler("ZYX", np.column_stack([yaw, pitch, roll]))
+
+
+# Planned paths inside the loop's region of the tetam room (x 7.7-11.8, y 7.0-10.9), where the
+# four pillars' markers are in view. `rectangle` is closed (walked round and round, counter-
+# clockwise like the loop); `zigzag` is open (walked there and back).
+PRESET_PATHS: dict[str, tuple[tuple[float, float], ...]] = {
+    "rectangle": ((8.0, 7.3), (11.5, 7.3), (11.5, 10.6), (8.0, 10.6), (8.0, 7.3)),
+    "zigzag": ((8.0, 7.4), (8.9, 10.5), (9.8, 7.4), (10.7, 10.5), (11.5, 7.4)),
+}
+
+
+@dataclass(frozen=True)
+class PolylineTrajectory:
+    """Walk straight lines between xy waypoints at constant speed, like a person following a
+    planned path; at each corner stop for ``dwell`` s and turn in place to the new heading.
+
+    A closed polyline (last waypoint == first) is walked round and round; an open one there and
+    back (turning round at each end). With ``turn`` False the bundle keeps its first heading all
+    the way (the paper's paths "without rotation"); otherwise its x axis points along the segment.
+    """
+
+    waypoints: tuple[tuple[float, float], ...]
+    t0: float = 1_700_000_000.0
+    speed: float = 0.4  # m/s while walking
+    dwell: float = 2.0  # s standing at each corner (turning when `turn`)
+    turn: bool = True
+    height: float = 1.55
+    height_swing: float = 0.25
+    wobble_deg: tuple[float, float, float] = (4.0, 3.0, 2.5)  # yaw, pitch, roll amplitudes
+
+    def __post_init__(self) -> None:
+        wp = np.asarray(self.waypoints, float)
+        if wp.ndim != 2 or wp.shape[1] != 2 or len(wp) < 2 or not np.isfinite(wp).all():
+            raise ValueError("waypoints must be at least two finite (x, y) pairs")
+        if np.any(np.linalg.norm(np.diff(wp, axis=0), axis=1) == 0):
+            raise ValueError("two consecutive waypoints are the same point")
+        if self.speed < 0 or self.dwell < 0:
+            raise ValueError("speed and dwell must be >= 0")
+
+    @property
+    def closed(self) -> bool:
+        wp = np.asarray(self.waypoints, float)
+        return bool(np.allclose(wp[0], wp[-1]))
+
+    def _tour(self) -> tuple[np.ndarray, np.ndarray]:
+        """Vertices (n+1, 2) of one repeat of the walk and the heading (n,) of each segment."""
+        wp = np.asarray(self.waypoints, float)
+        tour = wp if self.closed else np.vstack([wp, wp[-2::-1]])
+        d = np.diff(tour, axis=0)
+        return tour, np.arctan2(d[:, 1], d[:, 0])
+
+    def __call__(self, t: np.ndarray) -> tuple[np.ndarray, Rotation]:
+        t = np.atleast_1d(np.asarray(t, float))
+        tau = t - self.t0
+        tour, heading = self._tour()
+        n = len(heading)
+        if self.speed == 0:  # standing at the start
+            xy = np.repeat(tour[:1], len(t), 0)
+            yaw = np.full(len(t), heading[0])
+        else:
+            # One repeat: walk segment k, then stand at its end turning to segment k+1's heading.
+            walk = np.linalg.norm(np.diff(tour, axis=0), axis=1) / self.speed
+            phase_len = np.column_stack([walk, np.full(n, self.dwell)]).ravel()
+            phase_start = np.concatenate([[0.0], np.cumsum(phase_len)[:-1]])
+            period = float(phase_len.sum())
+            tp = np.mod(tau, period)
+            # 'right' skips zero-length phases (dwell 0).
+            j = np.clip(np.searchsorted(phase_start, tp, side="right") - 1, 0, 2 * n - 1)
+            k = j // 2
+            frac = np.clip((tp - phase_start[j]) / np.maximum(phase_len[j], 1e-12), 0.0, 1.0)
+            walking = j % 2 == 0
+            xy = np.where(walking[:, None], tour[k] + frac[:, None] * (tour[k + 1] - tour[k]), tour[k + 1])
+            change = np.mod(heading[(k + 1) % n] - heading[k] + np.pi, 2 * np.pi) - np.pi
+            ease = (1 - np.cos(np.pi * frac)) / 2  # start and end the turn gently
+            yaw = heading[k] + np.where(walking, 0.0, ease * change)
+        if not self.turn:
+            yaw = np.full(len(t), heading[0])
+        z = _height(tau, self.height, self.height_swing)
+        return np.column_stack([xy, z]), _wobbly_rotation(yaw, tau, self.wobble_deg)

@@ -1,10 +1,15 @@
 """Method ``paper``: the per-marker averaging of Daniş et al. (PMC 2022), kept for comparison.
 
-Each marker gives its own IPPE_SQUARE pose (t_wc = t_wm - R_wm R_cm^T t_cm); poses of both
-cameras over F frames form a batch; the C poses from the closest markers are kept; the pose
-farthest from the mean is dropped until U remain; their mean feeds a random-walk Kalman filter
-(A = H = I, process noise 0.01 I, measurement noise q I). One difference on purpose: the batch
-rotation is a proper rotation mean, not nine independently filtered numbers.
+Each marker gives its own IPPE_SQUARE pose (t_wc = t_wm - R_wm R_cm^T t_cm). Frames of all
+cameras are taken in time order and counted together; every F frames close a batch, stamped
+with the time of the frame that closed it (as the authors' program did: F = 15 at two 30 fps
+cameras is 0.25 s). The C poses from the closest markers are kept, the pose farthest from the
+mean is dropped until U remain, and their mean feeds a random-walk Kalman filter (A = H = I,
+P starting as the all-ones matrix, process noise 0.01 I, measurement noise q I).
+
+One difference on purpose: the batch rotation is a proper rotation mean of the kept poses, not
+nine matrix entries filtered as independent numbers (which made the published trajectories
+contain matrices that are not rotations).
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from annotator.vision.geometry import MarkerRoom, camera_to_bundle, ippe_square
 
 @dataclass(frozen=True, slots=True)
 class PaperSettings:
-    frames: int = 15  # F: frames per batch (per camera)
+    frames: int = 15  # F: frames per batch, counted over all cameras together
     close: int = 20  # C: poses kept from the closest markers
     keep: int = 10  # U: poses left after greedy outlier elimination
     q: float = 0.15  # measurement noise of the Kalman filter
@@ -70,46 +75,69 @@ def select_poses(pos: np.ndarray, distance: np.ndarray, close: int, keep: int) -
     return np.array(idx, dtype=int)
 
 
-def paper_track(t: np.ndarray, poses: list[MarkerPoses], frame_interval: float,
+def batch_bounds(n_frames: int, frames: int) -> np.ndarray:
+    """(B, 2) [start, stop) of each batch over ``n_frames`` time-ordered frames of all cameras.
+
+    Every ``frames`` frames counted close a batch; a last, incomplete batch is never closed.
+    """
+    b = n_frames // frames
+    starts = np.arange(b) * frames
+    return np.column_stack([starts, starts + frames]).astype(int)
+
+
+def random_walk_filter(z: np.ndarray, q: float, process: float) -> np.ndarray:
+    """Filtered states (B, 3) of a random-walk Kalman filter over measurements ``z`` (B, 3).
+
+    A = H = I; the state starts at the first finite measurement with P the all-ones matrix (as
+    in the original program); every measurement, the first included, is a predict and an
+    update. NaN rows (no measurement) stay NaN and leave the filter untouched.
+    """
+    out = np.full_like(z, np.nan, dtype=float)
+    x, P = None, np.ones((3, 3))
+    eye = np.eye(3)
+    for b, zb in enumerate(z):
+        if not np.isfinite(zb).all():
+            continue
+        if x is None:
+            x = zb.astype(float).copy()
+        P = P + process * eye  # predict: A = I
+        K = P @ np.linalg.inv(P + q * eye)  # update: H = I
+        x = x + K @ (zb - x)
+        P = (eye - K) @ P
+        out[b] = x
+    return out
+
+
+def paper_track(t: np.ndarray, poses: list[MarkerPoses],
                 settings: PaperSettings | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Batch times (B,), filtered positions (B, 3), rotations (B, 3, 3) and poses used (B,).
 
-    ``t`` (N,) are the frame times of all cameras with their per-frame marker poses. A batch with
+    ``t`` (N,) are the frame times of all cameras, ``poses`` each frame's marker poses. Frames
+    are put in time order, counted regardless of camera or detections, and every
+    ``settings.frames`` of them form one batch stamped with its last frame's time. A batch with
     no pose is a NaN row.
     """
     s = settings or PaperSettings()
-    order = np.argsort(t, kind="stable")
+    if len(t) != len(poses):
+        raise ValueError(f"{len(t)} frame times but {len(poses)} frames of marker poses")
+    order = np.argsort(np.asarray(t, float), kind="stable")
     t = np.asarray(t, float)[order]
     poses = [poses[i] for i in order]
-    if len(t) == 0:
-        return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
-    span = s.frames * frame_interval
-    batch = np.floor((t - t[0]) / span + 1e-9).astype(int)
-    times, zs, rots, used = [], [], [], []
-    x, P = None, None
-    for b in range(batch.max() + 1):
-        sel = np.flatnonzero(batch == b)
-        if len(sel) == 0:
-            continue
-        times.append(float(t[sel].mean()))
-        pos = np.concatenate([poses[i].position for i in sel])
+    bounds = batch_bounds(len(t), s.frames)
+    n = len(bounds)
+    times = t[bounds[:, 1] - 1] if n else np.zeros(0)
+    zs = np.full((n, 3), np.nan)
+    rots = np.full((n, 3, 3), np.nan)
+    used = np.zeros(n, dtype=int)
+    for b, (lo, hi) in enumerate(bounds):
+        batch = poses[lo:hi]
+        pos = np.concatenate([mp.position for mp in batch])
         if len(pos) == 0:
-            zs.append(np.full(3, np.nan))
-            rots.append(np.full((3, 3), np.nan))
-            used.append(0)
             continue
-        rot = np.concatenate([poses[i].rotation for i in sel])
-        dist = np.concatenate([poses[i].distance for i in sel])
+        rot = np.concatenate([mp.rotation for mp in batch])
+        dist = np.concatenate([mp.distance for mp in batch])
         keep = select_poses(pos, dist, s.close, s.keep)
-        z = pos[keep].mean(0)
-        if x is None:
-            x, P = z.copy(), s.q * np.eye(3)
-        else:
-            P = P + s.process * np.eye(3)  # predict: A = I
-            K = P @ np.linalg.inv(P + s.q * np.eye(3))  # update: H = I
-            x = x + K @ (z - x)
-            P = (np.eye(3) - K) @ P
-        zs.append(x.copy())
-        rots.append(Rotation.from_matrix(rot[keep]).mean().as_matrix())
-        used.append(len(keep))
-    return np.array(times), np.array(zs), np.array(rots), np.array(used)
+        zs[b] = pos[keep].mean(0)
+        rots[b] = Rotation.from_matrix(rot[keep]).mean().as_matrix()
+        used[b] = len(keep)
+    return times, random_walk_filter(zs, s.q, s.process), rots, used
