@@ -1,6 +1,6 @@
 """Speed of `annotator track` on 1920x1080 video: frames/s, and the ratio to a decode-only pass.
 
-    python bench/track_speed.py                       # renders 4 s of two 60 fps 1080p cameras
+    python bench/track_speed.py                       # renders 10 s of two 60 fps 1080p cameras
     python bench/track_speed.py --experiment DIR      # an existing `annotator simulate` folder
 Both passes run in the same process tree with the same number of jobs, so the ratio says how
 much the tracking costs on top of merely reading the videos. The load average is printed too:
@@ -58,7 +58,7 @@ def median_error_cm(traj, truth) -> tuple[float, float, int]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--experiment", type=Path)
-    ap.add_argument("--duration", type=float, default=4.0)
+    ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--fps", type=float, default=60.0)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--rounds", type=int, default=3, help="repeat and keep each pass's best time")
@@ -75,13 +75,13 @@ def main() -> None:
         videos = list(exp.videos.values())
         print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; jobs {args.jobs}")
 
-        variants = [
-            ("rig, half-res detect", DetectorSettings(exp.markers.dictionary, "subpix", 0.5, True)),
-            ("rig, half-res, no board refine", DetectorSettings(exp.markers.dictionary, "subpix", 0.5, False)),
-            ("rig, half-res, one threshold", DetectorSettings(exp.markers.dictionary, "subpix", 0.5, True, (7, 7, 10))),
-            ("rig, half-res, one thresh, no board", DetectorSettings(exp.markers.dictionary, "subpix", 0.5, False,
-                                                                     (7, 7, 10))),
-            ("rig, full-res detect", DetectorSettings(exp.markers.dictionary, "subpix", 1.0, True)),
+        d = exp.markers.dictionary
+        variants = [  # the defaults first, then what each option costs
+            ("default (auto: half-res, 1 threshold)", DetectorSettings(d)),
+            ("--no-board-refine", DetectorSettings(d, board_refine=False)),
+            ("--thorough-detect", DetectorSettings(d, threshold_windows=(3, 23, 10))),
+            ("--downscale 1", DetectorSettings(d, downscale=1.0)),
+            ("--downscale 1 --thorough-detect", DetectorSettings(d, downscale=1.0, threshold_windows=(3, 23, 10))),
         ]
         # Best of N interleaved rounds: other work on a shared machine only ever slows a run down.
         best = {"decode only": np.inf} | {name: np.inf for name, _ in variants}
@@ -104,13 +104,13 @@ def main() -> None:
         # is what the CPU cost allows if both cores were free: 2 / (CPU s per frame).
         cores = min(args.jobs, os.cpu_count() or 1)
         dec = n_frames / best["decode only"]
-        print(f"{'':34} {'wall fps':>8} {'ratio':>6} {'CPU ms/frame':>13} {'capacity fps':>13}")
-        print(f"{'decode only':34} {dec:8.1f} {1.0:6.2f} {1000 * cpu['decode only'] / n_frames:13.2f} "
+        print(f"{'':40} {'wall fps':>8} {'ratio':>6} {'CPU ms/frame':>13} {'capacity fps':>13}")
+        print(f"{'decode only':40} {dec:8.1f} {1.0:6.2f} {1000 * cpu['decode only'] / n_frames:13.2f} "
               f"{cores * n_frames / cpu['decode only']:13.1f}   ({n_frames} frames, best of {args.rounds})")
         for name, _ in variants:
             fps = n_frames / best[name]
             med, p95, n = errors[name]
-            print(f"{name:34} {fps:8.1f} {fps / dec:6.2f} {1000 * cpu[name] / n_frames:13.2f} "
+            print(f"{name:40} {fps:8.1f} {fps / dec:6.2f} {1000 * cpu[name] / n_frames:13.2f} "
                   f"{cores * n_frames / cpu[name]:13.1f}   position median {med:.2f} cm, p95 {p95:.2f} cm")
         print(f"load average after: {os.getloadavg()[0]:.1f}")
 

@@ -123,7 +123,7 @@ def _fit_many(t0: np.ndarray, t: np.ndarray, rot: Rotation, weight: np.ndarray, 
               exclude_self: bool) -> tuple[Rotation | None, np.ndarray]:
     """Weighted local-linear rotation fits at all times ``t0`` at once.
 
-    Each fit uses the K measurements nearest in index (enough to span +-3h), Gaussian weights in
+    Each fit uses the measurements within +-3h of its time, Gaussian weights in
     time times ``weight`` (0 = ignore). Offsets are rotation vectors relative to a reference
     (first the best-weighted measurement, then the first fit: one re-linearisation), so the
     straight-line fit in the tangent space follows steady turns without lag. Returns the fits
@@ -132,11 +132,12 @@ def _fit_many(t0: np.ndarray, t: np.ndarray, rot: Rotation, weight: np.ndarray, 
     n, m = len(t), len(t0)
     if n == 0 or m == 0:
         return None, np.zeros(m, dtype=bool)
-    steps = np.diff(t)
-    steps = steps[steps > 0]
-    dt_typ = float(np.percentile(steps, 10)) if len(steps) else 1.0
-    k = int(min(n, max(4, np.ceil(6 * h / max(dt_typ, 1e-6)) + 2), 400))
-    first = np.clip(np.searchsorted(t, t0) - k // 2, 0, n - k)
+    # The window: every measurement within 3h of t0 (the kernel is zero beyond), sized by the
+    # busiest window rather than the smallest frame step (two interleaved cameras have tiny steps).
+    lo = np.searchsorted(t, t0 - 3 * h, side="left")
+    hi = np.searchsorted(t, t0 + 3 * h, side="right")
+    k = int(min(n, max(4, int((hi - lo).max()) if m else 4)))
+    first = np.clip(lo, 0, n - k)
     idx = first[:, None] + np.arange(k)[None, :]  # (m, k)
     dt = t[idx] - t0[:, None]
     w = np.exp(-0.5 * (dt / h) ** 2) * weight[idx] * (np.abs(dt) <= 3 * h)

@@ -9,7 +9,7 @@ from _track_helpers import make_room
 from scipy.spatial.transform import Rotation
 
 from annotator.experiment import CameraCalibration
-from annotator.vision.detection import DetectorSettings, MarkerDetector
+from annotator.vision.detection import DetectorSettings, MarkerDetector, auto_downscale
 
 W, H = 960, 540
 CAL = CameraCalibration(np.array([[700.0, 0, 479.5], [0, 700.0, 269.5], [0, 0, 1]]), np.zeros(5), W, H)
@@ -70,3 +70,22 @@ def test_blank_frame_gives_empty_detections():
     det = MarkerDetector(DetectorSettings(), make_room(), CAL).detect(np.full((H, W, 3), 90, np.uint8))
     assert det.ids.shape == (0,)
     assert det.corners.shape == (0, 4, 2)
+
+
+def test_auto_downscale_halves_wide_frames_only():
+    assert [auto_downscale(w) for w in (640, 960, 1280, 1281, 1920, 2560, 3840)] == [1, 1, 1, 0.5, 0.5, 0.5, 0.25]
+
+
+def test_1080p_frames_are_detected_at_half_size_with_full_resolution_corners():
+    img, truth = scene()
+    big = cv2.resize(img, (2 * W, 2 * H), interpolation=cv2.INTER_CUBIC)
+    K = CAL.camera_matrix.copy()
+    K[:2] *= 2
+    K[:2, 2] += 0.5  # pixel centres: x_big = 2 x + 0.5
+    cal = CameraCalibration(K, np.zeros(5), 2 * W, 2 * H)
+    detector = MarkerDetector(DetectorSettings("DICT_6X6_50"), make_room(), cal)
+    assert detector.scale == 0.5
+    det = detector.detect(big)
+    assert sorted(det.ids.tolist()) == [1, 5]
+    for mid, corners in zip(det.ids, det.corners, strict=True):
+        assert np.abs(corners - (2 * truth[mid] + 0.5)).max() < 0.6, (mid, corners - (2 * truth[mid] + 0.5))

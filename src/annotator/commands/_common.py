@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -28,3 +29,8 @@ def one_line_errors() -> Iterator[None]:
         # soft_wrap: one line however narrow the terminal.
         console.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
         raise typer.Exit(1) from None
+
+
+def default_jobs() -> int:
+    """Worker processes when --jobs is not given: one per core (the pool serves every stage)."""
+    return max(os.cpu_count() or 1, 1)

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-from annotator.commands._common import console, one_line_errors
+from annotator.commands._common import console, default_jobs, one_line_errors
 from annotator.errors import ConfigError
 
 
@@ -18,7 +18,8 @@ def run(
     out: Annotated[Path, typer.Option("--out", help="Folder for the results (created).")],
     method: Annotated[str, typer.Option(help="Tracking method: 'rig' (joint multi-marker, smoothed) "
                                              "or 'paper' (the published per-marker method).")] = "rig",
-    jobs: Annotated[int, typer.Option(help="Process the videos in this many processes.")] = 1,
+    jobs: Annotated[int | None, typer.Option(
+        help="Worker processes for decoding, detection and the joint solves.", show_default="one per core")] = None,
     max_gap: Annotated[float, typer.Option(
         help="Leave a reading unlabelled when the poses around it are further apart than this, s.")] = 0.5,
     beacon: Annotated[str | None, typer.Option(
@@ -38,6 +39,7 @@ def run(
 
         if method not in ("rig", "paper"):
             raise ConfigError(f"--method must be 'rig' or 'paper', not {method!r}")
+        jobs = default_jobs() if jobs is None else jobs
         if max_gap <= 0 or jobs < 1:
             raise ConfigError("--max-gap must be > 0 and --jobs >= 1")
         mac = None

@@ -154,7 +154,7 @@ def refine_bundle_pose(obs: list[CameraObservation], R_wb: np.ndarray, t_wb: np.
             return None
         R = Rotation.from_rotvec(step[:3]).as_matrix() @ R
         t = t + step[3:]
-        if np.abs(step).max() < 1e-8:  # 10 nrad / 10 nm: far below what the corners resolve
+        if np.abs(step).max() < 1e-7:  # 0.1 urad / 0.1 um: far below what the corners resolve
             break
     r, J, depth = _residuals(R, t, obs, True)
     if J is None or np.any(depth <= 0):
