@@ -39,6 +39,8 @@ SITE = "demo"
 # The renderer's hands take this long to close over the lenses (and to open again); the beacon is
 # taken as covered from the middle of the closing to the middle of the opening.
 COVER_RAMP_S = 0.15
+# Radius of the demo path's rounded corners: a relaxed walking turn.
+CORNER_RADIUS_M = 1.2
 # How long to wait for a child process to do its part; generous, the machine may be shared.
 STARTUP_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 30.0
@@ -76,27 +78,25 @@ class DemoSettings:
 # --- the scenario ---------------------------------------------------------------------------------
 
 def demo_path(speed_mps: float = 0.4) -> PathModel:
-    """A rounded rectangle between the tetam pillars (where the marker map is well seen), as a
-    polyline of short segments so that the heading turns in small steps at the corners."""
-    x0, x1, y0, y1, r = 7.7, 11.8, 7.0, 10.9, 1.2
-    pts: list[tuple[float, float, float]] = []
-    corners = ((x1 - r, y0 + r, -90.0), (x1 - r, y1 - r, 0.0), (x0 + r, y1 - r, 90.0), (x0 + r, y0 + r, 180.0))
-    pts.append(((x0 + x1) / 2, y0, 0.0))
-    for cx, cy, a0 in corners:
-        for k in range(7):
-            a = math.radians(a0 + 15.0 * k)
-            pts.append((cx + r * math.cos(a), cy + r * math.sin(a), 0.0))
-    # Height: a slow swing between about 1.35 and 1.75 m along the loop.
-    n = len(pts)
-    wps = tuple((x, y, round(1.55 + 0.2 * math.sin(2 * math.pi * i / n), 4)) for i, (x, y, _) in enumerate(pts))
-    return PathModel(wps, speed_mps, 0.0)
+    """A rounded rectangle between the tetam pillars (where the marker map is well seen): true
+    circular corners of radius CORNER_RADIUS_M walked at constant speed, so neither the position
+    nor the heading ever changes direction in an instant. Time 0 is in the middle of the
+    bottom side."""
+    x0, x1, y0, y1 = 7.7, 11.8, 7.0, 10.9
+    xm, ym = (x0 + x1) / 2, (y0 + y1) / 2
+    # Mid-side points carry the height swing; the corners are rounded by the path model itself.
+    plan = ((xm, y0), (x1, y0), (x1, ym), (x1, y1), (xm, y1), (x0, y1), (x0, ym), (x0, y0))
+    n = len(plan)
+    # Height: one slow swing between about 1.35 and 1.75 m per lap.
+    wps = tuple((x, y, round(1.55 + 0.2 * math.sin(2 * math.pi * i / n), 4)) for i, (x, y) in enumerate(plan))
+    return PathModel(wps, speed_mps, 0.0, corner_radius=CORNER_RADIUS_M)
 
 
 def bundle_pose_at(path: PathModel, t0: float) -> Callable[[np.ndarray], tuple[np.ndarray, Rotation]]:
     """pose_at for the renderer: position = the path's, bundle x along the direction of travel
-    (horizontal), z up. The heading is averaged over +-0.3 s so the polyline's corners do not
-    turn the cameras in one frame (a real walker turns smoothly)."""
-    window = np.linspace(-0.3, 0.3, 7)
+    (horizontal), z up. The heading is the direction of travel averaged over +-0.3 s, so the turn
+    rate too builds up gradually where a corner's arc begins (a walker eases into a turn)."""
+    window = np.linspace(-0.3, 0.3, 13)
 
     def pose_at(t: np.ndarray) -> tuple[np.ndarray, Rotation]:
         tau = np.atleast_1d(np.asarray(t, float)) - t0
@@ -375,9 +375,11 @@ def render(settings: DemoSettings, path: PathModel, t0: float, run_dir: Path,
     return result.experiment
 
 
-def score(run: Any, path: PathModel, t0: float, true_starts: dict[str, float]) -> dict[str, Any]:
+def score(run: Any, path: PathModel, t0: float, true_starts: dict[str, float],
+          duration_s: float | None = None) -> dict[str, Any]:
     """The annotation against the truth: position error of every labelled reading (truth = the
-    path at that reading's own timestamp), coverage and each camera's sync error."""
+    path at that reading's own timestamp), coverage and each camera's sync error: at its first
+    frame, and (given ``duration_s``) at its last, which differs when a drift was fitted."""
     labels, table, rep = run.labels, run.rssi, run.report
     lab = np.asarray(labels.labelled, bool)
     t_s = (np.asarray(table.t_ns, np.int64)[lab] - round(t0 * 1e9)) / 1e9
@@ -387,8 +389,11 @@ def score(run: Any, path: PathModel, t0: float, true_starts: dict[str, float]) -
     for name, cam in rep["sync"]["cameras"].items():
         found = float(cam["video_start"])
         sigma = cam.get("video_start_sigma_s")
+        drift = float(cam.get("drift") or 0.0)
+        # The true clocks do not drift: an error in the fitted drift grows along the video.
+        end_ms = None if duration_s is None else (found - true_starts[name] + duration_s * drift) * 1e3
         cams[name] = {"found": found, "true": true_starts[name],
-                      "error_ms": (found - true_starts[name]) * 1e3,
+                      "error_ms": (found - true_starts[name]) * 1e3, "error_end_ms": end_ms,
                       "sigma_ms": None if sigma is None else float(sigma) * 1e3,
                       "method": cam.get("method"), "drift": cam.get("drift")}
 
@@ -440,7 +445,7 @@ def run_demo(settings: DemoSettings, progress: Progress | None = None, note: Not
     run = run_experiment(load_experiment(exp_path), results,
                          RunSettings(track=TrackSettings(jobs=settings.jobs)), progress)
     true_starts = {"front": cap.t0, "back": cap.t0 + settings.start_offset_s}
-    summary = score(run, path, cap.t0, true_starts)
+    summary = score(run, path, cap.t0, true_starts, settings.duration_s)
     summary.update({
         "duration_s": settings.duration_s,
         "t0": cap.t0,

@@ -158,13 +158,16 @@ def _worker_pool(settings: TrackSettings) -> Iterator[ProcessPoolExecutor | None
     if settings.jobs <= 1:
         yield None
         return
-    with ProcessPoolExecutor(max_workers=settings.jobs, initializer=_single_threaded_worker) as pool:
-        yield pool
-
-
-def _single_threaded_worker() -> None:
-    # The pool already keeps every core busy; OpenCV's own threads on top only contend for them.
+    # The pool already keeps every core busy; OpenCV's own threads on top would only contend for
+    # them. Set it here, before the workers are forked, not in them: a forked child that resizes
+    # OpenCV's inherited thread pool can deadlock. This process does no heavy OpenCV work meanwhile.
+    threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
+    try:
+        with ProcessPoolExecutor(max_workers=settings.jobs) as pool:
+            yield pool
+    finally:
+        cv2.setNumThreads(threads)
 
 
 # --- stage 2 (rig): ambiguity, smoothing, joint solves -----------------------------------------------

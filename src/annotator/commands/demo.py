@@ -50,8 +50,10 @@ def result_table(summary: dict[str, Any]) -> Table:
                   "readings of the beacon)")
     for name, s in summary["sync"].items():
         sigma = "" if s["sigma_ms"] is None else f" ± {s['sigma_ms']:.1f} ms"
+        end = s.get("error_end_ms")
+        at_end = "" if end is None or abs(end - s["error_ms"]) < 0.05 else f", {end:+.1f} ms at the last frame"
         table.add_row(f"{name} video start", f"found {s['found']:.4f}, true {s['true']:.4f}: error "
-                      f"{s['error_ms']:+.1f} ms{sigma} ({s['method']})")
+                      f"{s['error_ms']:+.1f} ms{sigma}{at_end} ({s['method']})")
     return table
 
 
