@@ -31,6 +31,9 @@ class DetectorSettings:
     # None: halve the frame while it is wider than AUTO_MAX_WIDTH (1080p -> 960x540).
     downscale: float | None = None
     board_refine: bool = True  # recover missed markers by projecting the room (refineDetectedMarkers)
+    # ... on frames with fewer than this many known markers only (0 = every frame): where several
+    # are found, one more adds little, and the search costs about as much as the detection.
+    board_refine_below: int = 4
     # Adaptive-threshold window sizes (min, max, step) in detection pixels. One window (7 px) is
     # ~2-3x faster than OpenCV's three (3, 13, 23) and finds ~98-99 % of the markers on our
     # renders with the same pose accuracy; frames where it finds fewer than `retry_below` known
@@ -109,7 +112,8 @@ class MarkerDetector:
         keep = self.room.index(ids) >= 0  # ids not in the map are someone else's markers
         corners = [c for c, k in zip(corners, keep, strict=True) if k]
         ids = ids[keep].reshape(-1, 1).astype(np.int32)
-        if self.settings.board_refine and len(ids) > 0 and rejected:
+        few = self.settings.board_refine_below <= 0 or len(ids) < self.settings.board_refine_below
+        if self.settings.board_refine and few and len(ids) > 0 and rejected:
             corners, ids, _, _ = self._detector.refineDetectedMarkers(
                 small, self._board, corners, ids, rejected, self._K_small, self._dist)
         if ids is None or len(ids) == 0:
