@@ -77,11 +77,11 @@ def main() -> None:
 
         d = exp.markers.dictionary
         variants = [  # the defaults first, then what each option costs
-            ("default (auto: half-res, 1 threshold)", DetectorSettings(d)),
-            ("--no-board-refine", DetectorSettings(d, board_refine=False)),
-            ("--thorough-detect", DetectorSettings(d, threshold_windows=(3, 23, 10))),
-            ("--downscale 1", DetectorSettings(d, downscale=1.0)),
-            ("--downscale 1 --thorough-detect", DetectorSettings(d, downscale=1.0, threshold_windows=(3, 23, 10))),
+            ("default (auto: half-res, 1 threshold)", DetectorSettings(dictionary=d)),
+            ("--no-board-refine", DetectorSettings(dictionary=d, board_refine=False)),
+            ("--thorough-detect", DetectorSettings(dictionary=d, threshold_windows=(3, 23, 10))),
+            ("--downscale 1", DetectorSettings(dictionary=d, downscale=1.0)),
+            ("--downscale 1 --thorough-detect", DetectorSettings(dictionary=d, downscale=1.0, threshold_windows=(3, 23, 10))),
         ]
         # Best of N interleaved rounds: other work on a shared machine only ever slows a run down.
         best = {"decode only": np.inf} | {name: np.inf for name, _ in variants}

@@ -60,7 +60,7 @@ def scene() -> tuple[np.ndarray, dict[int, np.ndarray]]:
                          [(1.0, "subpix", 0.3), (1.0, "contour", 1.0), (0.5, "subpix", 0.3)])
 def test_detects_known_markers_with_subpixel_corners(downscale, refine, tol):
     img, truth = scene()
-    det = MarkerDetector(DetectorSettings("DICT_6X6_50", refine, downscale, True), make_room(), CAL).detect(img)
+    det = MarkerDetector(DetectorSettings(corner_refine=refine, downscale=downscale), make_room(), CAL).detect(img)
     assert sorted(det.ids.tolist()) == [1, 5]  # id 40 is not in the room's map
     for mid, corners in zip(det.ids, det.corners, strict=True):
         assert np.abs(corners - truth[mid]).max() < tol, (mid, corners - truth[mid])
@@ -83,7 +83,7 @@ def test_1080p_frames_are_detected_at_half_size_with_full_resolution_corners():
     K[:2] *= 2
     K[:2, 2] += 0.5  # pixel centres: x_big = 2 x + 0.5
     cal = CameraCalibration(K, np.zeros(5), 2 * W, 2 * H)
-    detector = MarkerDetector(DetectorSettings("DICT_6X6_50"), make_room(), cal)
+    detector = MarkerDetector(DetectorSettings(dictionary="DICT_6X6_50"), make_room(), cal)
     assert detector.scale == 0.5
     det = detector.detect(big)
     assert sorted(det.ids.tolist()) == [1, 5]

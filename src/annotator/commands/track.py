@@ -81,8 +81,9 @@ def track(
         exp = load_experiment(experiment)
         settings = TrackSettings(
             method=method.value, jobs=jobs, joint=joint, max_frames=max_frames,
-            detector=DetectorSettings(exp.markers.dictionary, corner_refine.value, downscale, board_refine,
-                                      (3, 23, 10) if thorough_detect else (7, 7, 10)),
+            detector=DetectorSettings(dictionary=exp.markers.dictionary, corner_refine=corner_refine.value,
+                                      downscale=downscale, board_refine=board_refine,
+                                      threshold_windows=(3, 23, 10) if thorough_detect else (7, 7, 10)),
             paper=PaperSettings(frames=batch_frames, close=close, keep=keep, q=q, process=process_noise))
         with Progress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn(),
                       TimeRemainingColumn(), console=console) as bar:

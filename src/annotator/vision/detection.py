@@ -23,7 +23,7 @@ _REFINE = {
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, kw_only=True)  # many knobs: name them
 class DetectorSettings:
     dictionary: str = "DICT_6X6_50"
     corner_refine: str = "subpix"  # subpix | contour | apriltag | none
@@ -31,9 +31,6 @@ class DetectorSettings:
     # None: halve the frame while it is wider than AUTO_MAX_WIDTH (1080p -> 960x540).
     downscale: float | None = None
     board_refine: bool = True  # recover missed markers by projecting the room (refineDetectedMarkers)
-    # ... on frames with fewer than this many known markers only (0 = every frame): where several
-    # are found, one more adds little, and the search costs about as much as the detection.
-    board_refine_below: int = 4
     # Adaptive-threshold window sizes (min, max, step) in detection pixels. One window (7 px) is
     # ~2-3x faster than OpenCV's three (3, 13, 23) and finds ~98-99 % of the markers on our
     # renders with the same pose accuracy; frames where it finds fewer than `retry_below` known
@@ -41,6 +38,9 @@ class DetectorSettings:
     threshold_windows: tuple[int, int, int] = (7, 7, 10)
     retry_windows: tuple[int, int, int] | None = (3, 23, 10)
     retry_below: int = 2
+    # Board refinement only on frames with fewer than this many known markers (0 = every frame):
+    # where several are found, one more adds little, and the search costs as much as a detection.
+    board_refine_below: int = 4
 
 
 AUTO_MAX_WIDTH = 1280
