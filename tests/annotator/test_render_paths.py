@@ -119,3 +119,11 @@ def test_bad_path_is_a_one_line_error(tmp_path: Path, value: str, message: str) 
     assert message in res.output
     assert "Traceback" not in res.output
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("exposure", ["-0.001", "0.04"])  # 0.04 s is longer than a 30 fps frame
+def test_impossible_exposure_is_a_one_line_error(tmp_path: Path, exposure: str) -> None:
+    res = CliRunner().invoke(app, ["simulate", "--out", str(tmp_path / "x"), "--exposure", exposure])
+    assert res.exit_code == 1
+    assert "exposure" in res.output
+    assert not (tmp_path / "x").exists()

@@ -66,6 +66,8 @@ def simulate(
         help="Hands over both lenses at START_S:DURATION_S after the start (repeatable).")] = None,
     t0: Annotated[float, typer.Option(help="Wall-clock Unix time of the first front frame.")] = 1_700_000_000.0,
     noise: Annotated[float, typer.Option(help="Sensor noise standard deviation, gray levels.")] = 2.0,
+    exposure: Annotated[float, typer.Option(
+        help="Exposure time, s: the image integrates the motion over it (motion blur); 0 = none.")] = 1 / 120,
     jobs: Annotated[int, typer.Option(help="Render the two cameras in this many processes.")] = 1,
 ) -> None:
     """Render the tetam marker room along a path into front.mp4/back.mp4 plus experiment.yaml,
@@ -75,9 +77,10 @@ def simulate(
         from annotator.render import render_experiment
 
         covers = [parse_cover(c) for c in cover or []]
-        if duration <= start_offset or fps <= 0 or width < 64 or height < 64 or speed < 0 or dwell < 0:
-            raise ConfigError("need duration > start-offset, fps > 0, speed >= 0, dwell >= 0 and a frame "
-                              "of at least 64x64")
+        if duration <= start_offset or fps <= 0 or width < 64 or height < 64 or speed < 0 or dwell < 0 \
+                or not 0 <= exposure < 1 / fps:
+            raise ConfigError("need duration > start-offset, fps > 0, speed >= 0, dwell >= 0, "
+                              "0 <= exposure < 1/fps and a frame of at least 64x64")
         trajectory = path_trajectory(path, t0, speed, dwell, turn)
         with Progress(TextColumn("{task.description:>6}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                       TimeRemainingColumn(), console=console) as bar:
@@ -90,8 +93,8 @@ def simulate(
 
             result = render_experiment(out, trajectory, (t0, t0 + duration),
                                        width=width, height=height, fps=fps, start_offset=start_offset,
-                                       covers=covers, seed=seed, noise_sigma=noise, jobs=jobs,
-                                       progress=progress)
+                                       covers=covers, seed=seed, noise_sigma=noise, exposure=exposure,
+                                       jobs=jobs, progress=progress)
         frames = ", ".join(f"{k} {v} frames" for k, v in result.frames.items())
         extra = " and path.yaml" if (result.out_dir / "path.yaml").exists() else ""
         console.print(f"wrote {result.experiment} ({frames}), {result.truth.name}{extra}", highlight=False,
