@@ -17,23 +17,19 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from annotator.commands.evaluate import load_waypoints
-from annotator.evaluate import compare_to_path
+from annotator.evaluate import compare_to_path, compare_to_truth
 from annotator.experiment import load_experiment
 from annotator.pipeline import TrackSettings, track_experiment
 from annotator.trajectory_io import Trajectory, read_trajectory
 
 
 def errors(traj: Trajectory, truth: Trajectory) -> tuple[np.ndarray, np.ndarray]:
-    ok = traj.valid & (traj.t >= truth.t[0]) & (traj.t <= truth.t[-1])
-    t = traj.t[ok]
-    p_true = np.stack([np.interp(t, truth.t, truth.position[:, i]) for i in range(3)], 1)
-    r_true = Slerp(truth.t, Rotation.from_matrix(truth.rotation))(t)
-    pos = np.linalg.norm(traj.position[ok] - p_true, axis=1)
-    rot = np.degrees((r_true.inv() * Rotation.from_matrix(traj.rotation[ok])).magnitude())
-    return pos, rot
+    """Position (m) and rotation (deg) errors of the posed rows inside truth's span."""
+    cmp = compare_to_truth(traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation)
+    ok = np.isfinite(cmp.position_error)
+    return cmp.position_error[ok], cmp.rotation_error_deg[ok]
 
 
 def path_deviation(traj: Trajectory, truth: Trajectory) -> np.ndarray:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from annotator.evaluate import compare_to_truth
 from annotator.experiment import load_experiment
 from annotator.pipeline import TrackSettings, track_experiment
 from annotator.trajectory_io import read_trajectory
@@ -49,10 +50,9 @@ def render(out: Path, duration: float, fps: float) -> None:
 
 
 def median_error_cm(traj, truth) -> tuple[float, float, int]:
-    ok = traj.valid & (traj.t >= truth.t[0]) & (traj.t <= truth.t[-1])
-    p = np.stack([np.interp(traj.t[ok], truth.t, truth.position[:, i]) for i in range(3)], 1)
-    e = 100 * np.linalg.norm(traj.position[ok] - p, axis=1)
-    return float(np.median(e)), float(np.percentile(e, 95)), int(ok.sum())
+    cmp = compare_to_truth(traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation)
+    e = 100 * cmp.position_error[np.isfinite(cmp.position_error)]
+    return float(np.median(e)), float(np.percentile(e, 95)), len(e)
 
 
 def main() -> None:

@@ -72,16 +72,9 @@ def project(room: MarkerRoom, cam: RigCamera, R_wb: np.ndarray, t_wb: np.ndarray
 
 
 def errors_against_truth(traj, truth) -> tuple[np.ndarray, np.ndarray]:
-    """Position (m) and rotation (deg) errors of a trajectory's valid rows inside truth's span.
+    """Position (m) and rotation (deg) errors of a trajectory's posed rows inside truth's span."""
+    from annotator.evaluate import compare_to_truth
 
-    Truth is interpolated at the trajectory's times (linear for position, slerp for rotation).
-    """
-    from scipy.spatial.transform import Slerp
-
-    ok = traj.valid & (traj.t >= truth.t[0]) & (traj.t <= truth.t[-1])
-    t = traj.t[ok]
-    p_true = np.stack([np.interp(t, truth.t, truth.position[:, i]) for i in range(3)], 1)
-    r_true = Slerp(truth.t, Rotation.from_matrix(truth.rotation))(t)
-    pos = np.linalg.norm(traj.position[ok] - p_true, axis=1)
-    rot = np.degrees((r_true.inv() * Rotation.from_matrix(traj.rotation[ok])).magnitude())
-    return pos, rot
+    cmp = compare_to_truth(traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation)
+    ok = np.isfinite(cmp.position_error)
+    return cmp.position_error[ok], cmp.rotation_error_deg[ok]
