@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from annotator.errors import ConfigError
+from annotator.priors import Priors, parse_priors
 from ble_groundtruth.formats.markers import MarkerPose, read_marker_map
 
 log = logging.getLogger(__name__)
@@ -21,13 +22,21 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, eq=False)
 class CameraCalibration:
-    """Pinhole intrinsics plus OpenCV distortion coefficients for one camera."""
+    """Pinhole intrinsics, a lens model with its coefficients, and the rolling-shutter readout.
+
+    ``model`` is "radtan" (OpenCV's radial-tangential: k1 k2 p1 p2 [k3 ...]) or "fisheye"
+    (OpenCV's equidistant fisheye: k1 k2 k3 k4). ``readout_s`` is the time from the first image
+    row to the last (0 = global shutter): row v of a frame stamped t is seen at
+    t + readout_s * v / height.
+    """
 
     camera_matrix: np.ndarray  # 3x3
-    dist_coeffs: np.ndarray  # (n,) OpenCV order k1 k2 p1 p2 [k3 ...]
+    dist_coeffs: np.ndarray  # (n,) in the order of `model`
     width: int
     height: int
     source: str = ""
+    model: str = "radtan"
+    readout_s: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +72,7 @@ class Experiment:
     sync_mode: str
     video_start: dict[str, float] | None  # wall time of each video's first frame (manual sync)
     sync: dict[str, Any] = field(default_factory=dict)  # the raw sync section, for auto sync
+    priors: Priors = field(default_factory=Priors)  # the `refine:` section: survey/rig/lens sigmas
 
 
 # --- YAML plumbing --------------------------------------------------------------------------
@@ -131,6 +141,12 @@ def _matrix(value: Any, source: str, key: str, shape: tuple[int, ...] | None = N
 
 # --- calibration ----------------------------------------------------------------------------
 
+# `distortion_model` as written by OpenCV tools / ROS camera_info -> our lens model name.
+LENS_MODELS = {"plumb_bob": "radtan", "rational_polynomial": "radtan", "radtan": "radtan",
+               "fisheye": "fisheye", "equidistant": "fisheye"}
+# Optional calibration key: rolling-shutter readout, first row to last, seconds.
+READOUT_KEY = "rolling_shutter_readout_s"
+
 def parse_calibration(obj: Any, source: str) -> CameraCalibration:
     """OpenCV FileStorage calibration or ROS camera_info, already parsed from YAML."""
     d = _mapping(obj, source, "a camera calibration")
@@ -139,11 +155,22 @@ def parse_calibration(obj: Any, source: str) -> CameraCalibration:
             raise ConfigError(f"{source}: missing '{key}' (need an OpenCV FileStorage or ROS camera_info calibration)")
     K = _matrix(d["camera_matrix"], source, "camera_matrix", (3, 3))
     dist = _matrix(d["distortion_coefficients"], source, "distortion_coefficients").ravel()
-    if dist.size not in (0, 4, 5, 8, 12, 14):
+    named = d.get("distortion_model", "plumb_bob")
+    if named not in LENS_MODELS:
+        raise ConfigError(f"{source}: distortion_model {named!r} is not supported ({', '.join(LENS_MODELS)})")
+    model = LENS_MODELS[named]
+    if model == "fisheye" and dist.size != 4:
+        raise ConfigError(f"{source}: distortion_coefficients: the fisheye model takes 4 values (k1 k2 k3 k4), "
+                          f"not {dist.size}")
+    if model == "radtan" and dist.size not in (0, 4, 5, 8, 12, 14):
         raise ConfigError(f"{source}: distortion_coefficients: {dist.size} values; OpenCV takes 4, 5, 8, 12 or 14")
-    model = d.get("distortion_model", "plumb_bob")
-    if model not in ("plumb_bob", "rational_polynomial"):
-        raise ConfigError(f"{source}: distortion_model {model!r} is not supported (plumb_bob, rational_polynomial)")
+    readout = d.get(READOUT_KEY, 0.0)
+    try:
+        readout = float(readout)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: {READOUT_KEY} must be a number (seconds)") from None
+    if not 0.0 <= readout < 1.0:
+        raise ConfigError(f"{source}: {READOUT_KEY} must be between 0 and 1 s, not {readout}")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
         raise ConfigError(f"{source}: camera_matrix: need fx, fy > 0 and K[2][2] = 1")
     try:
@@ -154,7 +181,7 @@ def parse_calibration(obj: Any, source: str) -> CameraCalibration:
         raise ConfigError(f"{source}: image_width / image_height must be positive")
     if dist.size == 0:
         dist = np.zeros(5)
-    return CameraCalibration(K, dist, width, height, source)
+    return CameraCalibration(K, dist, width, height, source, model, readout)
 
 
 def load_calibration(path: str | Path) -> CameraCalibration:
@@ -265,7 +292,8 @@ def parse_experiment(obj: Any, path: Path) -> Experiment:
             raise ConfigError(f"{source}: sync.video_start: no start time for {', '.join(missing)}")
     elif mode == "manual":
         raise ConfigError(f"{source}: sync.mode is manual but sync.video_start is missing")
-    return Experiment(path, markers, rig, videos, rssi, mode, video_start, dict(sync))
+    priors = parse_priors(d.get("refine"), source)
+    return Experiment(path, markers, rig, videos, rssi, mode, video_start, dict(sync), priors)
 
 
 def load_experiment(path: str | Path) -> Experiment:

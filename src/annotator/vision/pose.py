@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 from annotator.experiment import CameraCalibration
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom, camera_to_bundle, ippe_square, pnp_to_camera
+from annotator.vision.lens import undistort_points
 
 log = logging.getLogger(__name__)
 
@@ -60,12 +61,7 @@ def observe(det: Detections, room: MarkerRoom, cal: CameraCalibration, R_bc: np.
     idx = room.index(det.ids)
     keep = idx >= 0
     ids, corners, idx = det.ids[keep], det.corners[keep], idx[keep]
-    if len(ids):
-        xn = cv2.undistortPoints(corners.reshape(-1, 1, 2), cal.camera_matrix, cal.dist_coeffs,
-                                 criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10))
-        xn = xn.reshape(-1, 4, 2)
-    else:
-        xn = np.zeros((0, 4, 2))
+    xn = undistort_points(cal, corners.reshape(-1, 4, 2)) if len(ids) else np.zeros((0, 4, 2))
     focal = float(np.sqrt(cal.camera_matrix[0, 0] * cal.camera_matrix[1, 1]))
     return CameraObservation(ids, xn, room.corners_world[idx], R_bc, t_bc, focal)
 

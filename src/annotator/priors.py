@@ -1,0 +1,144 @@
+"""What is known about the room, the rig and the lenses, and how well: priors and covariances.
+
+`Priors` is what the user states (experiment.yaml's ``refine:`` section, or the defaults, which
+suit a room surveyed with a tape measure and a rig measured by hand). `ParameterCovariance` is
+what is known after refinement (or, without refinement, what the priors say), in the form the
+uncertainty propagation consumes. Pure data: no I/O beyond validating an already parsed mapping.
+
+Perturbation conventions (shared by refinement and propagation):
+- marker: R_world_marker = exp([d_rot]x) @ R0 (world-frame rotation vector, rad), centre + d_pos (m);
+  its 6x6 covariance orders (d_rot, d_pos);
+- rig camera: R_bundle_camera = exp([d_rot]x) @ R0 (bundle frame), t_bundle_camera + d_t; 6x6 over
+  (d_rot, d_t);
+- intrinsics: 4x4 over (fx, fy, cx, cy) in pixels (distortion and readout uncertainty are folded
+  into these by the producer where it has them).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from annotator.errors import ConfigError
+
+REFINE_MODES = ("none", "map", "all")
+
+
+@dataclass(frozen=True, slots=True)
+class MarkerPrior:
+    """Survey uncertainty of one marker; ``known=False`` means "not surveyed: map it from video"."""
+
+    sigma_m: float
+    sigma_deg: float
+    known: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class Priors:
+    """1-sigma uncertainties of the inputs the user measured (defaults: a tape-measured room)."""
+
+    mode: str = "all"  # none | map | all: what refinement may change (CLI --refine overrides)
+    survey_sigma_m: float = 0.01  # marker centre, per axis
+    survey_sigma_deg: float = 1.0  # marker orientation, per axis
+    markers: dict[int, MarkerPrior] = field(default_factory=dict)  # per-marker overrides
+    rig_sigma_m: float = 0.003  # camera position in the bundle, per axis
+    rig_sigma_deg: float = 1.0  # camera orientation in the bundle, per axis
+    focal_sigma_rel: float = 0.005  # fx, fy relative
+    principal_sigma_px: float = 2.0  # cx, cy
+    distortion_sigma: float = 0.05  # each distortion coefficient
+    readout_sigma_s: float = 0.02  # rolling-shutter readout time (prior mean: the calibration's)
+
+    def marker(self, marker_id: int) -> MarkerPrior:
+        return self.markers.get(marker_id, MarkerPrior(self.survey_sigma_m, self.survey_sigma_deg))
+
+
+def _positive(d: dict[str, Any], key: str, default: float, where: str) -> float:
+    value = d.get(key, default)
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}.{key}: must be a number, not {value!r}") from None
+    if not (math.isfinite(x) and x > 0):
+        raise ConfigError(f"{where}.{key}: must be a positive finite number, not {value!r}")
+    return x
+
+
+def parse_priors(obj: Any, source: str) -> Priors:
+    """The ``refine:`` section of experiment.yaml (already parsed); absent -> defaults."""
+    if obj is None:
+        return Priors()
+    where = f"{source}: refine"
+    if not isinstance(obj, dict):
+        raise ConfigError(f"{where}: must be a mapping")
+    d = Priors()
+    known_keys = {"mode", "survey_sigma_m", "survey_sigma_deg", "markers", "rig_sigma_m", "rig_sigma_deg",
+                  "focal_sigma_rel", "principal_sigma_px", "distortion_sigma", "readout_sigma_s"}
+    unknown = sorted(set(map(str, obj)) - known_keys)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known_keys))})")
+    mode = str(obj.get("mode", d.mode))
+    if mode not in REFINE_MODES:
+        raise ConfigError(f"{where}.mode: must be one of {', '.join(REFINE_MODES)}, not {mode!r}")
+    survey_m = _positive(obj, "survey_sigma_m", d.survey_sigma_m, where)
+    survey_deg = _positive(obj, "survey_sigma_deg", d.survey_sigma_deg, where)
+    markers: dict[int, MarkerPrior] = {}
+    raw = obj.get("markers") or {}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where}.markers: must map marker ids to {{sigma_m, sigma_deg}} or 'unknown'")
+    for key, spec in raw.items():
+        try:
+            mid = int(key)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}.markers: {key!r} is not a marker id") from None
+        if spec == "unknown":
+            markers[mid] = MarkerPrior(math.inf, math.inf, known=False)
+            continue
+        if not isinstance(spec, dict) or set(map(str, spec)) - {"sigma_m", "sigma_deg"}:
+            raise ConfigError(f"{where}.markers.{mid}: expected {{sigma_m: M, sigma_deg: D}} or 'unknown'")
+        markers[mid] = MarkerPrior(_positive(spec, "sigma_m", survey_m, f"{where}.markers.{mid}"),
+                                   _positive(spec, "sigma_deg", survey_deg, f"{where}.markers.{mid}"))
+    return Priors(
+        mode=mode, survey_sigma_m=survey_m, survey_sigma_deg=survey_deg, markers=markers,
+        rig_sigma_m=_positive(obj, "rig_sigma_m", d.rig_sigma_m, where),
+        rig_sigma_deg=_positive(obj, "rig_sigma_deg", d.rig_sigma_deg, where),
+        focal_sigma_rel=_positive(obj, "focal_sigma_rel", d.focal_sigma_rel, where),
+        principal_sigma_px=_positive(obj, "principal_sigma_px", d.principal_sigma_px, where),
+        distortion_sigma=_positive(obj, "distortion_sigma", d.distortion_sigma, where),
+        readout_sigma_s=_positive(obj, "readout_sigma_s", d.readout_sigma_s, where),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class ParameterCovariance:
+    """Uncertainty of the static parameters the tracker uses (conventions in the module doc)."""
+
+    markers: dict[int, np.ndarray]  # id -> (6, 6)
+    rig: dict[str, np.ndarray]  # camera -> (6, 6)
+    intrinsics: dict[str, np.ndarray]  # camera -> (4, 4) over fx, fy, cx, cy
+
+    @classmethod
+    def from_priors(cls, priors: Priors, marker_ids: list[int], cameras: dict[str, np.ndarray]) -> ParameterCovariance:
+        """Block-diagonal covariances straight from the priors (what is known without refinement).
+
+        ``cameras`` maps each camera name to its 3x3 camera matrix (the focal prior is relative).
+        Markers whose prior is unknown get no entry: they cannot be used without refinement.
+        """
+        def block(sig_deg: float, sig_m: float) -> np.ndarray:
+            r = math.radians(sig_deg)
+            return np.diag([r * r] * 3 + [sig_m * sig_m] * 3)
+
+        markers = {}
+        for mid in marker_ids:
+            p = priors.marker(mid)
+            if p.known:
+                markers[mid] = block(p.sigma_deg, p.sigma_m)
+        rig = {name: block(priors.rig_sigma_deg, priors.rig_sigma_m) for name in cameras}
+        intr = {}
+        for name, K in cameras.items():
+            f = priors.focal_sigma_rel
+            intr[name] = np.diag([(f * K[0, 0]) ** 2, (f * K[1, 1]) ** 2,
+                                  priors.principal_sigma_px ** 2, priors.principal_sigma_px ** 2])
+        return cls(markers, rig, intr)
