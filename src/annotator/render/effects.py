@@ -30,6 +30,16 @@ def motion_kernel(displacement: np.ndarray) -> np.ndarray | None:
     return k / k.sum()
 
 
+def flicker_gain(t: np.ndarray, amplitude: float, hz: float, phase: float = 0.0) -> np.ndarray:
+    """Brightness factor of the picture at wall time(s) t: 1 + amplitude * sin(2 pi hz t + phase).
+
+    Lamps on mains power flicker at twice its frequency (100 Hz in Europe); the amplitude is
+    what ends up in the picture, after the exposure has averaged part of it away. With a rolling
+    shutter each row has its own time, so the flicker shows as horizontal bands.
+    """
+    return 1.0 + amplitude * np.sin(2 * np.pi * hz * (np.asarray(t, float) % (1e4 / max(hz, 1e-9))) + phase)
+
+
 class NoiseBank:
     """A few precomputed Gaussian noise frames, drawn at random: realistic enough, and cheap."""
 

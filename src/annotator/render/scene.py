@@ -149,14 +149,22 @@ class MarkerScene:
         return [it[2] for it in items]
 
     def draw(self, canvas: np.ndarray, canvas_k: np.ndarray, r_wc: np.ndarray, c_w: np.ndarray,
-             textures: MarkerTextures) -> list[int]:
-        """Paste every visible marker onto the gray canvas in place; returns the ids drawn."""
+             textures: MarkerTextures,
+             order: list[PlacedMarker | tuple[PillarFace, np.ndarray]] | None = None) -> list[int]:
+        """Paste every visible marker onto the gray canvas in place; returns the ids drawn.
+
+        `order` (from `paint_order` at a nearby pose) saves working out visibility again: the
+        rolling-shutter renderer draws one frame as bands at slightly different poses.
+        """
         h_img, w_img = canvas.shape[:2]
         drawn = []
         cells = textures.cells_total()
-        for item in self.paint_order(r_wc, c_w):
+        for item in self.paint_order(r_wc, c_w) if order is None else order:
             if not isinstance(item, PlacedMarker):
-                face, poly = item
+                face = item[0]
+                poly = item[1] if order is None else clip_near((face.corners - c_w) @ r_wc)
+                if len(poly) < 3:
+                    continue
                 uv = (poly @ canvas_k.T)[:, :2] / poly[:, 2:3]
                 cv2.fillConvexPoly(canvas, np.round(uv * 16).astype(np.int32), face.shade,
                                    lineType=cv2.LINE_AA, shift=4)
