@@ -1,0 +1,257 @@
+"""Accuracy of `annotator track` under the real-world errors of a capture, one at a time and all together.
+
+    python bench/field_accuracy.py                              # 30 s walks, every condition
+    python bench/field_accuracy.py --duration 10 --conditions none,all
+    python bench/field_accuracy.py --seeds 0,1,2 --keep runs/   # keep experiments and trajectories
+
+Each condition renders the same walk through the tetam room (the default loop, 960x540, two
+cameras) with `annotator.render.render_experiment`, gives `annotator track` the files a real
+capture would have (the condition's errors; see docs/renderer.md) and scores the trajectory with
+`annotator.evaluate.compare_to_truth` against the exact truth. Conditions:
+
+    none        exact files, global shutter, no motion blur (exposure 0), the mild lens, no flicker
+    survey      marker map off by 1.5 cm / 1 deg per axis (1-sigma per marker)
+    rig         rig.yaml off by 3 mm / 1 deg per axis and camera
+    intrinsics  focal length off by 0.4 % (1-sigma), principal point by 1 px per axis
+    rolling     15 ms rolling-shutter readout (calibrations say 0)
+    exposure    8 ms exposure: motion blur
+    lens        a wide k1 = -0.28 lens (calibrated exactly)
+    flicker     10 % lamp flicker at 100 Hz
+    all         all of the above at once (`annotator simulate --errors field`)
+
+When `annotator track --help` offers `--refine`, every condition is tracked twice: with
+`--refine none` and with the default. Columns: posed share of rows; position error median and
+95th percentile (cm); rotation error median (deg); the share of posed rows whose 3-D error is
+within 2.8 x the row's sigma_m (a per-axis 1-sigma: ~95 % for an honest sigma); tracking time.
+
+Videos are cached under --cache keyed by everything that shapes them (render arguments and the
+renderer's source), so a re-run or a new file-error condition on an existing video is quick.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import annotator.render as render_pkg
+from annotator.commands.simulate import ERROR_PRESETS
+from annotator.evaluate import compare_to_truth
+from annotator.render import LoopTrajectory, default_cameras, render_experiment
+from annotator.render.errors import FileErrors
+from annotator.render.experiment import write_experiment_files
+from annotator.trajectory_io import read_trajectory
+from ble_groundtruth.formats.markers import read_marker_map
+from ble_groundtruth.sites import site_dir
+
+T0 = 1_700_000_000.0
+START_OFFSET = 0.41
+COVERAGE_K = 2.8  # 3-D error within 2.8 sigma_m (per-axis sigma): ~95 % for a Gaussian
+
+FIELD = ERROR_PRESETS["field"]
+VIDEO_KEYS = ("lens", "readout", "exposure", "flicker")
+FILE_KEYS = ("survey_m", "survey_deg", "rig_m", "rig_deg", "focal_rel", "principal_px", "distortion")
+
+
+@dataclass(frozen=True)
+class Condition:
+    name: str
+    video: dict[str, object] = field(default_factory=dict)  # overrides of the clean video
+    files: dict[str, float] = field(default_factory=dict)  # FileErrors magnitudes
+
+
+CLEAN_VIDEO: dict[str, object] = {"lens": "mild", "readout": 0.0, "exposure": 0.0, "flicker": 0.0}
+CONDITIONS = {c.name: c for c in (
+    Condition("none"),
+    Condition("survey", files={"survey_m": FIELD["survey_m"], "survey_deg": FIELD["survey_deg"]}),
+    Condition("rig", files={"rig_m": FIELD["rig_m"], "rig_deg": FIELD["rig_deg"]}),
+    Condition("intrinsics", files={"focal_rel": FIELD["focal_rel"], "principal_px": FIELD["principal_px"]}),
+    Condition("rolling", video={"readout": FIELD["readout"]}),
+    Condition("exposure", video={"exposure": FIELD["exposure"]}),
+    Condition("lens", video={"lens": FIELD["lens"]}),
+    Condition("flicker", video={"flicker": FIELD["flicker"]}),
+    Condition("all", video={k: FIELD[k] for k in VIDEO_KEYS},
+              files={k: float(FIELD[k]) for k in FILE_KEYS}),
+)}
+
+
+def renderer_digest() -> str:
+    """Hash of the renderer's source: a changed renderer never reuses a stale cached video."""
+    h = hashlib.sha256()
+    for p in sorted(Path(render_pkg.__file__).parent.glob("*.py")):
+        h.update(p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def video_key(args: dict[str, object]) -> str:
+    return hashlib.sha256(json.dumps(args, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def cached_video(cache: Path, video: dict[str, object], duration: float, seed: int, width: int, height: int,
+                 jobs: int) -> Path:
+    """Folder holding front.mp4, back.mp4 and truth.csv of this video, rendered if not cached."""
+    args = {**CLEAN_VIDEO, **video, "duration": duration, "seed": seed, "width": width, "height": height,
+            "t0": T0, "start_offset": START_OFFSET, "renderer": renderer_digest()}
+    folder = cache / video_key(args)
+    if (folder / "done.json").is_file():
+        return folder
+    tmp = folder.with_name(folder.name + ".part")
+    shutil.rmtree(tmp, ignore_errors=True)
+    t = time.perf_counter()
+    traj = LoopTrajectory(t0=T0)
+    render_experiment(tmp, traj, (T0, T0 + duration), width=width, height=height, start_offset=START_OFFSET,
+                      seed=seed, exposure=float(video.get("exposure", 0.0)), lens=str(video.get("lens", "mild")),
+                      readout=float(video.get("readout", 0.0)), flicker=float(video.get("flicker", 0.0)),
+                      jobs=jobs)
+    (tmp / "done.json").write_text(json.dumps(args, indent=1), encoding="utf-8")
+    shutil.rmtree(folder, ignore_errors=True)
+    tmp.rename(folder)
+    print(f"rendered {duration:g} s ({', '.join(f'{k}={v}' for k, v in video.items()) or 'clean'}, seed {seed}) "
+          f"in {time.perf_counter() - t:.0f} s", flush=True)
+    return folder
+
+
+def link(src: Path, dst: Path) -> None:
+    dst.unlink(missing_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+def make_experiment(folder: Path, video_dir: Path, cond: Condition, seed: int, width: int, height: int) -> Path:
+    """The condition's experiment: the cached videos plus files carrying its errors."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in ("front.mp4", "back.mp4", "truth.csv"):
+        link(video_dir / name, folder / name)
+    video = {**CLEAN_VIDEO, **cond.video}
+    write_experiment_files(folder, default_cameras(width, height, str(video["lens"])),
+                           read_marker_map(site_dir("tetam") / "marker_positions.dat"),
+                           {"front": T0, "back": T0 + START_OFFSET}, readout=float(video["readout"]),
+                           errors=FileErrors(**cond.files, seed=seed), settings={"condition": cond.name, **video})
+    return folder / "experiment.yaml"
+
+
+def annotator_cmd() -> list[str]:
+    return [sys.executable, "-c", "from annotator.cli import main; main()"]
+
+
+def refine_modes() -> list[str | None]:
+    """[None] (today's default) or ['none', None] when `annotator track` knows --refine."""
+    env = {**os.environ, "COLUMNS": "200", "NO_COLOR": "1"}
+    res = subprocess.run([*annotator_cmd(), "track", "--help"], capture_output=True, text=True, env=env, check=False)
+    return ["none", None] if "--refine" in res.stdout else [None]
+
+
+@dataclass
+class Row:
+    condition: str
+    seed: int
+    refine: str
+    posed: float
+    median_cm: float
+    p95_cm: float
+    rot_median_deg: float
+    within: float  # share of compared rows with 3-D error < 2.8 sigma_m; NaN without sigma
+    seconds: float
+
+
+def track_and_score(exp: Path, out: Path, refine: str | None, jobs: int, cond: str, seed: int) -> Row:
+    cmd = [*annotator_cmd(), "track", str(exp), "--out", str(out), "--jobs", str(jobs)]
+    if refine is not None:
+        cmd += ["--refine", refine]
+    t = time.perf_counter()
+    res = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    seconds = time.perf_counter() - t
+    label = refine or "default"
+    if res.returncode != 0:
+        print(f"{cond} seed {seed} refine {label}: annotator track failed:\n{res.stderr[-2000:]}", flush=True)
+        nan = float("nan")
+        return Row(cond, seed, label, nan, nan, nan, nan, nan, seconds)
+    traj = read_trajectory(out / "trajectory.csv")
+    truth = read_trajectory(exp.parent / "truth.csv")
+    cmp = compare_to_truth(traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation)
+    ok = np.isfinite(cmp.position_error)
+    err = cmp.position_error[ok]
+    sigma = traj.quality.get("sigma_m")
+    within = float(np.mean(err < COVERAGE_K * sigma[ok])) if sigma is not None and ok.any() else float("nan")
+    if not ok.any():
+        return Row(cond, seed, label, 0.0, *(4 * [float("nan")]), seconds)
+    return Row(cond, seed, label, float(traj.valid.mean()), 100 * float(np.median(err)),
+               100 * float(np.percentile(err, 95)), float(np.median(cmp.rotation_error_deg[ok])), within, seconds)
+
+
+def fmt(v: float, spec: str) -> str:
+    return "-" if not np.isfinite(v) else format(v, spec)
+
+
+HEADER = (f"{'condition':11} {'seed':>4} {'refine':8} {'posed':>6} {'median':>7} {'p95':>7} {'rot med':>8} "
+          f"{'<2.8sig':>8} {'time':>6}")
+
+
+def row_text(r: Row) -> str:
+    return (f"{r.condition:11} {r.seed:4d} {r.refine:8} {fmt(100 * r.posed, '5.1f')}% {fmt(r.median_cm, '7.2f')} "
+            f"{fmt(r.p95_cm, '7.2f')} {fmt(r.rot_median_deg, '8.3f')} {fmt(100 * r.within, '7.1f')}% "
+            f"{r.seconds:5.0f}s")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--duration", type=float, default=30.0, help="length of the walk, s (default 30)")
+    ap.add_argument("--conditions", default=",".join(CONDITIONS),
+                    help=f"comma-separated subset of {', '.join(CONDITIONS)} (default all of them)")
+    ap.add_argument("--seeds", default="0", help="comma-separated seeds (render noise and error draws), default 0")
+    ap.add_argument("--jobs", type=int, default=2, help="processes for rendering and for `annotator track`")
+    ap.add_argument("--width", type=int, default=960)
+    ap.add_argument("--height", type=int, default=540)
+    ap.add_argument("--keep", type=Path, help="keep each condition's experiment and trajectory under this folder")
+    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "ble-groundtruth-field-videos",
+                    help="rendered videos, keyed by their render arguments (default: in the temp folder)")
+    ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
+    args = ap.parse_args()
+    names = [c.strip() for c in args.conditions.split(",") if c.strip()]
+    unknown = [n for n in names if n not in CONDITIONS]
+    if unknown:
+        raise SystemExit(f"--conditions: unknown {', '.join(unknown)} (known: {', '.join(CONDITIONS)})")
+    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    modes = refine_modes()
+    print(f"walk {args.duration:g} s, {args.width}x{args.height}, two cameras; refine modes: "
+          f"{', '.join(m or 'default' for m in modes)}", flush=True)
+    args.cache.mkdir(parents=True, exist_ok=True)
+    work = args.keep or Path(tempfile.mkdtemp(prefix="field-accuracy-"))
+    rows: list[Row] = []
+    try:
+        for seed in seeds:
+            for name in names:
+                cond = CONDITIONS[name]
+                vdir = cached_video(args.cache, cond.video, args.duration, seed, args.width, args.height, args.jobs)
+                exp = make_experiment(work / f"{name}-s{seed}", vdir, cond, seed, args.width, args.height)
+                for mode in modes:
+                    out = exp.parent / f"track-{mode or 'default'}"
+                    rows.append(track_and_score(exp, out, mode, args.jobs, name, seed))
+                    print(row_text(rows[-1]), flush=True)
+    finally:
+        if args.keep is None:
+            shutil.rmtree(work, ignore_errors=True)
+    print()
+    print(HEADER)
+    for r in rows:
+        print(row_text(r))
+    print(f"conditions: {', '.join(names)} (see --help); errors in cm against the exact truth at the same time; "
+          f"'<2.8sig' = share of posed rows with 3-D error < {COVERAGE_K} x sigma_m (~95 % if sigma is honest).")
+    if args.json is not None:
+        args.json.write_text(json.dumps([r.__dict__ for r in rows], indent=1), encoding="utf-8")
+
+
+if __name__ == "__main__":
+    main()
