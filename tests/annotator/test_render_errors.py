@@ -135,9 +135,25 @@ def test_options_override_the_preset_and_none_means_exact(tmp_path: Path) -> Non
     assert load_perturbation(tmp_path / "c")["settings"]["rig_m"] == 0.003  # the rest of the preset stays
 
 
+def test_a_surveyor_who_skipped_markers(tmp_path: Path) -> None:
+    starts = {"front": T0, "back": T0 + 0.1}
+    errors = FileErrors(survey_m=0.01, survey_deg=1.0, surveyed=8, seed=2)
+    write_experiment_files(tmp_path, default_cameras(160, 96), SITE_MAP, starts, errors=errors)
+    written = read_marker_map(tmp_path / "marker_positions.dat")
+    assert len(written) == 8
+    assert set(written) < set(SITE_MAP)
+    # The surveyed ones carry the same survey error as in a full survey with this seed.
+    full = perturb_markers(SITE_MAP, 0.01, 1.0, seed=2)
+    assert all(written[i] == full[i] for i in written)
+    rec = load_perturbation(tmp_path)["markers"]
+    assert sorted(m["id"] for m in rec if m["written"] is None) == sorted(set(SITE_MAP) - set(written))
+    assert read_marker_map(tmp_path / "true" / "marker_positions.dat") == SITE_MAP
+
+
 def test_bad_error_options_are_one_line(tmp_path: Path) -> None:
     for args, needle in ((["--errors", "lab"], "--errors 'lab'"), (["--readout", "0.05"], "--readout"),
-                         (["--lens", "pinhole"], "--lens 'pinhole'"), (["--survey-m", "-1"], "survey_m")):
+                         (["--lens", "pinhole"], "--lens 'pinhole'"), (["--survey-m", "-1"], "survey_m"),
+                         (["--surveyed", "0"], "surveyed")):
         res = CliRunner().invoke(app, ["simulate", "--out", str(tmp_path / "x"), "--duration", "0.2",
                                        "--start-offset", "0.1", *args])
         assert res.exit_code == 1, res.output

@@ -136,6 +136,10 @@ def simulate(
     flicker: Annotated[float | None, typer.Option(
         help="Brightness flicker seen in the picture, relative amplitude (0.1 = +-10 %); 0 = none "
              "(default; 0.1 with --errors field).", rich_help_panel="Real-world errors", show_default=False)] = None,
+    surveyed: Annotated[int | None, typer.Option(
+        help="Write only this many markers (a random choice by --seed) into the marker map, as if the "
+             "surveyor skipped the rest; default all.", rich_help_panel="Real-world errors",
+        show_default=False)] = None,
     flicker_hz: Annotated[float, typer.Option(
         help="Flicker frequency, Hz (lamps on 50 Hz mains: 100).", rich_help_panel="Real-world errors")] = 100.0,
 ) -> None:
@@ -171,7 +175,7 @@ def simulate(
         try:
             file_errors = FileErrors(float(e["survey_m"]), float(e["survey_deg"]), float(e["rig_m"]),
                                      float(e["rig_deg"]), float(e["focal_rel"]), float(e["principal_px"]),
-                                     float(e["distortion"]), write_readout, seed)
+                                     float(e["distortion"]), write_readout, surveyed, seed)
         except ValueError as err:
             raise ConfigError(f"error magnitudes: {err}") from None
         trajectory = path_trajectory(path, t0, speed, dwell, turn)

@@ -20,7 +20,7 @@ from annotator.render.camera import CameraModel
 from ble_groundtruth.formats.markers import MarkerPose
 
 # Stream numbers of the kinds of error (part of the seed: do not renumber).
-_SURVEY, _RIG, _INTRINSICS = 1, 2, 3
+_SURVEY, _RIG, _INTRINSICS, _SKIPPED = 1, 2, 3, 5
 
 
 @dataclass(frozen=True)
@@ -35,16 +35,15 @@ class FileErrors:
     principal_px: float = 0.0  # cx and cy, each
     distortion: float = 0.0  # added to each radial coefficient (k1, k2) of the lens
     write_readout: bool = False  # write the true rolling-shutter readout (else 0, as users rarely know it)
+    surveyed: int | None = None  # only this many markers (a seeded random choice) in the written map
     seed: int = 0
 
     def __post_init__(self) -> None:
         for key, value in asdict(self).items():
-            if key not in ("write_readout", "seed") and not (np.isfinite(value) and value >= 0):
+            if key not in ("write_readout", "seed", "surveyed") and not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{key} must be a finite number >= 0, not {value!r}")
-
-    @property
-    def any(self) -> bool:
-        return any(v for k, v in asdict(self).items() if k not in ("write_readout", "seed"))
+        if self.surveyed is not None and self.surveyed < 1:
+            raise ValueError(f"surveyed must be at least 1, not {self.surveyed}")
 
 
 def _stream(seed: int, kind: int) -> np.random.Generator:
@@ -67,6 +66,15 @@ def perturb_markers(markers: dict[int, MarkerPose], sigma_m: float, sigma_deg: f
         out[mid] = MarkerPose(mid, tuple(float(v) for v in np.asarray(m.position) + d_pos),
                               tuple(float(v) for v in rot.as_euler("xyz")))
     return out
+
+
+def surveyed_subset(markers: dict[int, MarkerPose], count: int | None, seed: int) -> dict[int, MarkerPose]:
+    """The markers a surveyor who measured only `count` of them (a seeded random choice) wrote down."""
+    if count is None or count >= len(markers):
+        return markers
+    ids = sorted(markers)
+    keep = sorted(int(i) for i in _stream(seed, _SKIPPED).choice(ids, size=count, replace=False))
+    return {i: markers[i] for i in keep}
 
 
 def perturb_rig(extrinsics: dict[str, tuple[np.ndarray, np.ndarray]], sigma_m: float, sigma_deg: float,
@@ -123,7 +131,10 @@ def perturbation_record(settings: dict[str, object], true_markers: dict[int, Mar
     differences (written - true; rotations as the rotation vector taking true to written, deg)."""
     markers = []
     for mid in sorted(true_markers):
-        a, b = true_markers[mid], written_markers[mid]
+        a, b = true_markers[mid], written_markers.get(mid)
+        if b is None:  # not surveyed: absent from the written map
+            markers.append({"id": int(mid), "true": _marker_record(a), "written": None})
+            continue
         d_rot = Rotation.from_euler("xyz", b.euler_xyz) * Rotation.from_euler("xyz", a.euler_xyz).inv()
         markers.append({"id": int(mid), "true": _marker_record(a), "written": _marker_record(b),
                         "offset_m": [float(v) for v in np.subtract(b.position, a.position)],

@@ -36,6 +36,7 @@ from annotator.render.errors import (
     perturb_markers,
     perturb_rig,
     perturbation_record,
+    surveyed_subset,
 )
 from annotator.render.scene import MarkerScene
 from annotator.render.textures import (
@@ -303,7 +304,8 @@ def write_experiment_files(
     Returns the perturbation record."""
     out = Path(out_dir)
     errors = errors or FileErrors()
-    written_markers = perturb_markers(markers, errors.survey_m, errors.survey_deg, errors.seed)
+    written_markers = surveyed_subset(perturb_markers(markers, errors.survey_m, errors.survey_deg, errors.seed),
+                                      errors.surveyed, errors.seed)
     true_rig = {name: RIG_EXTRINSICS[name] for name in cameras}
     written_rig = perturb_rig(true_rig, errors.rig_m, errors.rig_deg, errors.seed)
     written_cams = perturb_cameras(cameras, errors.focal_rel, errors.principal_px, errors.distortion, errors.seed)
