@@ -194,7 +194,7 @@ class FrameRenderer:
         if kernel is not None:
             img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REPLICATE)
         if gain is not None:
-            img = np.clip(img * np.asarray(gain, np.float32)[:, None], 0, 255).astype(np.uint8)
+            img = np.clip(img * np.asarray(gain, np.float32)[:, None] + 0.5, 0, 255).astype(np.uint8)
         # Luminance noise on the gray picture: a third of the work of per-channel noise.
         img = cv2.cvtColor(self.noise.apply(img), cv2.COLOR_GRAY2BGR)
         return apply_cover(img, cover, self.skin)
