@@ -28,8 +28,16 @@ from scipy.spatial.transform import Rotation
 
 from annotator.errors import NoDataError
 from annotator.experiment import Experiment, MarkerSetup, RigCamera
+from annotator.priors import ParameterCovariance
 from annotator.smoothing import SmootherSettings, smooth_positions, smooth_rotations, supported
 from annotator.trajectory_io import Trajectory
+from annotator.uncertainty import (
+    UncertaintySettings,
+    row_smear,
+    row_uncertainty,
+    smear_weights,
+    total_sigma,
+)
 from annotator.video import iter_frames, video_info
 from annotator.vision.detection import Detections, DetectorSettings, MarkerDetector
 from annotator.vision.geometry import MarkerRoom
@@ -57,6 +65,7 @@ class TrackSettings:
     paper: PaperSettings = field(default_factory=PaperSettings)
     joint: bool = True  # rig: joint two-camera solve of near-simultaneous frames
     max_frames: int | None = None  # per video; for quick looks and benchmarks
+    uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)  # what sigma_m holds
 
 
 @dataclass(frozen=True, eq=False)
@@ -350,7 +359,9 @@ def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: Marker
 
 
 def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings, t_out: np.ndarray,
-               pool: ProcessPoolExecutor | None = None) -> Trajectory:
+               pool: ProcessPoolExecutor | None = None, params: ParameterCovariance | None = None) -> Trajectory:
+    """``params``: covariance of map, rig and intrinsics (e.g. from refinement) for sigma_m; None ->
+    the experiment's priors."""
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
     s = settings.smoother
     singles = [(float(t), p) for cf in frames for t, p in zip(cf.t, cf.poses, strict=True) if p is not None]
@@ -361,6 +372,9 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
     if settings.joint and len(frames) > 1:
         joint = resolve_ambiguities(joint_measurements(frames, exp, room, settings, t_out, pos, R, pool), s.max_gap_s)
         meas = _stack(joint)
+        # Motion blur: frames whose corners smear (pass-1 motion x exposure) count less, or not at all.
+        meas = _deblur(meas, t_out, row_smear(frames, exp, t_out, pos, R, settings.uncertainty),
+                       settings.uncertainty.max_smear_px)
         pos, R, sig = smooth(meas, t_out, s, pool)
     # Quality columns from the measurement at each output time (0 markers where there was none).
     idx = np.searchsorted(meas.t, t_out)
@@ -368,7 +382,18 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
     hit = (len(meas.t) > 0) & (np.abs(meas.t[idx] - t_out) < 1e-6) if len(meas.t) else np.zeros(len(t_out), bool)
     n_markers = np.where(hit, meas.n_markers[idx] if len(meas.t) else 0, 0)
     rms = np.where(hit, meas.rms_px[idx] if len(meas.t) else np.nan, np.nan)
-    return Trajectory(t_out, pos, R, {"markers": n_markers.astype(float), "rms_px": rms, "sigma_m": sig})
+    u = row_uncertainty(frames, exp, t_out, pos, R, params, settings.uncertainty)
+    return Trajectory(t_out, pos, R, {"markers": n_markers.astype(float), "rms_px": rms,
+                                      **total_sigma(sig, u, settings.uncertainty)})
+
+
+def _deblur(meas: Measurements, t_grid: np.ndarray, smear: np.ndarray, max_smear_px: float) -> Measurements:
+    at = np.clip(np.searchsorted(t_grid, meas.t), 0, max(len(t_grid) - 1, 0))
+    f = smear_weights(smear[at], max_smear_px) if len(t_grid) else np.ones(len(meas.t))
+    keep = np.isfinite(f)
+    scaled = Measurements(meas.t, meas.R, meas.p, meas.cov * np.where(keep, f, 1.0)[:, None, None],
+                          meas.n_markers, meas.rms_px)
+    return _select(scaled, keep)
 
 
 def _track_paper(frames: list[CameraFrames], settings: TrackSettings) -> Trajectory:
@@ -419,14 +444,16 @@ class RunResult:
 
 
 def frames_to_trajectory(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings,
-                         pool: ProcessPoolExecutor | None = None) -> Trajectory:
-    """Stage 2 of tracking on frames whose times are already wall-clock (joint solves in ``pool``)."""
+                         pool: ProcessPoolExecutor | None = None,
+                         params: ParameterCovariance | None = None) -> Trajectory:
+    """Stage 2 of tracking on frames whose times are already wall-clock (joint solves in ``pool``);
+    ``params`` as in ``_track_rig``."""
     if not any(len(cf.t) for cf in frames):
         raise NoDataError(f"{exp.path}: the videos hold no frames")
     if settings.method == "paper":
         return _track_paper(frames, settings)
     t_out = np.unique(np.concatenate([cf.t for cf in frames]))
-    return _track_rig(frames, exp, settings, t_out, pool)
+    return _track_rig(frames, exp, settings, t_out, pool, params)
 
 
 def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings | None = None,

@@ -1,0 +1,509 @@
+"""How good each pose is: the parts of a trajectory row's ``sigma_m`` beyond the smoother's noise.
+
+The smoother treats every frame's corner noise as independent, so its sigma shrinks as frames
+are averaged. Errors of the static inputs (marker map, rig, intrinsics, rolling-shutter readout)
+do not average out: a marker surveyed 1.5 cm off moves every frame that sees it the same way.
+This module propagates the parameters' covariance into each pose, linearised per frame:
+
+    pose error  d = -(J^T W J)^-1 J^T W B dtheta,   Cov(d) = A Sigma A^T,  A = (J^T W J)^-1 J^T W B
+
+with J the corners' pixel residuals' Jacobian w.r.t. the bundle pose (world-frame rotation,
+position), B their Jacobian w.r.t. the parameters (analytic for markers and rig, numeric for the
+intrinsics, from the bundle's motion for the readout) and W the robust weights, all at the
+smoothed pose. Parameter errors stay correlated from frame to frame, so the smoothed pose keeps
+them: each row's parameter variance is a short kernel average of its neighbours' (an upper bound
+of the variance of the averaged pose).
+
+``scale_priors``: the stated priors may be too pessimistic or too optimistic. The residuals left
+after a per-frame fit measure the part of the parameter errors that the frame sees as
+inconsistency between markers and cameras; a regression of their energy on the corner noise and
+on each block's predicted energy over the whole capture gives each block a scale. The upper end
+of its 2-sigma confidence range is used (never below ``min_scale``, never above ``max_scale``),
+so a block the capture cannot check keeps its prior.
+
+Motion blur: the smear of a frame is the corners' image speed (from the smoothed motion) times
+the exposure; frames smearing more than ``max_smear_px`` are down-weighted (dropped beyond three
+times that). The time within the exposure at which the detector places a smeared corner is
+unknown: ``sigma_blur_m`` = speed x exposure / sqrt(12).
+
+``sigma_unmodelled_m`` is a floor for what no model here covers (the detector's corner bias on
+small markers, the renderer's or a real lens's residual distortion), added in quadrature.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import nnls
+from scipy.spatial.transform import Rotation
+
+from annotator.experiment import CameraCalibration, Experiment
+from annotator.priors import ParameterCovariance
+from annotator.vision.geometry import MarkerRoom, marker_corners_local
+from annotator.vision.lens import undistort_points
+
+log = logging.getLogger(__name__)
+
+BLOCKS = ("markers", "rig", "intrinsics", "readout")
+
+
+@dataclass(frozen=True, slots=True)
+class UncertaintySettings:
+    huber_px: float = 1.5  # robust weights of corner residuals at the smoothed pose
+    marker_gate_px: float = 3.0  # a marker whose RMS exceeds max(this, 4 x median) gets no weight
+    param_window_s: float = 0.05  # Gaussian kernel sigma of the per-row parameter variance average
+    scale_priors: bool = True  # check the priors against the residuals and rescale each block
+    min_scale: float = 0.02
+    max_scale: float = 4.0
+    max_smear_px: float = 10.0  # frames smearing more are down-weighted, beyond 3x dropped
+    unmodelled_m: float = 0.0015  # floor added in quadrature to every row's sigma
+    default_exposure_frac: float = 0.5  # exposure as a share of the frame interval when not calibrated
+
+
+@dataclass(frozen=True, eq=False)
+class RowUncertainty:
+    """Per trajectory row (NaN where there is no pose): the parts of sigma_m and the smear."""
+
+    params_var: np.ndarray  # (N, 4) per-axis position variance from each block (BLOCKS order), m^2
+    blur_m: np.ndarray  # (N,)
+    smear_px: np.ndarray  # (N,) median predicted corner smear over the cameras' frames
+    scales: dict[str, float]  # the block scales applied (1 = the priors as stated)
+
+    @property
+    def params_m(self) -> np.ndarray:
+        return np.sqrt(self.params_var.sum(1))
+
+
+def parameter_covariance(exp: Experiment, params: ParameterCovariance | None = None) -> ParameterCovariance:
+    """``params`` if given (e.g. from refinement), else the experiment's priors."""
+    if params is not None:
+        return params
+    cams = {name: cam.calibration.camera_matrix for name, cam in exp.rig.cameras.items()}
+    return ParameterCovariance.from_priors(exp.priors, sorted(exp.markers.markers), cams)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices: skew(a) @ b = a x b."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def trajectory_twist(t: np.ndarray, pos: np.ndarray, R: np.ndarray, h: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """World-frame angular velocity (rad/s) and velocity (m/s) at each row by central differences
+    over +-h (one-sided at a run's ends); NaN where the trajectory has no pose."""
+    ok = np.isfinite(pos).all(1) & np.isfinite(R).all((1, 2))
+    w = np.full((len(t), 3), np.nan)
+    v = np.full((len(t), 3), np.nan)
+    if ok.sum() < 2:
+        return w, v
+    tv, pv = t[ok], pos[ok]
+    rv = Rotation.from_matrix(R[ok])
+    i = np.flatnonzero(ok)
+    a = np.clip(np.searchsorted(tv, tv - h), 0, len(tv) - 1)
+    b = np.clip(np.searchsorted(tv, tv + h, side="right") - 1, 0, len(tv) - 1)
+    a = np.where(b > a, a, np.maximum(b - 1, 0))
+    b = np.where(b > a, b, np.minimum(a + 1, len(tv) - 1))
+    dt = tv[b] - tv[a]
+    good = (dt > 0) & (dt < 4 * h)
+    dt = np.where(good, dt, np.nan)
+    v[i] = (pv[b] - pv[a]) / dt[:, None]
+    w[i] = (rv[b] * rv[a].inv()).as_rotvec() / dt[:, None]
+    return w, v
+
+
+@dataclass(frozen=True, eq=False)
+class FrameView:
+    """One camera frame seen from the smoothed trajectory: the data for its Jacobians."""
+
+    camera: str
+    cal: CameraCalibration
+    R_bc: np.ndarray
+    t_bc: np.ndarray
+    ids: np.ndarray  # (n,)
+    pixels: np.ndarray  # (n, 4, 2) detected corners, distorted pixels
+    R_wb: np.ndarray  # bundle pose at the frame's own time
+    t_wb: np.ndarray
+    twist: np.ndarray  # (6,) world-frame (omega, velocity) at the frame's time
+
+
+def _undistort(cal: CameraCalibration, pixels: np.ndarray, K: np.ndarray | None = None) -> np.ndarray:
+    if K is None:
+        return undistort_points(cal, pixels)
+    return undistort_points(CameraCalibration(K, cal.dist_coeffs, cal.width, cal.height, cal.source, cal.model,
+                                              cal.readout_s), pixels)
+
+
+def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: ParameterCovariance,
+                    readout_sigma_s: float, settings: UncertaintySettings) -> dict[str, object] | None:
+    """Residuals, weights and the pose / parameter Jacobians of one output row's frames.
+
+    Returns None without usable corners. Keys: r (m,), w (m,), J (m, 6), B {block: (m, k)},
+    L {block: (k,) prior sigmas}, image_speed (m/2,) px/s.
+    """
+    rs, Js, As, speeds, rows_v, inner = [], [], [], [], [], []
+    mk_cols: dict[int, list[np.ndarray]] = {}
+    ro_B: list[np.ndarray] = []
+    blocks_rows = []  # (camera, start, stop) rows in the stacked residual
+    n0 = 0
+    local = marker_corners_local(room.length)
+    for v in views:
+        idx = room.index(v.ids)
+        keep = idx >= 0
+        if not keep.any():
+            continue
+        ids, pix, idx = v.ids[keep], v.pixels[keep], idx[keep]
+        K = v.cal.camera_matrix
+        focal = float(np.sqrt(K[0, 0] * K[1, 1]))
+        xn = _undistort(v.cal, pix).reshape(-1, 2)
+        Xw = room.corners_world[idx].reshape(-1, 3)
+        d = Xw - v.t_wb
+        Y = d @ v.R_wb  # bundle frame
+        e = Y - v.t_bc
+        Xc = e @ v.R_bc
+        z = Xc[:, 2]
+        if np.any(z <= 1e-6):
+            continue
+        proj = Xc[:, :2] / z[:, None]
+        m = len(z)
+        dp = np.zeros((m, 2, 3))
+        dp[:, 0, 0] = 1 / z
+        dp[:, 1, 1] = 1 / z
+        dp[:, :, 2] = -proj / z[:, None]
+        b_cam = focal * dp @ v.R_bc.T  # d pixels / d bundle-frame point
+        a = b_cam @ v.R_wb.T  # d pixels / d world point
+        J = np.concatenate([a @ _skew(d), -a], axis=2)  # world-frame rotation, then position
+        r = focal * (proj - xn)
+        rs.append(r.reshape(-1))
+        Js.append(J.reshape(-1, 6))
+        # Markers: corner = exp(w) (c - centre) + centre + dp -> d corner = -skew(c - centre) w + dp.
+        rel = np.einsum("mij,kj->mki", room.R_world_marker[idx], local).reshape(-1, 3)
+        Bm = np.concatenate([-a @ _skew(rel), a], axis=2)  # (m, 2, 6)
+        # Corner noise: what is left of each square's residual after its own rigid motion (the
+        # map error of one marker is exactly such a motion), 2 of its 8 degrees of freedom.
+        Mk = Bm.reshape(len(ids), 8, 6)
+        rk = r.reshape(len(ids), 8)
+        G = np.einsum("kij,kil->kjl", Mk, Mk) + 1e-9 * np.eye(6)
+        xk = np.linalg.solve(G, np.einsum("kij,ki->kj", Mk, rk)[..., None])[..., 0]
+        inner.append(np.sum((rk - np.einsum("kij,kj->ki", Mk, xk)) ** 2, axis=1))
+        for k, mid in enumerate(ids):
+            if int(mid) not in params.markers:
+                continue
+            mk_cols.setdefault(int(mid), []).append((n0 + 8 * k, Bm[4 * k:4 * k + 4].reshape(-1, 6)))
+        # Rig: R_bc = exp(w) R_bc0, t_bc + dt -> the corner moves by skew(e) w - dt in the camera's eyes.
+        Br = np.concatenate([b_cam @ _skew(e), -b_cam], axis=2).reshape(-1, 6)
+        # Intrinsics: the observation moves; r = focal (proj - xn) -> dr = -focal dxn.
+        Bi = np.zeros((2 * m, 4))
+        if v.camera in params.intrinsics:
+            steps = np.sqrt(np.maximum(np.diag(params.intrinsics[v.camera]), 1e-12)) * 0.1
+            for j in range(4):
+                Kp, Km = K.copy(), K.copy()
+                pos = ((0, 0), (1, 1), (0, 2), (1, 2))[j]
+                Kp[pos] += steps[j]
+                Km[pos] -= steps[j]
+                dxn = (_undistort(v.cal, pix, Kp) - _undistort(v.cal, pix, Km)).reshape(-1, 2) / (2 * steps[j])
+                Bi[:, j] = -focal * dxn.ravel()
+        # Readout: row v is seen readout * v / H later; dr/dreadout = -J twist * v / H.
+        img_vel = (J @ v.twist)  # (m, 2) pixels per second
+        rows_frac = pix.reshape(-1, 2)[:, 1] / v.cal.height
+        Bro = -(img_vel * rows_frac[:, None]).reshape(-1, 1)
+        blocks_rows.append((v.camera, n0, n0 + 2 * m, Br, Bi))
+        ro_B.append(Bro)
+        speeds.append(np.linalg.norm(img_vel, axis=1))
+        As.append(np.repeat(np.arange(len(ids)) + sum(len(x) for x in rows_v), 4))
+        rows_v.append(ids)
+        n0 += 2 * m
+    if n0 < 8:
+        return None
+    r = np.concatenate(rs)
+    J = np.concatenate(Js)
+    # Robust weights: Huber on each corner, no weight for a marker far off the others.
+    corner_norm = np.linalg.norm(r.reshape(-1, 2), axis=1)
+    marker_of = np.concatenate(As)
+    n_mk = int(marker_of.max()) + 1
+    mk_rms = np.sqrt(np.bincount(marker_of, corner_norm ** 2, n_mk) / np.maximum(np.bincount(marker_of, None, n_mk), 1))
+    limit = max(settings.marker_gate_px, 4.0 * float(np.median(mk_rms)))
+    wc = np.where(corner_norm <= settings.huber_px, 1.0, settings.huber_px / np.maximum(corner_norm, 1e-12))
+    good_mk = mk_rms <= limit
+    wc = wc * good_mk[marker_of]
+    e_inner = np.concatenate(inner)[good_mk]
+    w = np.repeat(wc, 2)
+    B: dict[str, np.ndarray] = {}
+    L: dict[str, np.ndarray] = {}
+    mids = sorted(mk_cols)
+    if mids:
+        Bmk = np.zeros((n0, 6 * len(mids)))
+        for c, mid in enumerate(mids):
+            for start, col in mk_cols[mid]:
+                Bmk[start:start + len(col), 6 * c:6 * c + 6] = col
+        B["markers"] = Bmk
+        L["markers"] = np.concatenate([np.sqrt(np.diag(params.markers[mid])) for mid in mids])
+    cams = sorted({c for c, *_ in blocks_rows})
+    Brig = np.zeros((n0, 6 * len(cams)))
+    Bint = np.zeros((n0, 4 * len(cams)))
+    Lrig, Lint = [], []
+    for c, cam in enumerate(cams):
+        Lrig.append(np.sqrt(np.diag(params.rig[cam])) if cam in params.rig else np.zeros(6))
+        Lint.append(np.sqrt(np.diag(params.intrinsics[cam])) if cam in params.intrinsics else np.zeros(4))
+        for cam2, a0, a1, Br, Bi in blocks_rows:
+            if cam2 == cam:
+                Brig[a0:a1, 6 * c:6 * c + 6] = Br
+                Bint[a0:a1, 4 * c:4 * c + 4] = Bi
+    B["rig"], L["rig"] = Brig, np.concatenate(Lrig)
+    B["intrinsics"], L["intrinsics"] = Bint, np.concatenate(Lint)
+    # One readout error per camera model: the cameras of a rig are usually alike, so one column each.
+    Bro = np.zeros((n0, len(cams)))
+    for c, cam in enumerate(cams):
+        for (cam2, a0, a1, _, _), col in zip(blocks_rows, ro_B, strict=True):
+            if cam2 == cam:
+                Bro[a0:a1, c] = col[:, 0]
+    B["readout"], L["readout"] = Bro, np.full(len(cams), readout_sigma_s)
+    return {"r": r, "w": w, "J": J, "B": B, "L": L, "image_speed": np.concatenate(speeds),
+            "noise2": float(e_inner.sum()) / max(2 * len(e_inner), 1)}
+
+
+def propagate(jac: dict[str, object]) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+    """(4,) per-axis position variance per block, (4,) predicted residual energy per block, the
+    observed residual energy after a per-frame fit beyond the corner noise's share, and the noise's
+    degrees of freedom."""
+    r, w, J = jac["r"], jac["w"], jac["J"]  # type: ignore[misc]
+    sw = np.sqrt(w)  # type: ignore[arg-type]
+    Jw = J * sw[:, None]  # type: ignore[index]
+    H = Jw.T @ Jw
+    try:
+        Hinv = np.linalg.inv(H + 1e-12 * np.eye(6))
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(Hinv)):
+        return None
+    rw = r * sw  # type: ignore[operator]
+    proj = Jw @ (Hinv @ (Jw.T @ rw))
+    e_obs = float(np.sum((rw - proj) ** 2))
+    dof = float(np.sum(w) - 6)  # type: ignore[arg-type]
+    var = np.zeros(4)
+    q = np.zeros(4)
+    for k, name in enumerate(BLOCKS):
+        Bk = jac["B"].get(name)  # type: ignore[union-attr]
+        if Bk is None or Bk.shape[1] == 0:
+            continue
+        BL = Bk * sw[:, None] * jac["L"][name][None, :]  # type: ignore[index]
+        A = Hinv @ (Jw.T @ BL)  # (6, k) pose change per unit-sigma parameter
+        var[k] = float(np.sum(A[3:] ** 2)) / 3
+        resid = BL - Jw @ A
+        q[k] = float(np.sum(resid ** 2))
+    return var, q, e_obs - float(jac["noise2"]) * dof, dof  # type: ignore[arg-type]
+
+
+def _views_at(frames: Sequence[object], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
+              omega: np.ndarray, vel: np.ndarray) -> list[list[FrameView]]:
+    """Each output row's frames (every camera's frame within half a frame), each at its own pose."""
+    rows: list[list[FrameView]] = [[] for _ in t_out]
+    ok = np.isfinite(pos).all(1) & np.isfinite(R).all((1, 2))
+    for cf in frames:
+        cam = exp.rig.cameras[cf.camera]  # type: ignore[attr-defined]
+        times = np.asarray(cf.t, float)  # type: ignore[attr-defined]
+        half = 0.5 * float(cf.frame_interval)  # type: ignore[attr-defined]
+        at = np.clip(np.searchsorted(t_out, times), 0, len(t_out) - 1)
+        exact = np.abs(t_out[at] - times) < 1e-6
+        for j in np.flatnonzero(exact):
+            k = at[j]
+            det = cf.detections[j]  # type: ignore[attr-defined]
+            if not ok[k] or not len(det.ids) or not np.isfinite(vel[k]).all():
+                continue
+            view = FrameView(cf.camera, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera,  # type: ignore[attr-defined]
+                             np.asarray(det.ids), np.asarray(det.corners, float).reshape(-1, 4, 2), R[k], pos[k],
+                             np.concatenate([omega[k], vel[k]]))
+            lo = np.searchsorted(t_out, times[j] - half)
+            hi = np.searchsorted(t_out, times[j] + half, side="right")
+            for kk in range(lo, hi):
+                rows[kk].append(view)
+    return rows
+
+
+def _scales(var: np.ndarray, q: np.ndarray, e: np.ndarray, dof: np.ndarray,
+            settings: UncertaintySettings) -> dict[str, float]:
+    """Each block's scale from the regression e = sum_b s_b^2 q_b over the rows (e: residual
+    energy beyond the corner noise); the upper end of each scale's 2-sigma range."""
+    out = {b: 1.0 for b in BLOCKS}
+    use = np.isfinite(e) & (dof > 2) & np.isfinite(q).all(1)
+    if not settings.scale_priors or use.sum() < 20:
+        return out
+    cols = [k for k in range(4) if q[use, k].sum() > 0]
+    X = np.column_stack([q[use, k] for k in cols])
+    y = e[use]
+    # Rows differ a lot in corner count: weight each by its degrees of freedom's inverse.
+    wt = 1.0 / np.maximum(dof[use], 1.0)
+    Xw, yw = X * wt[:, None], y * wt
+    coef, _ = nnls(Xw, yw)
+    res = yw - Xw @ coef
+    s2 = float(res @ res) / max(len(yw) - X.shape[1], 1)
+    try:
+        cov = s2 * np.linalg.pinv(Xw.T @ Xw)
+    except np.linalg.LinAlgError:
+        return out
+    log.debug("scale^2 regression: %s", ", ".join(f"{BLOCKS[k]} {coef[c]:.3g} +- {math.sqrt(max(cov[c, c], 0)):.2g}"
+                                                 for c, k in enumerate(cols)))
+    for c, k in enumerate(cols):
+        upper = coef[c] + 2.0 * math.sqrt(max(cov[c, c], 0.0))
+        out[BLOCKS[k]] = float(np.clip(math.sqrt(max(upper, 0.0)), settings.min_scale, settings.max_scale))
+    log.info("prior scales from the residuals: %s", ", ".join(f"{b} {s:.2f}" for b, s in out.items()))
+    return out
+
+
+def row_uncertainty(frames: Sequence[object], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
+                    params: ParameterCovariance | None = None,
+                    settings: UncertaintySettings | None = None) -> RowUncertainty:
+    """Parameter, blur and smear figures of every trajectory row (pose of the smoothed trajectory).
+
+    ``frames`` are the pipeline's CameraFrames (camera, t, detections, frame_interval).
+    """
+    s = settings or UncertaintySettings()
+    pc = parameter_covariance(exp, params)
+    readout_sigma = float(getattr(pc, "readout_sigma_s", exp.priors.readout_sigma_s))
+    room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
+    n = len(t_out)
+    omega, vel = trajectory_twist(t_out, pos, R)
+    views = _views_at(frames, exp, t_out, pos, R, omega, vel)
+    var = np.full((n, 4), np.nan)
+    q = np.full((n, 4), np.nan)
+    e = np.full(n, np.nan)
+    dof = np.full(n, np.nan)
+    smear = np.full(n, np.nan)
+    exposure = _exposures(frames, exp, s)
+    for k in range(n):
+        if not views[k]:
+            continue
+        jac = frame_jacobians(views[k], room, pc, readout_sigma, s)
+        if jac is None:
+            continue
+        out = propagate(jac)
+        if out is None:
+            continue
+        var[k], q[k], e[k], dof[k] = out
+        sp = jac["image_speed"]
+        smear[k] = float(np.median(sp)) * max(exposure[v.camera] for v in views[k])  # type: ignore[arg-type]
+    scales = _scales(var, q, e, dof, s)
+    var = var * np.array([scales[b] ** 2 for b in BLOCKS])[None, :]
+    var = _kernel_average(t_out, var, s.param_window_s)
+    speed = np.linalg.norm(vel, axis=1)
+    exp_row = max(exposure.values()) if exposure else 0.0
+    blur = speed * exp_row / math.sqrt(12.0)
+    valid = np.isfinite(pos).all(1)
+    # A posed row whose own frames gave no Jacobian (e.g. bridged gap) takes its neighbours' values.
+    var[valid & ~np.isfinite(var).all(1)] = np.nan
+    var = _fill_nearest(t_out, var, valid)
+    var[~valid] = np.nan
+    blur[~valid] = np.nan
+    return RowUncertainty(var, blur, smear, scales)
+
+
+def _kernel_average(t: np.ndarray, x: np.ndarray, h: float) -> np.ndarray:
+    """Gaussian-weighted average over +-3h of the finite rows of x (N, k)."""
+    ok = np.isfinite(x).all(1)
+    out = np.full_like(x, np.nan)
+    if not ok.any() or h <= 0:
+        return x.copy()
+    tv, xv = t[ok], x[ok]
+    lo = np.searchsorted(tv, t - 3 * h)
+    hi = np.searchsorted(tv, t + 3 * h, side="right")
+    for i in range(len(t)):
+        if hi[i] <= lo[i]:
+            continue
+        dt = tv[lo[i]:hi[i]] - t[i]
+        wk = np.exp(-0.5 * (dt / h) ** 2)
+        out[i] = wk @ xv[lo[i]:hi[i]] / wk.sum()
+    return out
+
+
+def _fill_nearest(t: np.ndarray, x: np.ndarray, want: np.ndarray) -> np.ndarray:
+    ok = np.isfinite(x).all(1)
+    if not ok.any():
+        return x
+    tv = t[ok]
+    need = want & ~ok
+    j = np.clip(np.searchsorted(tv, t[need]), 1, max(len(tv) - 1, 1))
+    j0 = np.clip(j - 1, 0, len(tv) - 1)
+    j1 = np.clip(j, 0, len(tv) - 1)
+    pick = np.where(np.abs(tv[j0] - t[need]) <= np.abs(tv[j1] - t[need]), j0, j1)
+    out = x.copy()
+    out[need] = x[ok][pick]
+    return out
+
+
+def row_smear(frames: Sequence[object], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
+              settings: UncertaintySettings | None = None) -> np.ndarray:
+    """Predicted corner smear (px) of every row's frames: median image speed of the detected
+    corners under the trajectory's motion, times the exposure (worst camera of the row)."""
+    s = settings or UncertaintySettings()
+    room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
+    omega, vel = trajectory_twist(t_out, pos, R)
+    views = _views_at(frames, exp, t_out, pos, R, omega, vel)
+    exposure = _exposures(frames, exp, s)
+    out = np.full(len(t_out), np.nan)
+    for k, vs in enumerate(views):
+        worst = np.nan
+        for v in vs:
+            idx = room.index(v.ids)
+            if not (idx >= 0).any():
+                continue
+            Xw = room.corners_world[idx[idx >= 0]].reshape(-1, 3)
+            J, _ = _pose_jacobian(v, Xw)
+            if J is None:
+                continue
+            sm = float(np.median(np.linalg.norm(J @ v.twist, axis=1))) * exposure[v.camera]
+            worst = sm if not np.isfinite(worst) else max(worst, sm)
+        out[k] = worst
+    return out
+
+
+def _exposures(frames: Sequence[object], exp: Experiment, s: UncertaintySettings) -> dict[str, float]:
+    out = {}
+    for cf in frames:
+        cal = exp.rig.cameras[cf.camera].calibration  # type: ignore[attr-defined]
+        given = getattr(cal, "exposure_s", None)
+        out[cf.camera] = float(given) if given is not None else s.default_exposure_frac * float(cf.frame_interval)  # type: ignore[attr-defined]
+    return out
+
+
+def _pose_jacobian(v: FrameView, Xw: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """(m, 2, 6) pixel Jacobian of world points w.r.t. the bundle pose, and their projections."""
+    K = v.cal.camera_matrix
+    focal = float(np.sqrt(K[0, 0] * K[1, 1]))
+    d = Xw - v.t_wb
+    Xc = (d @ v.R_wb - v.t_bc) @ v.R_bc
+    z = Xc[:, 2]
+    if np.any(z <= 1e-6):
+        return None, np.zeros((0, 2))
+    proj = Xc[:, :2] / z[:, None]
+    dp = np.zeros((len(z), 2, 3))
+    dp[:, 0, 0] = 1 / z
+    dp[:, 1, 1] = 1 / z
+    dp[:, :, 2] = -proj / z[:, None]
+    a = focal * dp @ (v.R_bc.T @ v.R_wb.T)
+    return np.concatenate([a @ _skew(d), -a], axis=2), proj
+
+
+def smear_weights(smear_px: np.ndarray, max_smear_px: float) -> np.ndarray:
+    """Measurement covariance multiplier per frame: 1 up to max_smear_px, (smear/max)^2 beyond,
+    inf (dropped) beyond three times max_smear_px; NaN smear -> 1."""
+    sm = np.nan_to_num(np.asarray(smear_px, float), nan=0.0)
+    f = np.maximum(1.0, (sm / max_smear_px) ** 2)
+    return np.where(sm > 3 * max_smear_px, np.inf, f)
+
+
+def total_sigma(smoother_m: np.ndarray, u: RowUncertainty, settings: UncertaintySettings | None = None) -> dict[str, np.ndarray]:
+    """The trajectory's sigma columns: sigma_m (all parts in quadrature) and each part."""
+    s = settings or UncertaintySettings()
+    sm = np.asarray(smoother_m, float)
+    params = u.params_m
+    blur = np.nan_to_num(u.blur_m, nan=0.0)
+    floor = np.full(len(sm), s.unmodelled_m)
+    total = np.sqrt(sm ** 2 + np.nan_to_num(params, nan=0.0) ** 2 + blur ** 2 + floor ** 2)
+    total[~np.isfinite(sm)] = np.nan
+    out = {"sigma_m": total, "sigma_smoother_m": sm, "sigma_params_m": params, "sigma_blur_m": u.blur_m,
+           "sigma_unmodelled_m": np.where(np.isfinite(sm), floor, np.nan), "smear_px": u.smear_px}
+    return out
