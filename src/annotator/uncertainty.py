@@ -255,13 +255,12 @@ def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: Parame
                 Bint[a0:a1, 4 * c:4 * c + 4] = Bi
     B["rig"], L["rig"] = Brig, np.concatenate(Lrig)
     B["intrinsics"], L["intrinsics"] = Bint, np.concatenate(Lint)
-    # One readout error per camera model: the cameras of a rig are usually alike, so one column each.
-    Bro = np.zeros((n0, len(cams)))
-    for c, cam in enumerate(cams):
-        for (cam2, a0, a1, _, _), col in zip(blocks_rows, ro_B, strict=True):
-            if cam2 == cam:
-                Bro[a0:a1, c] = col[:, 0]
-    B["readout"], L["readout"] = Bro, np.full(len(cams), readout_sigma_s)
+    # One readout error shared by all cameras: a rig's cameras are usually the same model, and
+    # their readout (unknown, written as 0, or refined together) is off the same way.
+    Bro = np.zeros((n0, 1))
+    for (_, a0, a1, _, _), col in zip(blocks_rows, ro_B, strict=True):
+        Bro[a0:a1, 0] = col[:, 0]
+    B["readout"], L["readout"] = Bro, np.array([readout_sigma_s])
     return {"r": r, "w": w, "J": J, "B": B, "L": L, "image_speed": np.concatenate(speeds),
             "noise2": float(e_inner.sum()) / max(2 * len(e_inner), 1)}
 
@@ -447,17 +446,22 @@ def row_smear(frames: Sequence[object], exp: Experiment, t_out: np.ndarray, pos:
     for k, vs in enumerate(views):
         worst = np.nan
         for v in vs:
-            idx = room.index(v.ids)
-            if not (idx >= 0).any():
+            speed = image_speed(v, room)
+            if not len(speed):
                 continue
-            Xw = room.corners_world[idx[idx >= 0]].reshape(-1, 3)
-            J, _ = _pose_jacobian(v, Xw)
-            if J is None:
-                continue
-            sm = float(np.median(np.linalg.norm(J @ v.twist, axis=1))) * exposure[v.camera]
+            sm = float(np.median(speed)) * exposure[v.camera]
             worst = sm if not np.isfinite(worst) else max(worst, sm)
         out[k] = worst
     return out
+
+
+def image_speed(view: FrameView, room: MarkerRoom) -> np.ndarray:
+    """Image speed (px/s) of each detected map corner of one frame under the view's motion."""
+    idx = room.index(view.ids)
+    if not (idx >= 0).any():
+        return np.zeros(0)
+    J, _ = _pose_jacobian(view, room.corners_world[idx[idx >= 0]].reshape(-1, 3))
+    return np.zeros(0) if J is None else np.linalg.norm(J @ view.twist, axis=1)
 
 
 def _exposures(frames: Sequence[object], exp: Experiment, s: UncertaintySettings) -> dict[str, float]:
