@@ -36,6 +36,7 @@ from annotator.uncertainty import (
     row_smear,
     row_uncertainty,
     smear_weights,
+    sync_time_sigma,
     total_sigma,
 )
 from annotator.video import iter_frames, video_info
@@ -521,7 +522,8 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
                   markers=traj.quality.get("markers"))
     # Readings while hands covered the beacon carry the hands' attenuation: never labelled.
     labels = label_readings(poses, table.t_ns, max_gap=settings.max_gap,
-                            exclude=cover_intervals(sync.rssi_events))
+                            exclude=cover_intervals(sync.rssi_events),
+                            time_sigma=sync_time_sigma(sync.clocks, table.t_seconds()))
     report = build_report(experiment=exp.path, sync=sync, beacon=beacon, readings_total=len(everything),
                           table=table, labels=labels, traj_t=traj.t, traj_valid=traj.valid,
                           max_gap=settings.max_gap, method=track.method)

@@ -511,3 +511,15 @@ def total_sigma(smoother_m: np.ndarray, u: RowUncertainty, settings: Uncertainty
     out = {"sigma_m": total, "sigma_smoother_m": sm, "sigma_params_m": params, "sigma_blur_m": u.blur_m,
            "sigma_unmodelled_m": np.where(np.isfinite(sm), floor, np.nan), "smear_px": u.smear_px}
     return out
+
+
+def sync_time_sigma(clocks: dict[str, object], t_rssi: np.ndarray) -> np.ndarray:
+    """1-sigma uncertainty (s) of each RSSI time against the video clock: the worst camera's clock
+    map at that time (``annotator.sync.ClockMap.sigma_at``); 0 where no camera states one (manual
+    sync states none)."""
+    t = np.asarray(t_rssi, dtype=float)
+    out = np.zeros(t.shape)
+    for cm in clocks.values():
+        sig = np.asarray(cm.sigma_at(cm.to_video(t)), dtype=float)  # type: ignore[attr-defined]
+        out = np.fmax(out, np.broadcast_to(sig, t.shape))
+    return out

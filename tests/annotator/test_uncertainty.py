@@ -38,7 +38,8 @@ def _scene(k: int = 7):
     raise AssertionError("no pose sees markers with both cameras")
 
 
-def _views(room, rig, R, p, dets, twist=np.zeros(6)):
+def _views(room, rig, R, p, dets, twist=None):
+    twist = np.zeros(6) if twist is None else twist
     return [FrameView(n, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera, dets[n].ids,
                       dets[n].corners, R, p, twist) for n, cam in rig.items()]
 
@@ -48,7 +49,7 @@ def _params(room, rig) -> ParameterCovariance:
                                            {n: c.calibration.camera_matrix for n, c in rig.items()})
 
 
-def _propagated(room, rig, R, p, dets, twist=np.zeros(6)) -> dict[str, float]:
+def _propagated(room, rig, R, p, dets, twist=None) -> dict[str, float]:
     jac = frame_jacobians(_views(room, rig, R, p, dets, twist), room, _params(room, rig), READOUT_SIGMA,
                           UncertaintySettings())
     var, *_ = propagate(jac)
