@@ -138,130 +138,144 @@ def _undistort(cal: CameraCalibration, pixels: np.ndarray, K: np.ndarray | None 
                                               cal.readout_s), pixels)
 
 
+@dataclass(frozen=True, eq=False)
+class _ViewBlock:
+    """One view's residuals and Jacobians (rows: its corners' x, y in order)."""
+
+    camera: str
+    r: np.ndarray  # (2m,)
+    J: np.ndarray  # (2m, 6)
+    markers: list[tuple[int, int, np.ndarray]]  # (marker id, first row, (8, 6) block) of mapped markers
+    Br: np.ndarray  # (2m, 6)
+    Bi: np.ndarray  # (2m, 4)
+    Bro: np.ndarray  # (2m,)
+    inner: np.ndarray  # (n,) per marker: residual energy left after its own rigid motion
+    speed: np.ndarray  # (m,) image speed, px/s
+    n_markers: int
+
+
+def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> _ViewBlock | None:
+    idx = room.index(v.ids)
+    keep = idx >= 0
+    if not keep.any():
+        return None
+    ids, pix, idx = v.ids[keep], v.pixels[keep], idx[keep]
+    K = v.cal.camera_matrix
+    focal = float(np.sqrt(K[0, 0] * K[1, 1]))
+    xn = _undistort(v.cal, pix).reshape(-1, 2)
+    Xw = room.corners_world[idx].reshape(-1, 3)
+    d = Xw - v.t_wb
+    e = d @ v.R_wb - v.t_bc  # bundle frame, from the camera centre
+    Xc = e @ v.R_bc
+    z = Xc[:, 2]
+    if np.any(z <= 1e-6):
+        return None
+    proj = Xc[:, :2] / z[:, None]
+    m = len(z)
+    dp = np.zeros((m, 2, 3))
+    dp[:, 0, 0] = 1 / z
+    dp[:, 1, 1] = 1 / z
+    dp[:, :, 2] = -proj / z[:, None]
+    b_cam = focal * dp @ v.R_bc.T  # d pixels / d bundle-frame point
+    a = b_cam @ v.R_wb.T  # d pixels / d world point
+    J = np.concatenate([a @ _skew(d), -a], axis=2)  # world-frame rotation, then position
+    r = focal * (proj - xn)
+    # Markers: corner = exp(w) (c - centre) + centre + dp -> d corner = -skew(c - centre) w + dp.
+    rel = np.einsum("mij,kj->mki", room.R_world_marker[idx], marker_corners_local(room.length)).reshape(-1, 3)
+    Bm = np.concatenate([-a @ _skew(rel), a], axis=2)  # (m, 2, 6)
+    # Corner noise: what is left of each square's residual after its own rigid motion (the map
+    # error of one marker is exactly such a motion): 2 of its 8 degrees of freedom.
+    Mk = Bm.reshape(len(ids), 8, 6)
+    rk = r.reshape(len(ids), 8)
+    G = np.einsum("kij,kil->kjl", Mk, Mk) + 1e-9 * np.eye(6)
+    xk = np.linalg.solve(G, np.einsum("kij,ki->kj", Mk, rk)[..., None])[..., 0]
+    inner = np.sum((rk - np.einsum("kij,kj->ki", Mk, xk)) ** 2, axis=1)
+    markers = [(int(mid), 8 * k, Mk[k]) for k, mid in enumerate(ids) if int(mid) in params.markers]
+    # Rig: R_bc = exp(w) R_bc0, t_bc + dt -> the corner moves by skew(e) w - dt in the camera's eyes.
+    Br = np.concatenate([b_cam @ _skew(e), -b_cam], axis=2).reshape(-1, 6)
+    # Intrinsics: the observation moves; r = focal (proj - xn) -> dr = -focal dxn.
+    Bi = np.zeros((2 * m, 4))
+    if v.camera in params.intrinsics:
+        steps = np.sqrt(np.maximum(np.diag(params.intrinsics[v.camera]), 1e-12)) * 0.1
+        for j, at in enumerate(((0, 0), (1, 1), (0, 2), (1, 2))):
+            Kp, Km = K.copy(), K.copy()
+            Kp[at] += steps[j]
+            Km[at] -= steps[j]
+            dxn = (_undistort(v.cal, pix, Kp) - _undistort(v.cal, pix, Km)).reshape(-1, 2) / (2 * steps[j])
+            Bi[:, j] = -focal * dxn.ravel()
+    # Readout: row v is seen readout * v / H later; dr/dreadout = -J twist * v / H.
+    img_vel = J @ v.twist  # (m, 2) pixels per second
+    rows_frac = pix.reshape(-1, 2)[:, 1] / v.cal.height
+    Bro = -(img_vel * rows_frac[:, None]).reshape(-1)
+    return _ViewBlock(v.camera, r.reshape(-1), J.reshape(-1, 6), markers, Br, Bi, Bro, inner,
+                      np.linalg.norm(img_vel, axis=1), len(ids))
+
+
 def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: ParameterCovariance,
-                    readout_sigma_s: float, settings: UncertaintySettings) -> dict[str, object] | None:
+                    readout_sigma_s: float, settings: UncertaintySettings,
+                    cache: dict[int, _ViewBlock | None] | None = None) -> dict[str, object] | None:
     """Residuals, weights and the pose / parameter Jacobians of one output row's frames.
 
     Returns None without usable corners. Keys: r (m,), w (m,), J (m, 6), B {block: (m, k)},
-    L {block: (k,) prior sigmas}, image_speed (m/2,) px/s.
+    L {block: (k,) prior sigmas}, image_speed (m/2,) px/s, noise2 (corner noise variance, px^2).
+    ``cache`` keeps each view's blocks between the rows that share it.
     """
-    rs, Js, As, speeds, rows_v, inner = [], [], [], [], [], []
-    mk_cols: dict[int, list[np.ndarray]] = {}
-    ro_B: list[np.ndarray] = []
-    blocks_rows = []  # (camera, start, stop) rows in the stacked residual
-    n0 = 0
-    local = marker_corners_local(room.length)
+    blocks = []
     for v in views:
-        idx = room.index(v.ids)
-        keep = idx >= 0
-        if not keep.any():
-            continue
-        ids, pix, idx = v.ids[keep], v.pixels[keep], idx[keep]
-        K = v.cal.camera_matrix
-        focal = float(np.sqrt(K[0, 0] * K[1, 1]))
-        xn = _undistort(v.cal, pix).reshape(-1, 2)
-        Xw = room.corners_world[idx].reshape(-1, 3)
-        d = Xw - v.t_wb
-        Y = d @ v.R_wb  # bundle frame
-        e = Y - v.t_bc
-        Xc = e @ v.R_bc
-        z = Xc[:, 2]
-        if np.any(z <= 1e-6):
-            continue
-        proj = Xc[:, :2] / z[:, None]
-        m = len(z)
-        dp = np.zeros((m, 2, 3))
-        dp[:, 0, 0] = 1 / z
-        dp[:, 1, 1] = 1 / z
-        dp[:, :, 2] = -proj / z[:, None]
-        b_cam = focal * dp @ v.R_bc.T  # d pixels / d bundle-frame point
-        a = b_cam @ v.R_wb.T  # d pixels / d world point
-        J = np.concatenate([a @ _skew(d), -a], axis=2)  # world-frame rotation, then position
-        r = focal * (proj - xn)
-        rs.append(r.reshape(-1))
-        Js.append(J.reshape(-1, 6))
-        # Markers: corner = exp(w) (c - centre) + centre + dp -> d corner = -skew(c - centre) w + dp.
-        rel = np.einsum("mij,kj->mki", room.R_world_marker[idx], local).reshape(-1, 3)
-        Bm = np.concatenate([-a @ _skew(rel), a], axis=2)  # (m, 2, 6)
-        # Corner noise: what is left of each square's residual after its own rigid motion (the
-        # map error of one marker is exactly such a motion), 2 of its 8 degrees of freedom.
-        Mk = Bm.reshape(len(ids), 8, 6)
-        rk = r.reshape(len(ids), 8)
-        G = np.einsum("kij,kil->kjl", Mk, Mk) + 1e-9 * np.eye(6)
-        xk = np.linalg.solve(G, np.einsum("kij,ki->kj", Mk, rk)[..., None])[..., 0]
-        inner.append(np.sum((rk - np.einsum("kij,kj->ki", Mk, xk)) ** 2, axis=1))
-        for k, mid in enumerate(ids):
-            if int(mid) not in params.markers:
-                continue
-            mk_cols.setdefault(int(mid), []).append((n0 + 8 * k, Bm[4 * k:4 * k + 4].reshape(-1, 6)))
-        # Rig: R_bc = exp(w) R_bc0, t_bc + dt -> the corner moves by skew(e) w - dt in the camera's eyes.
-        Br = np.concatenate([b_cam @ _skew(e), -b_cam], axis=2).reshape(-1, 6)
-        # Intrinsics: the observation moves; r = focal (proj - xn) -> dr = -focal dxn.
-        Bi = np.zeros((2 * m, 4))
-        if v.camera in params.intrinsics:
-            steps = np.sqrt(np.maximum(np.diag(params.intrinsics[v.camera]), 1e-12)) * 0.1
-            for j in range(4):
-                Kp, Km = K.copy(), K.copy()
-                pos = ((0, 0), (1, 1), (0, 2), (1, 2))[j]
-                Kp[pos] += steps[j]
-                Km[pos] -= steps[j]
-                dxn = (_undistort(v.cal, pix, Kp) - _undistort(v.cal, pix, Km)).reshape(-1, 2) / (2 * steps[j])
-                Bi[:, j] = -focal * dxn.ravel()
-        # Readout: row v is seen readout * v / H later; dr/dreadout = -J twist * v / H.
-        img_vel = (J @ v.twist)  # (m, 2) pixels per second
-        rows_frac = pix.reshape(-1, 2)[:, 1] / v.cal.height
-        Bro = -(img_vel * rows_frac[:, None]).reshape(-1, 1)
-        blocks_rows.append((v.camera, n0, n0 + 2 * m, Br, Bi))
-        ro_B.append(Bro)
-        speeds.append(np.linalg.norm(img_vel, axis=1))
-        As.append(np.repeat(np.arange(len(ids)) + sum(len(x) for x in rows_v), 4))
-        rows_v.append(ids)
-        n0 += 2 * m
+        if cache is not None and id(v) in cache:
+            vb = cache[id(v)]
+        else:
+            vb = _view_block(v, room, params)
+            if cache is not None:
+                cache[id(v)] = vb
+        if vb is not None:
+            blocks.append(vb)
+    starts = np.cumsum([0] + [len(b.r) for b in blocks])
+    n0 = int(starts[-1])
     if n0 < 8:
         return None
-    r = np.concatenate(rs)
-    J = np.concatenate(Js)
+    r = np.concatenate([b.r for b in blocks])
+    J = np.concatenate([b.J for b in blocks])
     # Robust weights: Huber on each corner, no weight for a marker far off the others.
     corner_norm = np.linalg.norm(r.reshape(-1, 2), axis=1)
-    marker_of = np.concatenate(As)
+    marker_of = np.repeat(np.arange(sum(b.n_markers for b in blocks)), 4)
     n_mk = int(marker_of.max()) + 1
-    mk_rms = np.sqrt(np.bincount(marker_of, corner_norm ** 2, n_mk) / np.maximum(np.bincount(marker_of, None, n_mk), 1))
+    mk_rms = np.sqrt(np.bincount(marker_of, corner_norm ** 2, n_mk) / 4.0)
     limit = max(settings.marker_gate_px, 4.0 * float(np.median(mk_rms)))
     wc = np.where(corner_norm <= settings.huber_px, 1.0, settings.huber_px / np.maximum(corner_norm, 1e-12))
     good_mk = mk_rms <= limit
     wc = wc * good_mk[marker_of]
-    e_inner = np.concatenate(inner)[good_mk]
+    e_inner = np.concatenate([b.inner for b in blocks])[good_mk]
     w = np.repeat(wc, 2)
     B: dict[str, np.ndarray] = {}
     L: dict[str, np.ndarray] = {}
-    mids = sorted(mk_cols)
+    mids = sorted({mid for b in blocks for mid, _, _ in b.markers})
     if mids:
+        col = {mid: c for c, mid in enumerate(mids)}
         Bmk = np.zeros((n0, 6 * len(mids)))
-        for c, mid in enumerate(mids):
-            for start, col in mk_cols[mid]:
-                Bmk[start:start + len(col), 6 * c:6 * c + 6] = col
+        for b, a0 in zip(blocks, starts, strict=False):
+            for mid, first, blk in b.markers:
+                Bmk[a0 + first:a0 + first + 8, 6 * col[mid]:6 * col[mid] + 6] = blk
         B["markers"] = Bmk
         L["markers"] = np.concatenate([np.sqrt(np.diag(params.markers[mid])) for mid in mids])
-    cams = sorted({c for c, *_ in blocks_rows})
+    cams = sorted({b.camera for b in blocks})
     Brig = np.zeros((n0, 6 * len(cams)))
     Bint = np.zeros((n0, 4 * len(cams)))
-    Lrig, Lint = [], []
-    for c, cam in enumerate(cams):
-        Lrig.append(np.sqrt(np.diag(params.rig[cam])) if cam in params.rig else np.zeros(6))
-        Lint.append(np.sqrt(np.diag(params.intrinsics[cam])) if cam in params.intrinsics else np.zeros(4))
-        for cam2, a0, a1, Br, Bi in blocks_rows:
-            if cam2 == cam:
-                Brig[a0:a1, 6 * c:6 * c + 6] = Br
-                Bint[a0:a1, 4 * c:4 * c + 4] = Bi
-    B["rig"], L["rig"] = Brig, np.concatenate(Lrig)
-    B["intrinsics"], L["intrinsics"] = Bint, np.concatenate(Lint)
+    for b, a0 in zip(blocks, starts, strict=False):
+        c = cams.index(b.camera)
+        Brig[a0:a0 + len(b.r), 6 * c:6 * c + 6] = b.Br
+        Bint[a0:a0 + len(b.r), 4 * c:4 * c + 4] = b.Bi
+    B["rig"] = Brig
+    L["rig"] = np.concatenate([np.sqrt(np.diag(params.rig[c])) if c in params.rig else np.zeros(6) for c in cams])
+    B["intrinsics"] = Bint
+    L["intrinsics"] = np.concatenate([np.sqrt(np.diag(params.intrinsics[c])) if c in params.intrinsics
+                                      else np.zeros(4) for c in cams])
     # One readout error shared by all cameras: a rig's cameras are usually the same model, and
     # their readout (unknown, written as 0, or refined together) is off the same way.
-    Bro = np.zeros((n0, 1))
-    for (_, a0, a1, _, _), col in zip(blocks_rows, ro_B, strict=True):
-        Bro[a0:a1, 0] = col[:, 0]
-    B["readout"], L["readout"] = Bro, np.array([readout_sigma_s])
-    return {"r": r, "w": w, "J": J, "B": B, "L": L, "image_speed": np.concatenate(speeds),
+    B["readout"] = np.concatenate([b.Bro for b in blocks])[:, None]
+    L["readout"] = np.array([readout_sigma_s])
+    speeds = np.concatenate([b.speed for b in blocks])
+    return {"r": r, "w": w, "J": J, "B": B, "L": L, "image_speed": speeds,
             "noise2": float(e_inner.sum()) / max(2 * len(e_inner), 1)}
 
 
@@ -325,31 +339,43 @@ def _views_at(frames: Sequence[object], exp: Experiment, t_out: np.ndarray, pos:
 
 def _scales(var: np.ndarray, q: np.ndarray, e: np.ndarray, dof: np.ndarray,
             settings: UncertaintySettings) -> dict[str, float]:
-    """Each block's scale from the regression e = sum_b s_b^2 q_b over the rows (e: residual
-    energy beyond the corner noise); the upper end of each scale's 2-sigma range."""
+    """Each block's scale from the residual energy of the whole capture.
+
+    Regression over the rows: e = c dof + sum_b s_b^2 q_b (e: energy beyond the within-marker
+    noise; c: corner noise the within-marker estimate misses, correlated over a square). A block
+    is shrunk to the upper end of its 2-sigma range when that is below 1 (the capture rules its
+    prior out); a block the capture cannot check keeps its prior. Then, if the residuals still
+    hold significantly more than the (shrunk) priors predict, every block is inflated by the
+    lower end of that common factor's 2-sigma range (the priors were optimistic, or something
+    unmodelled moves the corners).
+    """
     out = {b: 1.0 for b in BLOCKS}
     use = np.isfinite(e) & (dof > 2) & np.isfinite(q).all(1)
     if not settings.scale_priors or use.sum() < 20:
         return out
-    cols = [k for k in range(4) if q[use, k].sum() > 0]
-    X = np.column_stack([q[use, k] for k in cols])
-    y = e[use]
-    # Rows differ a lot in corner count: weight each by its degrees of freedom's inverse.
-    wt = 1.0 / np.maximum(dof[use], 1.0)
-    Xw, yw = X * wt[:, None], y * wt
-    coef, _ = nnls(Xw, yw)
-    res = yw - Xw @ coef
-    s2 = float(res @ res) / max(len(yw) - X.shape[1], 1)
-    try:
-        cov = s2 * np.linalg.pinv(Xw.T @ Xw)
-    except np.linalg.LinAlgError:
-        return out
-    log.debug("scale^2 regression: %s", ", ".join(f"{BLOCKS[k]} {coef[c]:.3g} +- {math.sqrt(max(cov[c, c], 0)):.2g}"
-                                                 for c, k in enumerate(cols)))
-    for c, k in enumerate(cols):
-        upper = coef[c] + 2.0 * math.sqrt(max(cov[c, c], 0.0))
-        out[BLOCKS[k]] = float(np.clip(math.sqrt(max(upper, 0.0)), settings.min_scale, settings.max_scale))
-    log.info("prior scales from the residuals: %s", ", ".join(f"{b} {s:.2f}" for b, s in out.items()))
+    wt = 1.0 / np.maximum(dof[use], 1.0)  # rows differ a lot in corner count
+
+    def fit(cols: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        X = np.column_stack(cols) * wt[:, None]
+        y = e[use] * wt
+        coef, _ = nnls(X, y)
+        res = y - X @ coef
+        s2 = float(res @ res) / max(len(y) - X.shape[1], 1)
+        return coef, np.sqrt(np.maximum(np.diag(s2 * np.linalg.pinv(X.T @ X)), 0.0))
+
+    ks = [k for k in range(4) if q[use, k].sum() > 0]
+    coef, se = fit([dof[use]] + [q[use, k] for k in ks])
+    for c, k in enumerate(ks, 1):
+        upper = coef[c] + 2.0 * se[c]
+        out[BLOCKS[k]] = float(np.clip(math.sqrt(max(upper, 0.0)), settings.min_scale, 1.0))
+    shrunk = q[use] @ np.array([out[b] ** 2 for b in BLOCKS])
+    coef2, se2 = fit([dof[use], shrunk])
+    lower = coef2[1] - 2.0 * se2[1]
+    inflate = float(np.clip(math.sqrt(max(lower, 1.0)), 1.0, settings.max_scale))
+    out = {b: v * inflate for b, v in out.items()}
+    log.debug("scale^2 regression: %s; common factor^2 %.3g +- %.2g",
+              ", ".join(f"{BLOCKS[k]} {coef[c]:.3g} +- {se[c]:.2g}" for c, k in enumerate(ks, 1)), coef2[1], se2[1])
+    log.info("prior scales from the residuals: %s", ", ".join(f"{b} {v:.2f}" for b, v in out.items()))
     return out
 
 
@@ -373,10 +399,11 @@ def row_uncertainty(frames: Sequence[object], exp: Experiment, t_out: np.ndarray
     dof = np.full(n, np.nan)
     smear = np.full(n, np.nan)
     exposure = _exposures(frames, exp, s)
+    cache: dict[int, _ViewBlock | None] = {}
     for k in range(n):
         if not views[k]:
             continue
-        jac = frame_jacobians(views[k], room, pc, readout_sigma, s)
+        jac = frame_jacobians(views[k], room, pc, readout_sigma, s, cache)
         if jac is None:
             continue
         out = propagate(jac)
@@ -387,6 +414,10 @@ def row_uncertainty(frames: Sequence[object], exp: Experiment, t_out: np.ndarray
         smear[k] = float(np.median(sp)) * max(exposure[v.camera] for v in views[k])  # type: ignore[arg-type]
     scales = _scales(var, q, e, dof, s)
     var = var * np.array([scales[b] ** 2 for b in BLOCKS])[None, :]
+    if log.isEnabledFor(logging.DEBUG) and np.isfinite(var).any():
+        med = np.sqrt(np.nanmedian(var, axis=0))
+        log.debug("median per-axis sigma by block (mm): %s",
+                  ", ".join(f"{b} {1e3 * v:.2f}" for b, v in zip(BLOCKS, med, strict=True)))
     var = _kernel_average(t_out, var, s.param_window_s)
     speed = np.linalg.norm(vel, axis=1)
     exp_row = max(exposure.values()) if exposure else 0.0
