@@ -57,6 +57,7 @@ class ClockMap:
     # How much later the RSSI saw the release (and earlier the cover) than the video, s: the two
     # signals fade differently while the hands close. Fitted when a cover/release pair exists.
     edge_bias: float = math.nan
+    start_drift_cov: float = 0.0  # covariance of video_start and drift from the fit (s * 1)
 
     def to_rssi(self, pts: np.ndarray | float) -> np.ndarray:
         return self.video_start + np.asarray(pts, dtype=float) * (1.0 + self.drift)
@@ -65,10 +66,13 @@ class ClockMap:
         return (np.asarray(t_rssi, dtype=float) - self.video_start) / (1.0 + self.drift)
 
     def sigma_at(self, pts: np.ndarray | float) -> np.ndarray:
-        """1-sigma uncertainty of the mapped time at ``pts`` (start and drift assumed independent)."""
+        """1-sigma uncertainty of the mapped time at ``pts`` (with the fit's start-drift covariance:
+        both are fitted from the same edges, so the mapped time is best known between them)."""
         pts = np.asarray(pts, dtype=float)
         ds = self.drift_sigma if math.isfinite(self.drift_sigma) else 0.0
-        return np.sqrt(self.video_start_sigma**2 + (pts * ds) ** 2)
+        cov = self.start_drift_cov if ds > 0 else 0.0
+        var = self.video_start_sigma**2 + 2.0 * pts * cov + (pts * ds) ** 2
+        return np.sqrt(np.maximum(var, 0.0))
 
 
 def manual_clock_map(video_start: float) -> ClockMap:
@@ -540,7 +544,8 @@ def fit_clock_map(video_events: list[CoverEvent], rssi_events: list[CoverEvent],
                   video_start_sigma=float(math.sqrt(cov[0, 0])),
                   drift_sigma=float(math.sqrt(cov[k, k])) if drift else math.nan, method=method,
                   n_edges=int(xa.size), residual_rms=float(np.sqrt(np.mean(resid**2))),
-                  edge_bias=float(coef[1]) if has_pair else math.nan)
+                  edge_bias=float(coef[1]) if has_pair else math.nan,
+                  start_drift_cov=float(cov[0, k]) if drift else 0.0)
     log.info("%s: video_start %.4f +- %.4f s, drift %.2e, from %d edges", name, cm.video_start,
              cm.video_start_sigma, cm.drift, cm.n_edges)
     return cm
