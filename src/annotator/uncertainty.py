@@ -38,6 +38,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import block_diag
 from scipy.optimize import nnls
 from scipy.spatial.transform import Rotation
 
@@ -84,6 +85,12 @@ def parameter_covariance(exp: Experiment, params: ParameterCovariance | None = N
         return params
     cams = {name: cam.calibration.camera_matrix for name, cam in exp.rig.cameras.items()}
     return ParameterCovariance.from_priors(exp.priors, sorted(exp.markers.markers), cams)
+
+
+def _sqrt_psd(cov: np.ndarray) -> np.ndarray:
+    """A square root S of a covariance (S S^T = cov), tolerant of singular ones."""
+    vals, vecs = np.linalg.eigh(0.5 * (cov + cov.T))
+    return vecs * np.sqrt(np.maximum(vals, 0.0))[None, :]
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -217,7 +224,7 @@ def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: Parame
     """Residuals, weights and the pose / parameter Jacobians of one output row's frames.
 
     Returns None without usable corners. Keys: r (m,), w (m,), J (m, 6), B {block: (m, k)},
-    L {block: (k,) prior sigmas}, image_speed (m/2,) px/s, noise2 (corner noise variance, px^2).
+    L {block: (k, k) square root of the block's covariance}, image_speed (m/2,) px/s, noise2 (corner noise variance, px^2).
     ``cache`` keeps each view's blocks between the rows that share it.
     """
     blocks = []
@@ -257,7 +264,7 @@ def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: Parame
             for mid, first, blk in b.markers:
                 Bmk[a0 + first:a0 + first + 8, 6 * col[mid]:6 * col[mid] + 6] = blk
         B["markers"] = Bmk
-        L["markers"] = np.concatenate([np.sqrt(np.diag(params.markers[mid])) for mid in mids])
+        L["markers"] = block_diag(*[_sqrt_psd(params.markers[mid]) for mid in mids])
     cams = sorted({b.camera for b in blocks})
     Brig = np.zeros((n0, 6 * len(cams)))
     Bint = np.zeros((n0, 4 * len(cams)))
@@ -266,14 +273,14 @@ def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: Parame
         Brig[a0:a0 + len(b.r), 6 * c:6 * c + 6] = b.Br
         Bint[a0:a0 + len(b.r), 4 * c:4 * c + 4] = b.Bi
     B["rig"] = Brig
-    L["rig"] = np.concatenate([np.sqrt(np.diag(params.rig[c])) if c in params.rig else np.zeros(6) for c in cams])
+    L["rig"] = block_diag(*[_sqrt_psd(params.rig[c]) if c in params.rig else np.zeros((6, 6)) for c in cams])
     B["intrinsics"] = Bint
-    L["intrinsics"] = np.concatenate([np.sqrt(np.diag(params.intrinsics[c])) if c in params.intrinsics
-                                      else np.zeros(4) for c in cams])
+    L["intrinsics"] = block_diag(*[_sqrt_psd(params.intrinsics[c]) if c in params.intrinsics else np.zeros((4, 4))
+                                   for c in cams])
     # One readout error shared by all cameras: a rig's cameras are usually the same model, and
     # their readout (unknown, written as 0, or refined together) is off the same way.
     B["readout"] = np.concatenate([b.Bro for b in blocks])[:, None]
-    L["readout"] = np.array([readout_sigma_s])
+    L["readout"] = np.array([[readout_sigma_s]])
     speeds = np.concatenate([b.speed for b in blocks])
     return {"r": r, "w": w, "J": J, "B": B, "L": L, "image_speed": speeds,
             "noise2": float(e_inner.sum()) / max(2 * len(e_inner), 1)}
@@ -303,7 +310,7 @@ def propagate(jac: dict[str, object]) -> tuple[np.ndarray, np.ndarray, float, fl
         Bk = jac["B"].get(name)  # type: ignore[union-attr]
         if Bk is None or Bk.shape[1] == 0:
             continue
-        BL = Bk * sw[:, None] * jac["L"][name][None, :]  # type: ignore[index]
+        BL = (Bk * sw[:, None]) @ jac["L"][name]  # type: ignore[index]
         A = Hinv @ (Jw.T @ BL)  # (6, k) pose change per unit-sigma parameter
         var[k] = float(np.sum(A[3:] ** 2)) / 3
         resid = BL - Jw @ A

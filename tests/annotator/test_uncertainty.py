@@ -49,8 +49,8 @@ def _params(room, rig) -> ParameterCovariance:
                                            {n: c.calibration.camera_matrix for n, c in rig.items()})
 
 
-def _propagated(room, rig, R, p, dets, twist=None) -> dict[str, float]:
-    jac = frame_jacobians(_views(room, rig, R, p, dets, twist), room, _params(room, rig), READOUT_SIGMA,
+def _propagated(room, rig, R, p, dets, twist=None, params=None) -> dict[str, float]:
+    jac = frame_jacobians(_views(room, rig, R, p, dets, twist), room, params or _params(room, rig), READOUT_SIGMA,
                           UncertaintySettings())
     var, *_ = propagate(jac)
     return dict(zip(BLOCKS, np.sqrt(var), strict=True))  # per-axis 1-sigma, m
@@ -113,10 +113,16 @@ def test_rig_sigma_matches_the_spread_of_solves():
 
 
 def test_intrinsics_sigma_matches_the_spread_of_solves():
+    """With fx and fy strongly correlated, as a calibration's are (a full covariance is used)."""
     room, rig, R, p, dets = _scene()
-    want = _propagated(room, rig, R, p, dets)["intrinsics"]
+    base = _params(room, rig)
+    cov = {}
+    for n, c in base.intrinsics.items():
+        full = c.copy()
+        full[0, 1] = full[1, 0] = 0.95 * np.sqrt(c[0, 0] * c[1, 1])
+        cov[n] = full
+    want = _propagated(room, rig, R, p, dets, params=ParameterCovariance(base.markers, base.rig, cov))["intrinsics"]
     rng = np.random.default_rng(3)
-    cov = _params(room, rig).intrinsics
     errs = []
     for _ in range(N_DRAWS):
         cals = {}
@@ -186,3 +192,25 @@ def test_smear_weights_keep_sharp_frames_and_drop_smeared_ones():
     assert w[4] == pytest.approx(8.41)
     assert np.isinf(w[5])
     assert w[6] == 1.0
+
+
+def test_a_correlated_covariance_is_propagated_as_a_whole():
+    """A rank-one intrinsics covariance (the front camera's focal lengths off together by 1 px): the
+    propagated sigma is the pose change that exact error causes, not what independent fx and fy
+    errors would give. (The record has no covariance between cameras: the back one is exact.)"""
+    room, rig, R, p, dets = _scene()
+    base = _params(room, rig)
+    v = np.array([1.0, 1.0, 0.0, 0.0])
+    zero = np.zeros((4, 4))
+    params = ParameterCovariance(base.markers, base.rig, {"front": np.outer(v, v), "back": zero})
+    want = _propagated(room, rig, R, p, dets, params=params)["intrinsics"]
+    cals = {n: cam.calibration for n, cam in rig.items()}
+    c = cals["front"]
+    K = c.camera_matrix.copy()
+    K[0, 0] += v[0]
+    K[1, 1] += v[1]
+    cals["front"] = CameraCalibration(K, c.dist_coeffs, c.width, c.height, c.source, c.model)
+    moved = np.linalg.norm(_solve(room, rig, dets, R, p, cals=cals) - p) / np.sqrt(3)
+    assert want == pytest.approx(moved, rel=0.05)
+    diag_only = ParameterCovariance(base.markers, base.rig, {"front": np.diag(v ** 2), "back": zero})
+    assert _propagated(room, rig, R, p, dets, params=diag_only)["intrinsics"] != pytest.approx(want, rel=0.1)
