@@ -37,6 +37,7 @@ class CameraCalibration:
     source: str = ""
     model: str = "radtan"
     readout_s: float = 0.0
+    exposure_s: float | None = None  # optional: exposure time, for the motion-blur measure
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,6 +147,8 @@ LENS_MODELS = {"plumb_bob": "radtan", "rational_polynomial": "radtan", "radtan":
                "fisheye": "fisheye", "equidistant": "fisheye"}
 # Optional calibration key: rolling-shutter readout, first row to last, seconds.
 READOUT_KEY = "rolling_shutter_readout_s"
+# Optional calibration key: exposure time, seconds (the motion-blur measure; default half a frame).
+EXPOSURE_KEY = "exposure_s"
 
 def parse_calibration(obj: Any, source: str) -> CameraCalibration:
     """OpenCV FileStorage calibration or ROS camera_info, already parsed from YAML."""
@@ -181,7 +184,15 @@ def parse_calibration(obj: Any, source: str) -> CameraCalibration:
         raise ConfigError(f"{source}: image_width / image_height must be positive")
     if dist.size == 0:
         dist = np.zeros(5)
-    return CameraCalibration(K, dist, width, height, source, model, readout)
+    exposure = d.get(EXPOSURE_KEY)
+    if exposure is not None:
+        try:
+            exposure = float(exposure)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{source}: {EXPOSURE_KEY} must be a number (seconds)") from None
+        if not 0.0 <= exposure < 1.0:
+            raise ConfigError(f"{source}: {EXPOSURE_KEY} must be between 0 and 1 s, not {exposure}")
+    return CameraCalibration(K, dist, width, height, source, model, readout, exposure)
 
 
 def load_calibration(path: str | Path) -> CameraCalibration:

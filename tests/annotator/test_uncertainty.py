@@ -214,3 +214,17 @@ def test_a_correlated_covariance_is_propagated_as_a_whole():
     assert want == pytest.approx(moved, rel=0.05)
     diag_only = ParameterCovariance(base.markers, base.rig, {"front": np.diag(v ** 2), "back": zero})
     assert _propagated(room, rig, R, p, dets, params=diag_only)["intrinsics"] != pytest.approx(want, rel=0.1)
+
+
+def test_calibration_exposure_is_optional_and_checked():
+    from annotator.errors import ConfigError
+    from annotator.experiment import parse_calibration
+
+    d = {"camera_matrix": [[600.0, 0, 480], [0, 601.0, 270], [0, 0, 1]], "image_width": 960,
+         "image_height": 540, "distortion_coefficients": [0.0, 0.0, 0.0, 0.0, 0.0]}
+    assert parse_calibration(d, "cam.yaml").exposure_s is None
+    assert parse_calibration({**d, "exposure_s": 0.008}, "cam.yaml").exposure_s == 0.008
+    with pytest.raises(ConfigError, match="exposure_s must be between"):
+        parse_calibration({**d, "exposure_s": -0.001}, "cam.yaml")
+    with pytest.raises(ConfigError, match="exposure_s must be a number"):
+        parse_calibration({**d, "exposure_s": "fast"}, "cam.yaml")
