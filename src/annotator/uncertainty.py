@@ -35,7 +35,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import block_diag
@@ -85,6 +85,16 @@ def parameter_covariance(exp: Experiment, params: ParameterCovariance | None = N
         return params
     cams = {name: cam.calibration.camera_matrix for name, cam in exp.rig.cameras.items()}
     return ParameterCovariance.from_priors(exp.priors, sorted(exp.markers.markers), cams)
+
+
+def _distortion(params: ParameterCovariance) -> dict[str, np.ndarray]:
+    """Distortion covariances per camera when the record has them (refinement), else none."""
+    return dict(getattr(params, "distortion", None) or {})
+
+
+def _readout(params: ParameterCovariance) -> dict[str, np.ndarray]:
+    """(1, 1) readout variances (s^2) per camera when the record has them (refinement), else none."""
+    return dict(getattr(params, "readout", None) or {})
 
 
 def _sqrt_psd(cov: np.ndarray) -> np.ndarray:
@@ -200,8 +210,11 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
     markers = [(int(mid), 8 * k, Mk[k]) for k, mid in enumerate(ids) if int(mid) in params.markers]
     # Rig: R_bc = exp(w) R_bc0, t_bc + dt -> the corner moves by skew(e) w - dt in the camera's eyes.
     Br = np.concatenate([b_cam @ _skew(e), -b_cam], axis=2).reshape(-1, 6)
-    # Intrinsics: the observation moves; r = focal (proj - xn) -> dr = -focal dxn.
-    Bi = np.zeros((2 * m, 4))
+    # Intrinsics (and distortion, when the record has it): the observation moves;
+    # r = focal (proj - xn) -> dr = -focal dxn.
+    dist_cov = _distortion(params).get(v.camera)
+    nd = 0 if dist_cov is None else len(dist_cov)
+    Bi = np.zeros((2 * m, 4 + nd))
     if v.camera in params.intrinsics:
         steps = np.sqrt(np.maximum(np.diag(params.intrinsics[v.camera]), 1e-12)) * 0.1
         for j, at in enumerate(((0, 0), (1, 1), (0, 2), (1, 2))):
@@ -210,6 +223,15 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
             Km[at] -= steps[j]
             dxn = (_undistort(v.cal, pix, Kp) - _undistort(v.cal, pix, Km)).reshape(-1, 2) / (2 * steps[j])
             Bi[:, j] = -focal * dxn.ravel()
+    if nd:
+        steps = np.sqrt(np.maximum(np.diag(dist_cov), 1e-12)) * 0.1
+        for j in range(min(nd, len(v.cal.dist_coeffs))):
+            dp_, dm_ = v.cal.dist_coeffs.astype(float), v.cal.dist_coeffs.astype(float)
+            dp_[j] += steps[j]
+            dm_[j] -= steps[j]
+            xp = undistort_points(replace(v.cal, dist_coeffs=dp_), pix)
+            xm = undistort_points(replace(v.cal, dist_coeffs=dm_), pix)
+            Bi[:, 4 + j] = -focal * ((xp - xm).reshape(-1, 2) / (2 * steps[j])).ravel()
     # Readout: row v is seen readout * v / H later; dr/dreadout = -J twist * v / H.
     img_vel = J @ v.twist  # (m, 2) pixels per second
     rows_frac = pix.reshape(-1, 2)[:, 1] / v.cal.height
@@ -267,20 +289,30 @@ def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: Parame
         L["markers"] = block_diag(*[_sqrt_psd(params.markers[mid]) for mid in mids])
     cams = sorted({b.camera for b in blocks})
     Brig = np.zeros((n0, 6 * len(cams)))
-    Bint = np.zeros((n0, 4 * len(cams)))
+    width = {c: next(b.Bi.shape[1] for b in blocks if b.camera == c) for c in cams}
+    first = dict(zip(cams, np.cumsum([0] + [width[c] for c in cams])[:-1], strict=True))
+    Bint = np.zeros((n0, sum(width.values())))
+    readouts = _readout(params)
+    Bro = np.zeros((n0, len(cams) if readouts else 1))
     for b, a0 in zip(blocks, starts, strict=False):
         c = cams.index(b.camera)
-        Brig[a0:a0 + len(b.r), 6 * c:6 * c + 6] = b.Br
-        Bint[a0:a0 + len(b.r), 4 * c:4 * c + 4] = b.Bi
+        a1 = a0 + len(b.r)
+        Brig[a0:a1, 6 * c:6 * c + 6] = b.Br
+        Bint[a0:a1, first[b.camera]:first[b.camera] + width[b.camera]] = b.Bi
+        Bro[a0:a1, c if readouts else 0] = b.Bro
     B["rig"] = Brig
     L["rig"] = block_diag(*[_sqrt_psd(params.rig[c]) if c in params.rig else np.zeros((6, 6)) for c in cams])
     B["intrinsics"] = Bint
-    L["intrinsics"] = block_diag(*[_sqrt_psd(params.intrinsics[c]) if c in params.intrinsics else np.zeros((4, 4))
+    dist = _distortion(params)
+    L["intrinsics"] = block_diag(*[block_diag(_sqrt_psd(params.intrinsics[c]) if c in params.intrinsics
+                                              else np.zeros((4, 4)),
+                                              _sqrt_psd(dist[c]) if width[c] > 4 else np.zeros((0, 0)))
                                    for c in cams])
-    # One readout error shared by all cameras: a rig's cameras are usually the same model, and
-    # their readout (unknown, written as 0, or refined together) is off the same way.
-    B["readout"] = np.concatenate([b.Bro for b in blocks])[:, None]
-    L["readout"] = np.array([[readout_sigma_s]])
+    # Readout: refined per camera when the record has it; otherwise one error shared by all
+    # cameras (a rig's cameras are usually the same model, their readout unknown alike).
+    B["readout"] = Bro
+    L["readout"] = (np.diag([math.sqrt(float(np.ravel(readouts[c])[0])) if c in readouts else 0.0 for c in cams])
+                    if readouts else np.array([[readout_sigma_s]]))
     speeds = np.concatenate([b.speed for b in blocks])
     return {"r": r, "w": w, "J": J, "B": B, "L": L, "image_speed": speeds,
             "noise2": float(e_inner.sum()) / max(2 * len(e_inner), 1)}
@@ -395,7 +427,7 @@ def row_uncertainty(frames: Sequence[object], exp: Experiment, t_out: np.ndarray
     """
     s = settings or UncertaintySettings()
     pc = parameter_covariance(exp, params)
-    readout_sigma = float(getattr(pc, "readout_sigma_s", exp.priors.readout_sigma_s))
+    readout_sigma = exp.priors.readout_sigma_s  # shared by the cameras unless the record has its own
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
     n = len(t_out)
     omega, vel = trajectory_twist(t_out, pos, R)

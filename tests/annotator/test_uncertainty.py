@@ -228,3 +228,29 @@ def test_calibration_exposure_is_optional_and_checked():
         parse_calibration({**d, "exposure_s": -0.001}, "cam.yaml")
     with pytest.raises(ConfigError, match="exposure_s must be a number"):
         parse_calibration({**d, "exposure_s": "fast"}, "cam.yaml")
+
+
+def test_distortion_covariance_from_a_refined_record_is_propagated():
+    """A record with distortion covariances (as refinement writes them): a k1 error of the front
+    lens moves the pose as predicted; a record without them leaves distortion out."""
+    from types import SimpleNamespace
+
+    room, rig, R, p, dets = _scene()
+    base = _params(room, rig)
+    dk = 0.004
+    dist_cov = np.zeros((5, 5))
+    dist_cov[0, 0] = dk ** 2
+    zero4 = np.zeros((4, 4))
+    record = SimpleNamespace(markers=base.markers, rig=base.rig, intrinsics={"front": zero4, "back": zero4},
+                             distortion={"front": dist_cov}, readout={})
+    want = _propagated(room, rig, R, p, dets, params=record)["intrinsics"]
+    cals = {n: cam.calibration for n, cam in rig.items()}
+    c = cals["front"]
+    d = c.dist_coeffs.copy()
+    d[0] += dk
+    cals["front"] = CameraCalibration(c.camera_matrix, d, c.width, c.height, c.source, c.model)
+    moved = np.linalg.norm(_solve(room, rig, dets, R, p, cals=cals) - p) / np.sqrt(3)
+    assert moved > 1e-4
+    assert want == pytest.approx(moved, rel=0.1)
+    without = SimpleNamespace(markers=base.markers, rig=base.rig, intrinsics={"front": zero4, "back": zero4})
+    assert _propagated(room, rig, R, p, dets, params=without)["intrinsics"] == 0.0
