@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from annotator.errors import ConfigError, NoDataError
+from ble_groundtruth.formats._textio import iter_lines
 from ble_groundtruth.formats.mbd import MbdError, MbdRow, parse_line
 
 log = logging.getLogger(__name__)
@@ -69,8 +70,7 @@ def _file_rows(path: Path) -> list[MbdRow]:
     """Rows of one .mbd file. A last line cut short (no newline: the writer was killed mid-line)
     is skipped with a warning; any other malformed line is an MbdError naming file and line."""
     rows: list[MbdRow] = []
-    with path.open(encoding="utf-8") as f:
-        lines = f.readlines()
+    lines = [line for _, line in iter_lines(path, MbdError)]  # MbdError for bytes not UTF-8
     for lineno, line in enumerate(lines, 1):
         if not line.strip():
             continue
@@ -100,12 +100,12 @@ def load_rssi(path: str | Path) -> RssiTable:
     order = np.argsort(t_ns, kind="stable")
     info = None
     if run_yaml is not None:
-        import yaml
+        from ble_groundtruth.safe_yaml import YamlError, load_file
 
         try:
-            info = yaml.safe_load(run_yaml.read_text(encoding="utf-8"))
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{run_yaml}: not valid YAML ({e})") from None
+            info = load_file(run_yaml)
+        except YamlError as e:
+            raise ConfigError(f"run info: {e}") from None
         if not isinstance(info, dict):
             info = None
     table = RssiTable(t_ns[order], np.asarray(sensor)[order], np.asarray(beacon)[order],

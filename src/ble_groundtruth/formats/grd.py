@@ -3,12 +3,10 @@ Standard library only; see docs/formats.md."""
 
 from __future__ import annotations
 
-import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from ble_groundtruth.formats._textio import write_text_atomic
+from ble_groundtruth.formats._textio import finite, json_loads, read_text, write_text_atomic
 from ble_groundtruth.formats.hst import check_edges
 from ble_groundtruth.formats.occ import (
     Cell,
@@ -35,14 +33,11 @@ class RadioMapGrid:
 
 
 def _floats(text: str, n: int | None, what: str) -> tuple[float, ...]:
-    v = json.loads(text)
+    v = json_loads(text)
     if not isinstance(v, list) or (n is not None and len(v) != n):
         raise ValueError(f"{what}: expected a list of {n if n is not None else 'numbers'}, "
                          f"got {len(v) if isinstance(v, list) else type(v).__name__}")
-    out = tuple(float(x) for x in v)
-    if not all(math.isfinite(x) for x in out):
-        raise ValueError(f"{what}: values must be finite")
-    return out
+    return tuple(finite(x, what) for x in v)
 
 
 def parse_grd(text: str, source: str = "<grd>") -> RadioMapGrid:
@@ -53,9 +48,9 @@ def parse_grd(text: str, source: str = "<grd>") -> RadioMapGrid:
     try:
         mac, lim_text, cell_text, bins_text = lines[header_no].split("::")
         sensor, limits, cell = normalize_mac(mac), parse_limits(lim_text), float(cell_text)
-        bins = check_edges(json.loads(bins_text))
+        bins = check_edges(json_loads(bins_text))
         cell = check_cell(cell)
-    except (ValueError, TypeError, WireError) as e:
+    except (ValueError, TypeError, WireError, OverflowError) as e:
         raise GridFormatError(f"{source}:{header_no + 1}: expected "
                               f"'<sensor>::[[x0, y0], [x1, y1]]::<cell>::[bins]' ({e})") from None
     cells: dict[Cell, dict[str, tuple[float, ...]]] = {}
@@ -78,11 +73,7 @@ def parse_grd(text: str, source: str = "<grd>") -> RadioMapGrid:
 
 def read_grd(path: str | Path) -> RadioMapGrid:
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise GridFormatError(f"cannot read {path}: {e.strerror}") from None
-    return parse_grd(text, str(path))
+    return parse_grd(read_text(path, GridFormatError), str(path))
 
 
 def format_grd(g: RadioMapGrid) -> str:
