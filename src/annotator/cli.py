@@ -45,3 +45,7 @@ def _root(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug
 
 def main() -> None:
     app()
+
+
+if __name__ == "__main__":
+    main()

@@ -23,10 +23,10 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
-import yaml
 from scipy.spatial.transform import Rotation
 
 from annotator.errors import AnnotatorError
+from ble_groundtruth import safe_yaml
 from ble_groundtruth.formats.devices import read_dev
 from ble_groundtruth.formats.mbd import iter_rows
 from ble_groundtruth.motion import CoverEvent, PathModel
@@ -310,7 +310,7 @@ def capture(settings: DemoSettings, path: PathModel, progress: Progress | None =
         for i, (agent_id, sensors) in enumerate(zip(AGENTS, split_sensors(), strict=True)):
             cfg = agent_config(agent_id, endpoint, sensors, path, t0, events, settings.seed * 10 + i)
             cfg_path = cfg_dir / f"{agent_id}.yaml"
-            cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
+            cfg_path.write_text(safe_yaml.dump(cfg, sort_keys=False), encoding="utf-8")
             kids.spawn(agent_id, [*agent, "run", "--config", str(cfg_path)])
         note(f"agents {', '.join(AGENTS)} started; path time 0 (t0) = {t0:.0f}")
 
@@ -371,7 +371,7 @@ def render(settings: DemoSettings, path: PathModel, t0: float, run_dir: Path,
         "sync": {"mode": "auto"},
     }
     header = "# Written by `annotator demo`: the simulated capture's run and the rendered videos.\n"
-    result.experiment.write_text(header + yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+    result.experiment.write_text(header + safe_yaml.dump(doc, sort_keys=False), encoding="utf-8")
     return result.experiment
 
 

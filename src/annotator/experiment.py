@@ -116,7 +116,7 @@ def _mapping(obj: Any, source: str, what: str) -> dict[str, Any]:
     return obj
 
 
-def _number(value: Any, where: str, lo: float, hi: float) -> float:
+def _number(value: Any, where: str, lo: float, hi: float, expected: str = "") -> float:
     """A number in [lo, hi], as float. Strings are read as numbers too: YAML 1.1 reads 1.5e9
     (no sign in the exponent) as a string. Booleans, NaN and infinities are refused."""
     if isinstance(value, bool) or not isinstance(value, int | float | str):
@@ -128,7 +128,8 @@ def _number(value: Any, where: str, lo: float, hi: float) -> float:
     except ValueError:
         raise ConfigError(f"{where}: must be a number, not {value!r:.40}") from None
     if not (math.isfinite(x) and lo <= x <= hi):
-        raise ConfigError(f"{where}: must be a finite number in {lo:g}..{hi:g}, not {value!r:.40}")
+        expected = expected or f"a finite number in {lo:g}..{hi:g}"
+        raise ConfigError(f"{where}: must be {expected}, not {value!r:.40}")
     return x
 
 
@@ -282,7 +283,8 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> tuple[str, dict[str
     video_start: dict[str, float] | None = None
     if sync.get("video_start") is not None:
         starts = _mapping(sync["video_start"], source, "sync.video_start")
-        video_start = {str(k): _number(v, f"{source}: sync.video_start.{str(k)[:40]}", 0.0, UNIX_S_MAX)
+        video_start = {str(k): _number(v, f"{source}: sync.video_start.{str(k)[:40]}", 0.0, UNIX_S_MAX,
+                                        "Unix seconds in 1970..2100")
                        for k, v in starts.items()}
         missing = sorted(set(cameras) - set(video_start))
         if missing:

@@ -138,7 +138,7 @@ def read_bytes_limited(path: str | Path, max_bytes: int = MAX_BYTES) -> bytes:
                 raise YamlError(f"{path}: {size} bytes; a YAML file may be at most {max_bytes}")
             data = f.read(max_bytes + 1)
     except OSError as e:
-        raise YamlError(f"cannot read {path}: {e.strerror or e}") from None
+        raise YamlError(f"{path}: cannot read ({e.strerror or e})") from None
     if len(data) > max_bytes:
         raise YamlError(f"{path}: larger than {max_bytes} bytes, the most a YAML file may be")
     return data

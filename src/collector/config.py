@@ -82,16 +82,14 @@ def _check_endpoint(ep: Any, where: str, field: str) -> None:
 
 def load_config(path: str | Path) -> CollectorConfig:
     """Read and validate a collector.yaml; every problem is one ConfigError line naming the field."""
-    import yaml
+    from ble_groundtruth.safe_yaml import YamlError, decode_utf8, loads, read_bytes_limited
 
     path = Path(path)
     name = path.name
     try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{name}: not valid YAML: {str(e).splitlines()[0]}") from None
+        raw = loads(decode_utf8(read_bytes_limited(path), name), name)
+    except YamlError as e:
+        raise ConfigError(str(e)) from None
     return parse_config(raw or {}, base=path.parent, name=name)
 
 

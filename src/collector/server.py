@@ -216,13 +216,15 @@ class Collector:
 
     def _resume_unfinished_run(self) -> None:
         """Continue the run a killed collector left active (state.json), before any data flows."""
-        import yaml
+        from ble_groundtruth.safe_yaml import YamlError, load_file
 
         active = find_active_state(self.cfg.data_dir)
         for run_dir, state in active:
             try:
-                doc = yaml.safe_load((run_dir / "run.yaml").read_text(encoding="utf-8")) or {}
-            except (OSError, yaml.YAMLError):
+                doc = load_file(run_dir / "run.yaml") or {}
+            except YamlError:
+                doc = {}
+            if not isinstance(doc, dict):
                 doc = {}
             if doc.get("stop") is not None:  # stopped, but killed before state.json said so
                 continue

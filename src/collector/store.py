@@ -44,11 +44,11 @@ def make_run_id(t_ns: int, name: str | None) -> str:
 
 def write_yaml_atomic(path: Path, data: dict[str, Any]) -> None:
     """Replace a YAML file in one rename, so a crash never leaves half a run.yaml."""
-    import yaml
+    from ble_groundtruth.safe_yaml import dump
 
     tmp = path.with_suffix(path.suffix + ".tmp")
     with tmp.open("w", encoding="utf-8") as f:
-        yaml.safe_dump(data, f, sort_keys=False)
+        dump(data, f, sort_keys=False)  # no anchors: safe_yaml refuses them on reading
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
@@ -311,7 +311,7 @@ def find_active_state(data_dir: Path) -> list[tuple[Path, dict[str, Any]]]:
 
 def list_runs(data_dir: Path) -> list[dict[str, Any]]:
     """Every run under data_dir (oldest first) with id, name, start, stop and reading count."""
-    import yaml
+    from ble_groundtruth.safe_yaml import YamlError, load_file
 
     out = []
     data_dir = Path(data_dir)
@@ -319,9 +319,12 @@ def list_runs(data_dir: Path) -> list[dict[str, Any]]:
         return out
     for p in sorted(data_dir.glob("*/run.yaml")):
         try:
-            doc = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
-        except (OSError, yaml.YAMLError) as e:
+            doc = load_file(p) or {}
+        except YamlError as e:
             log.warning("skipping unreadable %s: %s", p, e)
+            continue
+        if not isinstance(doc, dict):
+            log.warning("skipping %s: not a mapping", p)
             continue
         out.append({"run_id": doc.get("id", p.parent.name), "name": doc.get("name"),
                     "start": doc.get("start"), "stop": doc.get("stop"),

@@ -141,8 +141,11 @@ def parse_hst(text: str, source: str = "<hst>") -> FingerprintHistograms:
         bins = check_edges(bins_obj)
     except (TypeError, ValueError, OverflowError) as e:
         raise HstError(f"{source}:{lineno}: Bins: {e}") from None
-    try:
-        devices = devices_from_obj(fields["Dongles"][1], fields.get("Beacons", (0, {}))[1], source)
+    d_line, dongles = fields["Dongles"]
+    b_line, beacons = fields.get("Beacons", (d_line, {}))
+    try:  # each part checked on its own, so the message names its line
+        devices = Devices(devices_from_obj(dongles, {}, f"{source}:{d_line}").dongles,
+                          devices_from_obj({}, beacons, f"{source}:{b_line}").beacons)
     except SiteConfigError as e:
         raise HstError(str(e)) from None
     lineno, fp_obj = fields["Fingerprints"]
