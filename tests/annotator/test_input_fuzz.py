@@ -163,6 +163,19 @@ def test_the_template_experiment_is_valid(experiment: Path):
     assert len(exp.markers.markers) == 30
 
 
+def test_sync_values_are_checked_and_normalised(experiment: Path):
+    """Good values pass and come out as the pipeline reads them: floats and a 12-hex MAC."""
+    from annotator.experiment import load_experiment
+
+    sync("  mode: auto\n  video_start: {front: 1.7e9}\n  beacon: 'AA:BB:CC:DD:EE:FF'\n"
+         "  min_cover_s: 1\n  max_cover_s: 4\n  max_start_error: 30\n")(experiment)
+    exp = load_experiment(experiment / "experiment.yaml")
+    assert exp.sync_mode == "auto"
+    assert exp.video_start == {"front": 1.7e9}  # YAML 1.1 reads 1.7e9 as a string: accepted
+    assert exp.sync == {"mode": "auto", "video_start": {"front": 1.7e9}, "beacon": "aabbccddeeff",
+                        "min_cover_s": 1.0, "max_cover_s": 4.0, "max_start_error": 30.0}
+
+
 @pytest.mark.parametrize(("mutate", "message"), [c[1:] for c in EXPERIMENT_CASES],
                          ids=[c[0] for c in EXPERIMENT_CASES])
 @pytest.mark.parametrize("command", ["track", "run"])
