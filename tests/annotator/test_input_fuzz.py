@@ -112,7 +112,13 @@ EXPERIMENT_CASES = [
     ("calibration width 1e300", write("front.yaml", CALIBRATION.replace("image_width: 64", "image_width: 1.0e+300")),
      "image_width"),
     ("rig alias", write("rig.yaml", RIG.replace("cameras:", "x: &r [1]\ny: *r\ncameras:")), "anchors"),
+    ("video empty", write("front.mp4", b""), "front.mp4: cannot open as video"),
+    ("video random bytes", write("front.mp4", bytes(range(256)) * 12), "front.mp4: cannot open as video"),
     ("experiment huge int", write("experiment.yaml", "x: " + "9" * 5000 + "\n"), "experiment.yaml"),
+    ("refine sigma 1e400", write("experiment.yaml", EXPERIMENT + SYNC + "refine: {survey_sigma_m: 1" + "0" * 400 + "}\n"),
+     "refine.survey_sigma_m"),
+    ("refine marker key inf", write("experiment.yaml", EXPERIMENT + SYNC + "refine: {markers: {.inf: unknown}}\n"),
+     "is not a marker id"),
 ]
 
 # (id, mutation, message) for `annotator run`, which reads the RSSI files before any video
@@ -302,7 +308,9 @@ def test_a_good_evaluate_still_works(tmp_path: Path):
     (rssi(GOOD_ROW.encode() + b"\xff\n"), "run", "aabbccddeeff.mbd:2: not UTF-8"),
     (write("front.yaml", BILLION_LAUGHS), "track", "anchors (&a) are not allowed"),
     (sync("  mode: manual\n  video_start: {front: 1.0e+300}\n"), "run", "sync.video_start.front"),
-], ids=["run-mbd", "track-billion-laughs", "run-video-start"])
+    # FFmpeg writes to the process's stderr itself, which only a real process shows
+    (write("front.mp4", bytes(range(256)) * 12), "track", "front.mp4: cannot open as video"),
+], ids=["run-mbd", "track-billion-laughs", "run-video-start", "track-not-a-video"])
 def test_the_annotator_process_prints_one_line_and_exits_1(experiment: Path, tmp_path: Path, mutate,
                                                            command: str, message: str):
     mutate(experiment)
