@@ -148,3 +148,52 @@ def test_a_loader_must_be_the_safe_one():
 
     with pytest.raises(TypeError):
         loads("a: 1", loader=yaml.UnsafeLoader)
+
+
+def _yaml_readers():
+    from annotator.commands.evaluate import load_waypoints
+    from annotator.errors import ConfigError as AnnotatorConfigError
+    from annotator.experiment import load_calibration, load_experiment, load_rig
+    from ble_groundtruth.deploy.inventory import InventoryError, load_inventory
+    from ble_groundtruth.formats.markers import MarkerMapError, read_marker_map
+    from collector.config import ConfigError as CollectorConfigError
+    from collector.config import load_config as collector_config
+    from sensor_agent.config import ConfigError as AgentConfigError
+    from sensor_agent.config import load_config as agent_config
+
+    return [
+        ("agent.yaml", agent_config, AgentConfigError),
+        ("collector.yaml", collector_config, CollectorConfigError),
+        ("inventory.yml", load_inventory, InventoryError),
+        ("experiment.yaml", load_experiment, AnnotatorConfigError),
+        ("rig.yaml", load_rig, AnnotatorConfigError),
+        ("calibration.yaml", load_calibration, AnnotatorConfigError),
+        ("path.yaml", load_waypoints, AnnotatorConfigError),
+        ("markers.yaml", read_marker_map, MarkerMapError),
+    ]
+
+
+@pytest.mark.parametrize("index", range(8), ids=["agent", "collector", "inventory", "experiment", "rig",
+                                                 "calibration", "path", "markers"])
+def test_every_yaml_reader_of_the_suite_refuses_aliases(tmp_path: Path, index: int):
+    name, reader, error = _yaml_readers()[index]
+    p = tmp_path / name
+    p.write_text(BILLION_LAUGHS)
+    with pytest.raises(error) as info:
+        reader(p)
+    assert "anchors (&a) are not allowed" in str(info.value)
+    assert name in str(info.value)
+
+
+def test_run_yaml_with_aliases_is_skipped_by_the_collector_and_refused_by_the_annotator(tmp_path: Path):
+    from annotator.errors import ConfigError
+    from annotator.rssi_io import load_rssi
+    from collector.store import list_runs
+
+    run = tmp_path / "data" / "r1"
+    (run / "rssi").mkdir(parents=True)
+    (run / "rssi" / "aabbccddeeff.mbd").write_text("1700000000.5,aabbccddeeff,112233445566,-60\n")
+    (run / "run.yaml").write_text(BILLION_LAUGHS)
+    assert list_runs(tmp_path / "data") == []  # skipped with a warning, not a crash
+    with pytest.raises(ConfigError, match=r"run\.yaml:1: anchors"):
+        load_rssi(run)
