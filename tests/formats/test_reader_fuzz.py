@@ -132,3 +132,46 @@ def test_the_unmangled_samples_are_read(tmp_path: Path, sample, name, reader, er
     path = tmp_path / name
     path.write_bytes(SAMPLES[sample])
     assert reader(path) is not None
+
+
+GRD_HEAD = f"000000000101::[[0.0, 0.0], [2.0, 2.0]]::1.0::{BINS}\n"
+
+# The inputs of issue 11, reader by reader: (file name, reader, error, content, message part)
+ISSUE_CASES = [
+    ("a.grd", grd.read_grd, grd.GridFormatError, GRD_HEAD + "[" * 100_000 + "::e78f135624ce::" + HIST + "\n",
+     "a.grd:2: expected '[gx, gy]::<beacon>::[p, ...]' (nested deeper than 16 levels)"),
+    ("a.grd", grd.read_grd, grd.GridFormatError, GRD_HEAD + "[0.0, 0.0]::e78f135624ce::" + "[" * 50_000 + "\n",
+     "a.grd:2"),
+    ("a.grd", grd.read_grd, grd.GridFormatError, GRD_HEAD.replace("[[0.0, 0.0]", "[[NaN, 0.0]"), "finite"),
+    ("a.grd", grd.read_grd, grd.GridFormatError, GRD_HEAD.encode() + b"[0.0, 0.0]::\xff\n", "a.grd:2: not UTF-8"),
+    ("a.occ", occ.read_occ, occ.GridFormatError, "[[0.0, 0.0], [2.0, 2.0]]::1.0\n[1e400, 0.0]::1\n", "a.occ:2"),
+    ("a.hst", hst.read_hst, hst.HstError, SAMPLES["hst"].decode().replace('"(1.0, 2.0, 1.0)"', '"' + "(" * 3000 + '1, 2, 3' + ")" * 3000 + '"'),
+     "a.hst:4: Fingerprints: position key"),
+    ("a.hst", hst.read_hst, hst.HstError, SAMPLES["hst"].replace(b"Bins:", b"Bins:\xc3\x28"), "a.hst:1: not UTF-8"),
+    ("a.mbd", tables.load_mbd, MbdError, "1700000000.5,aabbccddeeff,112233445566,32768\n", "a.mbd:1: RSSI 32768"),
+    ("a.mbd", tables.load_mbd, MbdError, "1" + "0" * 30 + ",aabbccddeeff,112233445566,-60\n", "a.mbd:1: timestamp"),
+    ("a.mbd", tables.load_mbd, MbdError, b"1700000000.5,aabbccddeeff,112233445566,-60\n\x80\n", "a.mbd:2: not UTF-8 text (byte 0x80 at offset 43)"),
+    ("a.dat", markers.read_marker_map, markers.MarkerMapError, "99999999999999999999: [1, 2, 3]:[0, 0, 0]\n", "0..9999"),
+    ("a.dat", markers.read_marker_map, markers.MarkerMapError, "1: [1, 2, 3]:[NaN, 0, 0]\n", "finite"),
+    ("m.yaml", markers.read_marker_map, markers.MarkerMapError, "markers:\n  - {id: 1, position: [.inf, 2, 3], rotation_xyz: [0, 0, 0]}\n",
+     "finite"),
+    ("m.yaml", markers.read_marker_map, markers.MarkerMapError, "markers:\n  - {id: 10000, position: [1, 2, 3], rotation_xyz: [0, 0, 0]}\n",
+     "0..9999"),
+    ("a.dev", devices.read_dev, devices.SiteConfigError, 'Dongles:{"000000000101": [[NaN, 1, 1], 0, "s"]}\n', "finite"),
+    ("a.par", devices.read_par, devices.SiteConfigError, '{"origin": [1, 2], "limits": [0, 0, 1, 1], "direction": [1, 0, 1, 1], "parity": Infinity}',
+     "finite"),
+]
+
+
+@pytest.mark.parametrize(("name", "reader", "error", "content", "message"), ISSUE_CASES,
+                         ids=[f"{c[0]}-{i}" for i, c in enumerate(ISSUE_CASES)])
+def test_the_issue_inputs_are_one_line_errors(tmp_path: Path, name, reader, error, content, message):
+    path = tmp_path / name
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    with pytest.raises(error) as info:
+        reader(path)
+    text = str(info.value)
+    assert message in text
+    assert str(path) in text
+    assert "\n" not in text
+    assert len(text) < 500
