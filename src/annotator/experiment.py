@@ -273,7 +273,7 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> tuple[str, dict[str
     from ble_groundtruth.wire import WireError, normalize_mac
 
     sync = dict(_mapping(obj, source, "sync"))
-    unknown = sorted(map(str, set(map(str, sync)) - set(SYNC_KEYS)))
+    unknown = sorted(set(map(str, sync)) - set(SYNC_KEYS))
     if unknown:
         raise ConfigError(f"{source}: sync: unknown key {unknown[0][:40]!r} (allowed: {', '.join(SYNC_KEYS)})")
     mode = sync.get("mode", "manual")
