@@ -42,7 +42,7 @@ def client(endpoint, collector):
 
 
 def lines(run_dir, sensor) -> list[str]:
-    return (Path(run_dir) / "rssi" / f"{sensor}.mbd").read_text().splitlines()
+    return (Path(run_dir) / "rssi" / "pi-01" / f"{sensor}.mbd").read_text().splitlines()
 
 
 def run_yaml(run_dir) -> dict:
@@ -100,7 +100,8 @@ def test_malformed_payloads_are_counted_never_written(agent, client, collector) 
                                        "key_mismatch": 2}
     stopped = client.stop()
     assert lines(stopped["run_dir"], A) == expected_lines(good)
-    assert sorted(p.name for p in (collector.cfg.data_dir / stopped["run_id"] / "rssi").iterdir()) == [f"{A}.mbd"]
+    rssi = collector.cfg.data_dir / stopped["run_id"] / "rssi"
+    assert sorted(str(p.relative_to(rssi)) for p in rssi.rglob("*.mbd")) == [f"pi-01/{A}.mbd"]
     doc = run_yaml(stopped["run_dir"])
     assert doc["rejected_payloads"]["key_mismatch"] == 2
 
@@ -197,6 +198,7 @@ def test_agent_status_goes_into_run_yaml(agent, client) -> None:
     a = doc["agents"]["pi-01"]
     assert (a["hostname"], a["version"], a["backend"], a["boot_ids"]) == ("pi-kitchen", "9.9", "replay", [agent.boot])
     assert a["sensors"][A] == {"adapter": "hci0", "mac": A, "backend": "replay", "mode": "passive",
+                               "file": f"rssi/pi-01/{A}.mbd",
                                "readings": 5, "batches": 1, "gaps": 0, "missing_batches": 0,
                                "lost_batches": 0}
 

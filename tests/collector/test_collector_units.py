@@ -160,7 +160,7 @@ def test_run_writer_files_and_yaml(tmp_path) -> None:
     w.append("pi-01", b.sensor, format_rows(b.sensor, rows), len(rows))
     w.close()
     w.write_yaml(stop_ns=1_795_318_560 * 10**9, agents={"pi-01": {}}, extra={"gaps": 0})
-    got = [(r.t_ns, r.sensor, r.beacon, r.rssi) for r in iter_rows(w.dir / "rssi" / f"{b.sensor}.mbd")]
+    got = [(r.t_ns, r.sensor, r.beacon, r.rssi) for r in iter_rows(w.dir / "rssi" / "pi-01" / f"{b.sensor}.mbd")]
     assert got == [(r.t_ns, b.sensor, r.beacon, r.rssi) for r in b.readings]
     doc = yaml.safe_load((w.dir / "run.yaml").read_text())
     assert doc["start"] == "2026-11-22T03:35:00.000Z"
@@ -245,14 +245,14 @@ def test_failed_write_keeps_rows_for_the_retry(tmp_path) -> None:
     rows = decode(wire.to_wire(b)).rows
     w.append("pi-01", b.sensor, format_rows(b.sensor, rows[:1]), 1)
     w.flush()
-    path = w.dir / "rssi" / f"{b.sensor}.mbd"
+    path = w.dir / "rssi" / "pi-01" / f"{b.sensor}.mbd"
     good = path.read_bytes()
     w.append("pi-01", b.sensor, format_rows(b.sensor, rows[1:2]), 1)
     disk.full = True
     with pytest.raises(OSError, match="No space"):
         w.flush()
     assert path.read_bytes() == good  # the partial write was rolled back to the last whole line
-    assert w.appenders[b.sensor].size == len(good)
+    assert w.appenders[("pi-01", b.sensor)].size == len(good)
     w.append("pi-01", b.sensor, format_rows(b.sensor, rows[2:]), 1)
     assert w.buffered > 0
     disk.full = False  # space again
