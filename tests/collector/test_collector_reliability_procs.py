@@ -127,7 +127,7 @@ def test_really_full_disk_stops_cleanly_and_resumes(small_fs, endpoint) -> None:
         assert on_disk.endswith("\n")  # no torn line, even though the fs took part of a write
         assert on_disk.splitlines() == expected_lines(sent)[:len(on_disk.splitlines())]
         state = json.loads((Path(run["run_dir"]) / STATE_FILE).read_text())
-        assert state["files"][A] <= len(on_disk)
+        assert state["files"][f"pi-01/{A}"] <= len(on_disk)
         assert not list(Path(run["run_dir"]).glob("*.tmp"))  # failed state writes left nothing
         assert stuck < 59
         (small_fs / "filler").unlink()
