@@ -34,6 +34,8 @@ class RawBatch:
     seq: int
     rows: list[tuple[int, int, bytes, int]]
     floor: int = -1  # the agent never (re)sends seqs below this; -1 = not said (older agent)
+    skipped: int = 0  # implausible readings left out (RSSI, timestamp, monotonic time)
+    skip_reason: str = ""  # why the first of them was left out
 
     @property
     def stream(self) -> tuple[str, str, str]:
@@ -52,10 +54,12 @@ def decode(payload: bytes) -> RawBatch:
         fast = None
     if fast is not None:
         return fast
-    b = wire.from_wire(payload)
+    skipped: list[tuple[int, str]] = []
+    b = wire.from_wire(payload, skipped=skipped)
     return RawBatch(b.agent_id, b.boot_id, b.sensor, b.seq,
                     [(r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi) for r in b.readings],
-                    getattr(b, "floor", -1))
+                    getattr(b, "floor", -1), len(skipped),
+                    f"reading {skipped[0][0]}: {skipped[0][1]}" if skipped else "")
 
 
 def _decode_fast(data: bytes) -> RawBatch | None:
@@ -92,7 +96,7 @@ def _decode_fast(data: bytes) -> RawBatch | None:
         rs = [r[3] for r in rows]
         if min(ts) < wire.T_NS_MIN or max(ts) > wire.T_NS_MAX or min(rs) < wire.RSSI_MIN \
                 or max(rs) > wire.RSSI_MAX or min(r[1] for r in rows) < 0:
-            return None
+            return None  # the canonical decoder skips the implausible readings one by one
     return RawBatch(agent, boot, sensor, seq, rows, floor)
 
 
@@ -130,10 +134,10 @@ class RejectCounter:
         self._last_log: dict[str, float] = {}
         self._suppressed: Counter[str] = Counter()
 
-    def reject(self, reason: str, key: str, message: str) -> None:
+    def reject(self, reason: str, key: str, message: str, count: int = 1) -> None:
         now = self._mono()
         with self._lock:
-            self.counts[reason] += 1
+            self.counts[reason] += count
             last = self._last_log.get(reason)
             if last is not None and now - last < self._interval:
                 self._suppressed[reason] += 1

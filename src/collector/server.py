@@ -464,6 +464,12 @@ class Collector:
         except Exception as e:  # noqa: BLE001 - a callback must not die on one bad sample
             self._reject("malformed", key, f"{type(e).__name__}: {e}", payload)
             return
+        if batch.skipped:
+            # The rest of the batch is kept and acknowledged, so one absurd value (a scanner's
+            # +42 dBm) neither costs the other readings nor makes the agent re-send forever.
+            self._reject("bad_reading", key,
+                         f"{batch.skipped} of {batch.skipped + len(batch.rows)} readings of seq "
+                         f"{batch.seq} skipped ({batch.skip_reason})", payload, count=batch.skipped)
         batch = self._drop_future_readings(batch, key, payload)
         # Waiting here is the back-pressure: Zenoh (BLOCK congestion control) slows the senders.
         if not self._data.put(batch, batch_cost(batch), timeout=QUEUE_WAIT_S):
@@ -492,12 +498,12 @@ class Collector:
         self._reject("future_timestamp", key,
                      f"{bad} of {len(batch.rows)} readings of seq {batch.seq} stamped "
                      f"{wire.format_ts(first)}, more than a day ahead of the collector's clock",
-                     payload)
+                     payload, count=bad)
         return replace(batch, rows=good)
 
-    def _reject(self, reason: str, key: str, message: str, payload: bytes) -> None:
+    def _reject(self, reason: str, key: str, message: str, payload: bytes, count: int = 1) -> None:
         """Count, log (rate-limited) and queue for <run>/rejected.jsonl; never raises."""
-        self.rejects.reject(reason, key, message)
+        self.rejects.reject(reason, key, message, count)
         rec = {"at_ns": self._clock(), "key": key, "reason": reason, "error": message,
                "size": len(payload),
                "payload_b64": base64.b64encode(payload[:QUARANTINE_PAYLOAD]).decode("ascii")}

@@ -20,7 +20,7 @@ from typing import Any
 
 from ble_groundtruth import __version__
 from ble_groundtruth.sdnotify import Notifier
-from ble_groundtruth.wire import Reading
+from ble_groundtruth.wire import Reading, check_reading
 from ble_groundtruth.zenoh_config import SessionSpec, build_config
 from sensor_agent.clockhealth import read_chrony
 from sensor_agent.config import AgentConfig, AllowList
@@ -35,6 +35,7 @@ ACK_POLL_S = 0.02
 HOUSEKEEPING_S = 0.5  # spool fsync and re-send checks run this often
 CHRONY_REFRESH_S = 60.0
 CONNECT_RETRY_MAX_S = 5.0
+BAD_READING_LOG_S = 60.0  # at most one warning line about skipped readings per adapter per minute
 
 
 def new_boot_id() -> str:
@@ -72,10 +73,12 @@ def allowed(allow: AllowList, reading: Reading) -> bool:
 class AdapterStats:
     """Counters for one adapter, updated from the event loop, read by the status queryable."""
 
-    __slots__ = ("readings_total", "last_mono_ns", "_buckets")
+    __slots__ = ("readings_total", "last_mono_ns", "_buckets", "bad_readings", "bad_logged_ns")
 
     def __init__(self) -> None:
         self.readings_total = 0
+        self.bad_readings = 0  # implausible readings skipped (RSSI, timestamp)
+        self.bad_logged_ns: int | None = None
         self.last_mono_ns: int | None = None
         self._buckets: deque[list[int]] = deque(maxlen=RATE_WINDOW_S + 1)  # [second, count]
 
@@ -115,6 +118,7 @@ class Agent:
         self.stats: dict[str, AdapterStats] = {}
         self.started_ns = 0
         self.readings = 0
+        self.bad_readings = 0
         self._stop = asyncio.Event()
         self._publisher: Any = None
         self._spool: Spool | None = None
@@ -135,9 +139,22 @@ class Agent:
         st = self.stats.get(adapter_mac)
         if st is None:
             st = self.stats[adapter_mac] = AdapterStats()
+        why = check_reading(reading.t_ns, reading.rssi, reading.mono_ns)
+        if why is not None:  # skipped one by one, counted and reported; the rest go on
+            self._bad_reading(adapter_mac, st, reading, why)
+            return
         st.record(reading.mono_ns or self.clocks.mono_ns())
         self.readings += 1
         self._publisher.add(adapter_mac, reading)
+
+    def _bad_reading(self, adapter_mac: str, st: AdapterStats, reading: Reading, why: str) -> None:
+        st.bad_readings += 1
+        self.bad_readings += 1
+        now = self.clocks.mono_ns()
+        if st.bad_logged_ns is None or now - st.bad_logged_ns >= BAD_READING_LOG_S * 1e9:
+            st.bad_logged_ns = now
+            log.warning("adapter %s: skipped an implausible reading of beacon %s (%s); %d "
+                        "skipped so far", adapter_mac, reading.beacon, why, st.bad_readings)
 
     def status(self) -> dict[str, Any]:
         """The status queryable's reply (see the agent/collector contract)."""
@@ -153,7 +170,8 @@ class Agent:
                 "backend": self.cfg.backend, "hostname": socket.gethostname(),
                 "started_ns": self.started_ns, "now_ns": self.clocks.wall_ns(),
                 "adapters": adapters, "spool": self.spool_status(),
-                "resent": 0 if pub is None else pub.resent, "chrony": self._chrony}
+                "resent": 0 if pub is None else pub.resent, "chrony": self._chrony,
+                "bad_readings": self.bad_readings}
 
     def spool_status(self) -> dict[str, Any] | None:
         """The spool's counters for the status reply; None when running without a spool."""
@@ -366,7 +384,8 @@ def _adapter_status(info: AdapterInfo, st: AdapterStats | None, now_mono: int,
     return {"name": info.name, "mac": info.mac, "backend": info.backend, "mode": info.mode,
             "adverts_per_s": 0.0 if st is None else round(st.rate(now_mono), 2),
             "last_advert_age_s": last_age, "restarts": restarts,
-            "readings_total": 0 if st is None else st.readings_total}
+            "readings_total": 0 if st is None else st.readings_total,
+            "bad_readings": 0 if st is None else st.bad_readings}
 
 
 async def run_agent(cfg: AgentConfig, *, wait_ack: bool = True, clocks: Clocks | None = None,
