@@ -35,6 +35,8 @@ ACK_POLL_S = 0.02
 HOUSEKEEPING_S = 0.5  # spool fsync and re-send checks run this often
 CHRONY_REFRESH_S = 60.0
 CONNECT_RETRY_MAX_S = 5.0
+NO_ACK_WARN_S = 30.0  # connected, batches waiting, no acknowledgement for this long: say why
+NO_ACK_REPEAT_S = 300.0
 BAD_READING_LOG_S = 60.0  # at most one warning line about skipped readings per adapter per minute
 
 
@@ -126,6 +128,10 @@ class Agent:
         self._chrony: dict[str, Any] | None = None
         self.notifier = notifier or Notifier()
         self.resend_s = resend_s
+        self.no_ack_warn_s = NO_ACK_WARN_S
+        self._ack_wait_since: int | None = None
+        self._ack_warned: int | None = None
+        self.cert_cn = _cert_cn(cfg)
 
     def stop(self) -> None:
         """Ask ``run()`` to stop (safe to call from a signal handler on the loop)."""
@@ -190,6 +196,12 @@ class Agent:
 
         cfg = self.cfg
         await asyncio.to_thread(self.backend.check)  # bad input fails before connecting
+        if self.cert_cn is not None and self.cert_cn != cfg.agent_id:
+            log.warning("agent id %r is not the CN %r of this agent's certificate (%s): the "
+                        "collector's ACL goes by the certificate's CN, so it will drop everything "
+                        "published as %r and nothing will be acknowledged; set agent_id: %s or "
+                        "install the certificate issued for %s", cfg.agent_id, self.cert_cn,
+                        cfg.tls.cert, cfg.agent_id, self.cert_cn, cfg.agent_id)
         if cfg.spool.dir is not None:
             # fsync from the housekeeping timer (a worker thread), not inside append() on the loop
             self._spool = await asyncio.to_thread(
@@ -298,6 +310,37 @@ class Agent:
                 next_status = t + int(self.cfg.status_interval_s * 1e9)
             await self.clocks.sleep(period)
 
+    def _no_ack_cause(self) -> str:
+        cfg = self.cfg
+        if self.cert_cn is not None and self.cert_cn != cfg.agent_id:
+            return (f"agent id {cfg.agent_id!r} differs from the certificate's CN {self.cert_cn!r}, "
+                    "and the collector's ACL drops what this certificate publishes under another id")
+        if cfg.tls is not None:
+            return (f"the collector's ACL may not list agent {cfg.agent_id!r} (certificate CN "
+                    f"{self.cert_cn!r}), or the collector cannot write (see `collector status`)")
+        return f"is agent id {cfg.agent_id!r} published on the collector's site {cfg.site!r}?"
+
+    def _watch_acks(self) -> None:
+        """Connected to a router, batches waiting, and no acknowledgement for NO_ACK_WARN_S:
+        our puts are being dropped somewhere. Say so at WARNING, with the likely cause."""
+        pub = self._publisher
+        now = self.clocks.mono_ns()
+        if not pub.connected() or not pub.outstanding():
+            self._ack_wait_since = None
+            return
+        if self._ack_wait_since is None:
+            self._ack_wait_since = now
+        waited = now - max(self._ack_wait_since, pub.last_ack_ns or 0)
+        if waited < self.no_ack_warn_s * 1e9:
+            return
+        if self._ack_warned is not None and now - self._ack_warned < NO_ACK_REPEAT_S * 1e9:
+            return
+        self._ack_warned = now
+        log.warning("connected to %s, but no acknowledgement from the collector for %.0f s "
+                    "(%d stream(s) waiting): its puts are being dropped; likely cause: %s",
+                    ", ".join(self.cfg.connect), waited / 1e9, len(pub.outstanding()),
+                    self._no_ack_cause())
+
     def _refresh_chrony(self) -> None:
         self._chrony = read_chrony()
 
@@ -305,6 +348,7 @@ class Agent:
         """Spool fsync, re-sends, chrony and systemd pings, each on its own period."""
         tasks = [asyncio.create_task(self._every(HOUSEKEEPING_S, self._publisher.resend_due),
                                      name="resend"),
+                 asyncio.create_task(self._every(HOUSEKEEPING_S, self._watch_acks), name="ack-watch"),
                  asyncio.create_task(self._every(CHRONY_REFRESH_S, self._refresh_chrony),
                                      name="chrony")]
         if self.notifier.enabled:
@@ -369,11 +413,28 @@ class Agent:
             if self.clocks.mono_ns() >= deadline or self._stop.is_set():
                 missing = sum(pending.values())
                 acked_any = self._publisher.any_ack()
-                hint = "" if acked_any else " (no acknowledgement at all: is a collector running?)"
+                hint = ""
+                if not acked_any:
+                    hint = (f" (connected, but no acknowledgement at all: {self._no_ack_cause()})"
+                            if self._publisher.connected()
+                            else " (no acknowledgement at all: is a collector running?)")
                 log.warning("%d batch(es) of %d stream(s) not acknowledged", missing, len(pending))
                 raise AckTimeout(f"the collector did not acknowledge {missing} batch(es) of "
                                  f"{len(pending)} stream(s) within {timeout_s:g} s{hint}")
             await self.clocks.sleep(ACK_POLL_S)
+
+
+def _cert_cn(cfg: AgentConfig) -> str | None:
+    """The CN of the agent's TLS certificate (what the collector's ACL sees), if it has one."""
+    if cfg.tls is None:
+        return None
+    from ble_groundtruth.certname import CertificateError, certificate_cn
+
+    try:
+        return certificate_cn(cfg.tls.cert)
+    except (OSError, CertificateError) as e:
+        log.warning("cannot read the CN of %s: %s", cfg.tls.cert, e)
+        return None
 
 
 def _adapter_status(info: AdapterInfo, st: AdapterStats | None, now_mono: int,

@@ -124,3 +124,56 @@ def test_an_agent_cannot_write_into_another_agents_file_or_metadata(tmp_path, si
     # What pi-01 said about itself is credited to pi-01, the agent its key names.
     assert doc["agents"]["pi-01"]["hostname"] == "forged-host"
     assert doc["agents"]["pi-01"]["sensors"][mac_b]["readings"] == 15
+
+
+@pytest.mark.slow
+def test_agent_whose_id_is_not_its_certificate_cn_warns_naming_both(tmp_path, site_pki, caplog) -> None:
+    """pi-01's certificate on an agent configured as pi-02: the ACL drops its puts. The agent
+    must say so at WARNING (both names), not lose everything with INFO lines only."""
+    import asyncio
+    import logging
+
+    from ble_groundtruth.formats.mbd import format_row
+    from sensor_agent.app import Agent
+    from sensor_agent.config import AgentConfig, ReplayConfig
+    from sensor_agent.errors import AckTimeout
+    from sensor_agent.scanning.replay import ReplayBackend
+
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    acl = tmp_path / "acl.json5"
+    acl.write_text(json.dumps(build_acl("default", ["pi-01", "pi-02"], ["collector", "operator"])))
+    cfg = CollectorConfig(data_dir=tmp_path / "data", listen=(endpoint,), tls=files(site_pki, "collector"),
+                          acl=acl, fsync_interval_s=0.1)
+    rec = tmp_path / "rec.mbd"
+    rec.write_text("".join(format_row(1_700_000_000 * 10**9 + i * 10**8, "b827eb4521b4", "e78f135624ce", -60)
+                           for i in range(5)))
+    acfg = AgentConfig(agent_id="pi-02", connect=(endpoint,), backend="replay",
+                       replay=ReplayConfig((rec,), speed=0.0, keep_time=True),
+                       tls=files(site_pki, "pi-01"), ack_timeout_s=4.0)
+    caplog.set_level(logging.INFO)
+    with Collector(cfg) as c:
+        c.start_run("cn")
+        agent = Agent(acfg, ReplayBackend(acfg.replay.paths, 0.0, True))
+        agent.no_ack_warn_s = 1.0
+        with pytest.raises(AckTimeout) as e:
+            asyncio.run(agent.run())
+        status = c.status()
+        c.stop_run()
+    warnings = [r.getMessage() for r in caplog.records
+                if r.levelno == logging.WARNING and r.name == "sensor_agent.app"]
+    assert any("agent id 'pi-02' is not the CN 'pi-01'" in w for w in warnings), warnings
+    assert any("no acknowledgement from the collector" in w and "'pi-02'" in w and "'pi-01'" in w
+               for w in warnings), warnings
+    assert "connected, but no acknowledgement at all: agent id 'pi-02' differs" in str(e.value)
+    assert status["run"]["readings"] == 0
+
+
+def test_certificate_cn_reader_agrees_with_cryptography(site_pki, tmp_path) -> None:
+    from ble_groundtruth.certname import CertificateError, certificate_cn
+
+    for name in ("ca", "collector", "operator", "pi-01", "pi-02"):
+        assert certificate_cn(site_pki / f"{name}.crt") == pki.common_name(site_pki / f"{name}.crt")
+    bad = tmp_path / "x.crt"
+    bad.write_text("-----BEGIN CERTIFICATE-----\nAAAA\n-----END CERTIFICATE-----\n")
+    with pytest.raises(CertificateError):
+        certificate_cn(bad)
