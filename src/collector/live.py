@@ -19,9 +19,13 @@ SPARK_WIDTH = 20  # most recent readings shown per sensor
 
 
 def sparkline(values: Sequence[int | float], lo: float = RSSI_LO, hi: float = RSSI_HI) -> str:
-    """One character per value, clipped to [lo, hi]: stronger signal = taller bar."""
+    """One character per value, clipped to [lo, hi]: stronger signal = taller bar. A value that
+    is not a number (a garbled status) is drawn as a space rather than failing the view."""
     out = []
     for v in values:
+        if isinstance(v, bool) or not isinstance(v, int | float) or v != v:
+            out.append(" ")
+            continue
         f = (min(max(v, lo), hi) - lo) / (hi - lo)
         out.append(BARS[min(len(BARS) - 1, int(f * len(BARS)))])
     return "".join(out)

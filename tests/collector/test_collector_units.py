@@ -291,6 +291,7 @@ def test_sparkline_maps_rssi_to_bar_heights() -> None:
 
     assert sparkline([-120, -100, -65, -30, 0]) == "▁▁▅██"
     assert sparkline([]) == ""
+    assert sparkline([-65, None, float("nan"), "x", 42]) == "▅   █"  # never fails the view
 
 
 def test_live_table_shows_every_sensor_and_the_run() -> None:
