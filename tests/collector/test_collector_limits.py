@@ -8,6 +8,7 @@ import resource
 import signal
 import subprocess
 import sys
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -271,3 +272,85 @@ def test_a_zenoh_session_refuses_messages_over_the_limit() -> None:
     assert json.loads(conf.get_json("transport/link/rx/max_message_size")) == MAX_MESSAGE_BYTES
     assert MAX_MESSAGE_BYTES == wire.MAX_PAYLOAD_BYTES + 64 * 1024
     assert isinstance(conf, zenoh.Config)
+
+
+def _rss_kb(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+@pytest.mark.slow
+def test_max_size_flood_keeps_collector_memory_bounded_and_honest_data_complete(tmp_path, endpoint) -> None:
+    """Maximum-size batches (100,000 readings) as fast as the collector takes them: its RSS
+    stays under the documented 512 MiB and an honest agent's stream arrives complete.
+    (bench/collector_floods.py runs the 20 s version and prints the figures.)"""
+    import threading
+    import time
+
+    cfg = tmp_path / "collector.yaml"
+    cfg.write_text(f"data_dir: data\nlisten: [{endpoint}]\nfsync_interval_s: 0.5\n")
+    proc = subprocess.Popen([sys.executable, "-m", "collector.cli", "serve", "--config", str(cfg)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    peak = [0]
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.wait(0.05):
+            try:
+                peak[0] = max(peak[0], _rss_kb(proc.pid))
+            except OSError:
+                return
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    honest = bad = None
+    try:
+        wait_for(lambda: proc.poll() is not None or _reachable(endpoint), 30, "collector serve")
+        assert proc.poll() is None, proc.stderr.read()
+        honest, bad = FakeAgent(endpoint, agent="pi-01"), FakeAgent(endpoint, agent="pi-bad")
+        with CollectorClient(endpoint) as c:
+            run = c.start("maxsize")
+        rows = tuple(wire.Reading(1_700_000_000 * 10**9 + k, "e78f135624ce", -60)
+                     for k in range(wire.MAX_READINGS))
+
+        def flood() -> None:
+            end, seq = time.monotonic() + 6.0, 0
+            while time.monotonic() < end:
+                payload = wire.to_wire(wire.Batch("pi-bad", bad.boot, "ff0000000000", seq, rows, floor=0))
+                bad.session.put(wire.data_key("default", "pi-bad", "ff0000000000"), payload,
+                                congestion_control=zenoh.CongestionControl.BLOCK)
+                seq += 1
+
+        flooder = threading.Thread(target=flood)
+        flooder.start()
+        sent = [with_floor(make_batch(i, agent="pi-01", sensor=A), 0) for i in range(30)]
+        for b in sent:
+            honest.put(b)
+            time.sleep(0.15)
+        flooder.join()
+        end = time.monotonic() + 60
+        while honest.acked(A) < 29:  # what a real agent's spool does: re-send the unacknowledged
+            assert time.monotonic() < end, f"honest acks stuck at {honest.acked(A)}"
+            for b in sent[honest.acked(A) + 1:]:
+                honest.put(b)
+            time.sleep(0.5)
+        with CollectorClient(endpoint) as c:
+            c.stop()
+    finally:
+        for a in (honest, bad):
+            if a is not None:
+                a.close()
+        done.set()
+        proc.send_signal(signal.SIGINT)
+        try:
+            _out, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise
+    assert proc.returncode == 0, err
+    assert 0 < peak[0] < 512 * 1024, f"collector RSS peaked at {peak[0] / 1024:.0f} MiB"
+    got = (Path(run["run_dir"]) / "rssi" / "pi-01" / f"{A}.mbd").read_text().splitlines()
+    # 0 lost, 0 duplicated (a re-sent batch may land after later ones)
+    assert Counter(got) == Counter(expected_lines(sent))
