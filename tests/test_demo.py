@@ -164,7 +164,8 @@ def test_demo_end_to_end(tmp_path: Path) -> None:
     assert sorted(files) == sorted(read_dev(site_dir("tetam") / "tetam.dev").dongles)
     t0_ns, end_ns = round(s["t0"] * 1e9), round((s["t0"] + 12.0) * 1e9)
     for mac, f in files.items():
-        rows = list(iter_rows(run_dir / "rssi" / f"{mac}.mbd"))
+        (path,) = run_dir.glob(f"rssi/*/{mac}.mbd")  # rssi/<agent>/<sensor>.mbd
+        rows = list(iter_rows(path))
         assert len(rows) == f["rows"] > 50
         assert {r.sensor for r in rows} == {mac}
         assert f["first_ns"] < t0_ns + 1e9

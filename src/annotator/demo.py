@@ -263,9 +263,9 @@ class Capture:
 
 
 def summarize_run(run_dir: Path) -> list[SensorFile]:
-    """Per .mbd file of a run: rows and first/last timestamp."""
+    """Per .mbd file of a run (rssi/<agent>/<sensor>.mbd): rows and first/last timestamp."""
     out = []
-    for p in sorted((run_dir / "rssi").glob("*.mbd")):
+    for p in sorted((run_dir / "rssi").glob("*/*.mbd")):
         n, first, last = 0, None, None
         for row in iter_rows(p):
             n += 1

@@ -1,6 +1,7 @@
 """Loading the RSSI side of an experiment: a collector run dir or a folder of ``*.mbd`` files.
 
-A run dir holds ``rssi/*.mbd`` (one file per sensor) and ``run.yaml``; a plain folder holds the
+A run dir holds ``rssi/<agent>/<sensor>.mbd`` (one file per agent and sensor; older runs
+``rssi/<sensor>.mbd``) and ``run.yaml``; a plain folder holds the
 ``.mbd`` files directly; a single ``.mbd`` file works too. Timestamps stay exact int64 ns.
 """
 
@@ -58,6 +59,8 @@ def rssi_files(path: str | Path) -> tuple[list[Path], Path | None]:
     run_yaml = path / "run.yaml"
     folder = path / "rssi" if (path / "rssi").is_dir() else path
     files = sorted(folder.glob("*.mbd"))
+    if folder.name == "rssi" and not files:  # a collector run: one folder per agent
+        files = sorted(folder.glob("*/*.mbd"))
     per_sensor = [f for f in files if not _is_merged(f)]
     # A merged all_sensors file beside per-sensor files repeats their rows.
     files = per_sensor or files
