@@ -71,14 +71,16 @@ def _is_number(v: object) -> bool:
 
 
 def write_estimates(path: str | Path, t: np.ndarray, position: np.ndarray) -> Path:
-    """``t,x,y,z`` CSV (the score's input format); NaN positions are written as empty cells."""
+    """``t,x,y,z`` CSV (the score's input format), or ``t,x,y`` when ``position`` is (M, 2);
+    NaN coordinates are written as empty cells (an estimate not given)."""
     path = Path(path)
+    pos = np.asarray(position, dtype=float)
     tmp = path.with_name(f".{path.name}.tmp")
     with tmp.open("w", encoding="utf-8", newline="\n") as f:
-        f.write("t,x,y,z\n")
-        for ti, p in zip(np.asarray(t, dtype=float), np.asarray(position, dtype=float), strict=True):
+        f.write("t,x,y,z\n" if pos.shape[1] == 3 else "t,x,y\n")
+        for ti, p in zip(np.asarray(t, dtype=float), pos, strict=True):
             cells = ["" if not math.isfinite(v) else f"{v:.4f}" for v in p]
-            f.write(f"{float(ti)!r},{','.join(cells)}\n")  # shortest exact spelling
+            f.write(f"{float(ti)!r},{','.join(cells)}\n")  # t: shortest exact spelling
     tmp.replace(path)
     return path
 
