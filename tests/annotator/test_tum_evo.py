@@ -90,3 +90,27 @@ def test_evo_ape_gives_the_same_figures_as_annotator_score(tmp_path: Path) -> No
         ours = body[block]
         for ours_key, evo_key in (("rmse", "rmse"), ("mean", "mean"), ("median", "median"), ("max", "max")):
             assert evo[evo_key] == pytest.approx(ours[ours_key], abs=1e-6), (block, ours_key)
+
+
+def test_evo_ape_gives_the_same_figures_as_annotator_evaluate(tmp_path: Path) -> None:
+    pytest.importorskip("evo")
+    rng = np.random.default_rng(5)
+    tt = np.arange(0.0, 30.0, 1 / 30) + 1.7e9
+    tau = tt - tt[0]
+    ref_pos = np.column_stack([8 + 2 * np.sin(tau / 5), 6 + 2 * np.cos(tau / 5), 1.5 + 0.1 * np.sin(tau)])
+    rots = Rotation.from_euler("z", (tau / 5)[:, None]).as_matrix()
+    write_trajectory(tmp_path / "truth.csv", Trajectory(tt, ref_pos, rots))
+    # a tracker's output: its own frame times, a few cm off
+    te = np.sort(rng.uniform(tt[0] + 0.5, tt[-1] - 0.5, 400))
+    taue = te - tt[0]
+    est = np.column_stack([8 + 2 * np.sin(taue / 5), 6 + 2 * np.cos(taue / 5), 1.5 + 0.1 * np.sin(taue)])
+    est += rng.normal(0, 0.03, est.shape)
+    write_trajectory(tmp_path / "est.csv", Trajectory(te, est, Rotation.from_euler("z", (taue / 5)[:, None]).as_matrix()))
+    annotator("evaluate", "est.csv", "--truth", "truth.csv", "--report", "ev.json", cwd=tmp_path)
+    ours = json.loads((tmp_path / "ev.json").read_text(encoding="utf-8"))["position_error_m"]
+    annotator("tum", "truth.csv", "--at", "est.csv", "--out", "truth.tum", cwd=tmp_path)
+    annotator("tum", "est.csv", "--out", "est.tum", cwd=tmp_path)
+    evo = _evo_stats(tmp_path / "truth.tum", tmp_path / "est.tum", tmp_path)
+    for key in ("median", "mean", "max"):
+        # trajectory.csv keeps 6 decimals of t: the truth is interpolated at the same rounded times
+        assert evo[key] == pytest.approx(ours[key], abs=1e-6), key
