@@ -136,3 +136,13 @@ def test_baselines_on_the_bundled_published_track(tmp_path: Path) -> None:
     centroid = np.tile([*m.centres.mean(axis=0), np.nan], (len(t), 1))
     trivial = score(t, centroid, ref).summary_2d.ce75
     assert max(ce75.values()) < 0.6 * trivial, (ce75, trivial)
+
+    # the same readings as a collector run (rssi/<sensor>.mbd, no positions): the same estimates
+    run_dir = tmp_path / "run"
+    (run_dir / "rssi").mkdir(parents=True)
+    for f in (DATA / "trk" / "straight_01").glob("*.mbd"):
+        rows = [",".join(line.split(",")[:4]) for line in f.read_text(encoding="utf-8").splitlines()]
+        (run_dir / "rssi" / f.name).write_text("\n".join(rows) + "\n", encoding="utf-8")
+    run("localize", str(run_dir), "--radiomap", str(tmp_path / "rm"), "--method", "grid-hmm",
+        "--out", str(tmp_path / "from_run.csv"))
+    assert (tmp_path / "from_run.csv").read_text() == (tmp_path / "grid-hmm.csv").read_text()

@@ -163,3 +163,19 @@ def test_score_cli_bad_estimates_is_one_line_error(tmp_path: Path) -> None:
                           str(tmp_path / "out")], capture_output=True, text=True, timeout=120, check=False)
     assert res.returncode == 1
     assert "no estimate falls inside" in res.stderr
+
+
+def test_score_cli_latency_is_opt_in_and_finds_a_lag(tmp_path: Path) -> None:
+    truth = read_truth(TRACK)
+    t = truth.t[100:-100:5]
+    lagged, _ = interpolate_truth(truth, t - 0.5)  # a localizer half a second late
+    write_estimates(tmp_path / "est.csv", t, lagged[:, :2])
+    for extra, out in (([], "plain"), (["--latency", "2"], "lat")):
+        res = subprocess.run([*annotator_cmd(), "score", str(tmp_path / "est.csv"), "--truth", str(TRACK),
+                              "--out", str(tmp_path / out), "--no-plots", *extra], capture_output=True,
+                             text=True, timeout=120, check=False)
+        assert res.returncode == 0, res.stderr
+    assert json.loads((tmp_path / "plain" / "score.json").read_text(encoding="utf-8"))["latency"] is None
+    lat = json.loads((tmp_path / "lat" / "score.json").read_text(encoding="utf-8"))["latency"]
+    assert lat["shift_s"] == pytest.approx(0.5)
+    assert lat["ce50_2d_at_shift_m"] < 1e-3 < lat["ce50_2d_at_zero_m"]

@@ -17,7 +17,7 @@ HELP = (
     "timestamp (never extrapolated; estimates outside the truth's span or in its gaps are not "
     "scored and lower the coverage). No alignment is applied.\n\n"
     "Writes DIR/score.json (error_2d_m and error_3d_m: mean, median, rmse, ce50, ce75, ce95, max, "
-    "n; the truth's own sigma; coverage; latency) and three PNGs: error CDF, error over time, "
+    "n; the truth's own sigma; coverage; with --latency S the latency) and three PNGs: error CDF, error over time, "
     "estimates and truth on the floor plan.\n\n"
     "Example:\n\n"
     "  annotator score knn.csv --truth trk/straight_01_all_sensors.mbd --out scores/knn\n"
@@ -34,8 +34,8 @@ def score(
     max_gap: Annotated[float, typer.Option(
         help="Truth samples further apart than this (s) are a gap: nothing in it is scored.")] = 1.0,
     latency: Annotated[float, typer.Option(
-        help="Search the latency (time shift minimising the median 2-D error) within +-this many "
-             "seconds; 0 = off.")] = 3.0,
+        help="Also estimate the latency: the time shift within +-this many seconds (0.05 s steps) "
+             "that minimises the median 2-D error; 0 = off.")] = 0.0,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write the PNG plots.")] = True,
 ) -> None:
     with one_line_errors():
