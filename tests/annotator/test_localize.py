@@ -146,3 +146,18 @@ def test_baselines_on_the_bundled_published_track(tmp_path: Path) -> None:
     run("localize", str(run_dir), "--radiomap", str(tmp_path / "rm"), "--method", "grid-hmm",
         "--out", str(tmp_path / "from_run.csv"))
     assert (tmp_path / "from_run.csv").read_text() == (tmp_path / "grid-hmm.csv").read_text()
+
+
+def test_localize_bad_input_is_one_line_error(tmp_path: Path) -> None:
+    track = str(DATA / "trk" / "straight_01")
+    for args, message in (
+        (["--radiomap", str(tmp_path / "nowhere")], "not a folder of .grd files"),
+        (["--radiomap", str(tmp_path), "--method", "magic"], "--method must be one of knn, grid-hmm"),
+        (["--radiomap", str(tmp_path)], "no .grd files"),
+    ):
+        res = subprocess.run([*annotator_cmd(), "localize", track, "--out", str(tmp_path / "e.csv"), *args],
+                             capture_output=True, text=True, timeout=120, check=False)
+        assert res.returncode == 1, res.stderr
+        assert message in res.stderr
+        assert "Traceback" not in res.stderr
+        assert not (tmp_path / "e.csv").exists()
