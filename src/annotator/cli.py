@@ -24,6 +24,9 @@ COMMAND_MODULES = (
     "markers",
     "fingerprints",
     "radiomap",
+    "score",
+    "localize",
+    "tum",
     "demo",
 )
 

@@ -77,18 +77,32 @@ class DemoSettings:
 
 # --- the scenario ---------------------------------------------------------------------------------
 
+# The demo loop goes round the desk block south of the central corridor, on the site's occupancy
+# grid (annotator.floor_paths): start in the middle of the bottom side, then these corners.
+DEMO_START = (8.8, 4.5)
+DEMO_CORNERS = ((11.7, 4.5), (11.7, 9.0), (6.0, 9.0), (6.0, 4.5))
+DEMO_MARGIN_M = 0.4  # the planned route keeps this far from desks and walls
+
+
 def demo_path(speed_mps: float = 0.4) -> PathModel:
-    """A rounded rectangle between the tetam pillars (where the marker map is well seen): true
-    circular corners of radius CORNER_RADIUS_M walked at constant speed, so neither the position
-    nor the heading ever changes direction in an instant. Time 0 is in the middle of the
-    bottom side."""
-    x0, x1, y0, y1 = 7.7, 11.8, 7.0, 10.9
-    xm, ym = (x0 + x1) / 2, (y0 + y1) / 2
+    """A rounded loop planned on the tetam occupancy grid, round a desk block and never through
+    furniture: true circular corners of radius CORNER_RADIUS_M walked at constant speed, so
+    neither the position nor the heading ever changes direction in an instant. Time 0 is in the
+    middle of the bottom side."""
+    from annotator.floor_paths import FloorGrid, plan_route, site_occupancy
+
+    route = plan_route(FloorGrid.from_occupancy(site_occupancy()), [DEMO_START, *DEMO_CORNERS],
+                       margin=DEMO_MARGIN_M)
     # Mid-side points carry the height swing; the corners are rounded by the path model itself.
-    plan = ((xm, y0), (x1, y0), (x1, ym), (x1, y1), (xm, y1), (x0, y1), (x0, ym), (x0, y0))
+    plan = [tuple(route[0])]
+    for i in range(1, len(route)):
+        plan.append(tuple(route[i]))
+        if i < len(route) - 1:
+            plan.append(tuple((route[i] + route[i + 1]) / 2))
     n = len(plan)
     # Height: one slow swing between about 1.35 and 1.75 m per lap.
-    wps = tuple((x, y, round(1.55 + 0.2 * math.sin(2 * math.pi * i / n), 4)) for i, (x, y) in enumerate(plan))
+    wps = tuple((round(float(x), 4), round(float(y), 4), round(1.55 + 0.2 * math.sin(2 * math.pi * i / n), 4))
+                for i, (x, y) in enumerate(plan))
     return PathModel(wps, speed_mps, 0.0, corner_radius=CORNER_RADIUS_M)
 
 

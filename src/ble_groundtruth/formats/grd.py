@@ -1,5 +1,11 @@
 """`.grd` radio-map grids: one sensor's RSSI histogram for every grid cell and beacon.
-Standard library only; see docs/formats.md."""
+Standard library only; see docs/formats.md.
+
+The published files carry one value per bin *edge* (``len(bins)`` values, e.g. 81 for the edges
+-100..-20 dBm), the last always 0: the probabilities of the ``len(bins) - 1`` bins followed by a
+0 for "above the last edge". We write them that way, so loaders written for the published files
+read ours, and read either spelling (``len(bins)`` or ``len(bins) - 1`` values). In memory a
+histogram always has ``len(bins) - 1`` entries."""
 
 from __future__ import annotations
 
@@ -40,6 +46,18 @@ def _floats(text: str, n: int | None, what: str) -> tuple[float, ...]:
     return tuple(finite(x, what) for x in v)
 
 
+def _histogram(text: str, n_edges: int) -> tuple[float, ...]:
+    v = _floats(text, None, "histogram")
+    if len(v) == n_edges:
+        if v[-1] != 0.0:
+            raise ValueError(f"the value after the last bin (number {n_edges}) must be 0, got {v[-1]}")
+        return v[:-1]
+    if len(v) != n_edges - 1:
+        raise ValueError(f"histogram: expected {n_edges} values (one per bin edge, the last 0) or "
+                         f"{n_edges - 1}, got {len(v)}")
+    return v
+
+
 def parse_grd(text: str, source: str = "<grd>") -> RadioMapGrid:
     lines = text.splitlines()
     header_no = next((i for i, line in enumerate(lines) if line.strip()), None)
@@ -61,7 +79,7 @@ def parse_grd(text: str, source: str = "<grd>") -> RadioMapGrid:
             key_text, beacon, hist_text = line.split("::")
             key = parse_cell_key(key_text)
             beacon = normalize_mac(beacon)
-            hist = _floats(hist_text, len(bins) - 1, "histogram")
+            hist = _histogram(hist_text, len(bins))
         except (ValueError, TypeError, WireError) as e:
             raise GridFormatError(f"{source}:{lineno}: expected '[gx, gy]::<beacon>::[p, ...]' ({e})") from None
         per_cell = cells.setdefault(key, {})
@@ -82,7 +100,9 @@ def format_grd(g: RadioMapGrid) -> str:
     for c, beacons in g.cells.items():
         key = format_cell_key(c)
         for beacon, hist in beacons.items():
-            out.append(f"{key}::{beacon}::[{', '.join(repr(float(p)) for p in hist)}]\n")
+            # one value per bin edge, as the published files: the bins' probabilities, then 0.0
+            values = ", ".join(repr(float(p)) for p in (*hist, 0.0))
+            out.append(f"{key}::{beacon}::[{values}]\n")
     return "".join(out)
 
 
