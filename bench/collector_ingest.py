@@ -165,7 +165,7 @@ def collector(args) -> dict:
         t_done = time.monotonic()
         stopped = c.stop_run()
         c.close()
-        lines = sum(sum(1 for _ in f.open("rb")) for f in Path(run["run_dir"]).glob("rssi/*.mbd"))
+        lines = sum(sum(1 for _ in f.open("rb")) for f in Path(run["run_dir"]).glob("rssi/*/*.mbd"))
         dt = t_done - t0
         return {"published": pub["readings"], "written": stopped["readings"], "lines_in_files": lines,
                 "lost": pub["readings"] - lines, "seconds": round(dt, 2), "rate": round(lines / dt),

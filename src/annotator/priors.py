@@ -59,7 +59,7 @@ def _positive(d: dict[str, Any], key: str, default: float, where: str) -> float:
     value = d.get(key, default)
     try:
         x = float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ConfigError(f"{where}.{key}: must be a number, not {value!r}") from None
     if not (math.isfinite(x) and x > 0):
         raise ConfigError(f"{where}.{key}: must be a positive finite number, not {value!r}")
@@ -91,7 +91,7 @@ def parse_priors(obj: Any, source: str) -> Priors:
     for key, spec in raw.items():
         try:
             mid = int(key)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise ConfigError(f"{where}.markers: {key!r} is not a marker id") from None
         if spec == "unknown":
             markers[mid] = MarkerPrior(math.inf, math.inf, known=False)

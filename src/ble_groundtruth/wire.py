@@ -265,8 +265,23 @@ def to_wire(batch: Batch) -> bytes:
     return out
 
 
-def from_wire(data: bytes | bytearray | memoryview) -> Batch:
-    """Decode and validate one batch; raises a WireError subclass for anything malformed."""
+def check_reading(t_ns: int, rssi: int, mono_ns: int = 0) -> str | None:
+    """Why one reading is implausible (timestamp, RSSI, monotonic time), or None if it is fine."""
+    if not T_NS_MIN <= t_ns <= T_NS_MAX:
+        return f"timestamp {t_ns} ns is not a plausible Unix time"
+    if not RSSI_MIN <= rssi <= RSSI_MAX:
+        return f"RSSI {rssi} dBm out of range"
+    if mono_ns < 0:
+        return "negative monotonic time"
+    return None
+
+
+def from_wire(data: bytes | bytearray | memoryview, *,
+              skipped: list[tuple[int, str]] | None = None) -> Batch:
+    """Decode and validate one batch; raises a WireError subclass for anything malformed.
+
+    With ``skipped`` (a list), an implausible reading does not fail the batch: it is left out
+    and ``(index, reason)`` appended, so one absurd value cannot cost the other readings."""
     data = bytes(data)
     if len(data) > MAX_PAYLOAD_BYTES:
         raise Oversized(f"payload of {len(data)} bytes (max {MAX_PAYLOAD_BYTES})")
@@ -312,12 +327,12 @@ def from_wire(data: bytes | bytearray | memoryview) -> Batch:
     readings = []
     off += meta_len
     for i, (t_ns, mono_ns, mac, rssi) in enumerate(_READING.iter_unpack(data[off:end_readings])):
-        if not T_NS_MIN <= t_ns <= T_NS_MAX:
-            raise InvalidField(f"reading {i}: timestamp {t_ns} ns is not a plausible Unix time")
-        if not RSSI_MIN <= rssi <= RSSI_MAX:
-            raise InvalidField(f"reading {i}: RSSI {rssi} dBm out of range")
-        if mono_ns < 0:
-            raise InvalidField(f"reading {i}: negative monotonic time")
+        why = check_reading(t_ns, rssi, mono_ns)
+        if why is not None:
+            if skipped is None:
+                raise InvalidField(f"reading {i}: {why}")
+            skipped.append((i, why))
+            continue
         ib = ed = None
         e = extras.get(str(i)) if extras else None
         if e is not None:

@@ -13,6 +13,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+# Largest message a session accepts: a maximum batch (wire.MAX_PAYLOAD_BYTES, 4 MiB) plus room
+# for its key and Zenoh's headers. Larger messages are refused while they arrive, before Zenoh
+# reassembles them (its default would let 1 GiB through).
+MAX_MESSAGE_BYTES = 4 * 1024 * 1024 + 64 * 1024
 
 
 @dataclass(frozen=True, slots=True)
@@ -32,6 +36,7 @@ class SessionSpec:
     tls: TlsFiles | None = None
     extra: dict[str, object] = field(default_factory=dict)  # raw zenoh keys, for tests/ACLs
     acl: str | None = None  # JSON5 text of zenoh's `access_control` section (see load_acl)
+    max_message_bytes: int = MAX_MESSAGE_BYTES
 
 
 def build_config(spec: SessionSpec):  # -> zenoh.Config
@@ -41,6 +46,7 @@ def build_config(spec: SessionSpec):  # -> zenoh.Config
     conf.insert_json5("mode", json.dumps(spec.mode))
     # Multicast scouting would make sessions find strangers on the LAN; endpoints are explicit.
     conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("transport/link/rx/max_message_size", str(int(spec.max_message_bytes)))
     # Advanced publishers/subscribers need sample timestamps.
     conf.insert_json5("timestamping/enabled", "true")
     if spec.mode == "router" or spec.listen:

@@ -250,6 +250,24 @@ def live(
         raise _fail(e) from None
 
 
+@app.command()
+def export(
+    run_dir: Annotated[Path, typer.Argument(help="A run directory (holds run.yaml and rssi/<agent>/).")],
+    out: Annotated[Path | None, typer.Option("--out", help="Where to write <sensor_mac>.mbd files (default RUN_DIR/merged).")] = None,
+) -> None:
+    """Write the published layout, one <sensor_mac>.mbd per sensor, merging the per-agent files
+    of a run in time order (a sensor heard by two agents gets both agents' rows)."""
+    from collector.store import export_merged
+
+    dest = out if out is not None else run_dir / "merged"
+    try:
+        counts = export_merged(run_dir, dest)
+    except CollectorError as e:
+        raise _fail(e) from None
+    console.print(f"{sum(counts.values())} readings of {len(counts)} sensor(s) in {dest}",
+                  highlight=False, soft_wrap=True)
+
+
 def main() -> None:
     app()
 

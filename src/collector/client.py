@@ -42,6 +42,12 @@ class CollectorClient:
     def _unreachable(self) -> str:
         return f"no collector answered at {self.connect} (is `collector serve` running?)"
 
+    def _no_reply(self, command: str) -> str:
+        # The session opened, so a router is there: either it is not our collector, or its ACL
+        # drops this query (a certificate the collector does not let drive runs).
+        return (f"no reply to {command} from {self.connect} — the collector is not running there, "
+                "or it is not allowed for this certificate?")
+
     def call(self, command: str, request: dict[str, Any] | None = None) -> dict[str, Any]:
         """Send one control request; returns the reply without its "ok" field."""
         key = wire.collector_control_key(self.site, command)
@@ -55,7 +61,7 @@ class CollectorClient:
                 raise CommandFailed(f"{command}: {msg.get('error', 'failed without a reason')}")
             msg.pop("ok", None)
             return msg
-        raise Unreachable(self._unreachable())
+        raise Unreachable(self._no_reply(command))
 
     def start(self, name: str | None = None, *, max_offset_ms: float | None = None,
               strict: bool = False) -> dict[str, Any]:

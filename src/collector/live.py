@@ -19,9 +19,13 @@ SPARK_WIDTH = 20  # most recent readings shown per sensor
 
 
 def sparkline(values: Sequence[int | float], lo: float = RSSI_LO, hi: float = RSSI_HI) -> str:
-    """One character per value, clipped to [lo, hi]: stronger signal = taller bar."""
+    """One character per value, clipped to [lo, hi]: stronger signal = taller bar. A value that
+    is not a number (a garbled status) is drawn as a space rather than failing the view."""
     out = []
     for v in values:
+        if isinstance(v, bool) or not isinstance(v, int | float) or v != v:
+            out.append(" ")
+            continue
         f = (min(max(v, lo), hi) - lo) / (hi - lo)
         out.append(BARS[min(len(BARS) - 1, int(f * len(BARS)))])
     return "".join(out)
@@ -51,9 +55,10 @@ def render(status: dict[str, Any]) -> Group:
                           str(s.get("last_rssi", "")),
                           f"{age:.1f}s" if age is not None else "",
                           str(s.get("readings", 0)), sparkline(s.get("recent_rssi", [])[-SPARK_WIDTH:]))
-    rejected = status.get("rejected_payloads") or {}
-    foot = Text(f"rejected payloads: {sum(rejected.values())}  duplicates dropped: "
-                f"{status.get('duplicates_dropped', 0)}", style="dim")
+    rejected = dict(status.get("rejected_payloads") or {})
+    bad = rejected.pop("bad_reading", 0)
+    foot = Text(f"rejected payloads: {sum(rejected.values())}  bad readings skipped: {bad}  "
+                f"duplicates dropped: {status.get('duplicates_dropped', 0)}", style="dim")
     return Group(head, *_alerts(status), table, foot)
 
 
@@ -68,6 +73,19 @@ def _alerts(status: dict[str, Any]) -> list[Text]:
     run = status.get("run") or {}
     if run.get("restarts"):
         out.append(Text(f"run resumed after {run['restarts']} unclean collector stop(s)", style="yellow"))
+    streams = status.get("streams") or {}
+    if streams.get("total", 0) > streams.get("shown", 0):
+        out.append(Text(f"{streams['total'] - streams['shown']} more streams not shown "
+                        f"({streams['total']} in all)", style="yellow"))
+    refused = status.get("refused_streams") or {}
+    if refused.get("batches"):
+        worst = ", ".join(f"{a} ({n})" for a, n in (refused.get("by_agent") or {}).items())
+        out.append(Text(f"{refused['batches']} batches of {refused.get('streams', 0)} streams refused "
+                        f"over the stream limits: {worst}", style="red"))
+    shared = status.get("shared_sensors") or {}
+    for mac, agents in list(shared.items())[:5]:
+        out.append(Text(f"sensor {mac} is published by several agents: {', '.join(agents)} "
+                        "(kept as separate streams)", style="yellow"))
     unknown = status.get("unknown_agents") or {}
     if unknown:
         out.append(Text(f"data from agents without a liveliness token: {', '.join(sorted(unknown))}",

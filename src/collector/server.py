@@ -15,7 +15,7 @@ import queue
 import re
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
@@ -28,6 +28,7 @@ from ble_groundtruth.zenoh_config import AclFileError, build_config, load_acl
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
 from collector.ingest import (
+    SEQ_LIMIT,
     RawBatch,
     RejectCounter,
     StreamTracker,
@@ -37,6 +38,7 @@ from collector.ingest import (
 )
 from collector.store import (
     STATE_FILE,
+    STATE_VERSION,
     FileWrite,
     RunWriter,
     find_active_state,
@@ -53,7 +55,12 @@ TICK_S = 0.2  # flush + ack period while data arrives
 REACK_S = 2.0  # acks are repeated this often, in case an agent missed one
 RATE_WINDOW_S = 5.0
 RSSI_HISTORY = 40  # readings kept per sensor for the live sparkline
-QUEUE_MAX = 20_000  # batches between the Zenoh callbacks and the writer
+SUB_CHANNEL = 16  # samples Zenoh may hold for the receive thread (a FIFO: Zenoh waits when full)
+ROW_COST = 192  # bytes of memory one decoded reading takes in the receive queue
+BATCH_COST = 512
+STATUS_MAX_STREAMS = 200  # streams listed in a status reply; the rest only counted
+LIVE_IDLE_S = 3600.0  # live state of a stream silent this long is dropped
+MAX_AGENT_ENTRIES = 1024  # agents remembered per counter (unknown agents, refused streams)
 QUEUE_WAIT_S = 0.5  # a callback waits this long for room (back-pressure) before dropping unacked
 FUTURE_LIMIT_NS = 24 * 3600 * 10**9  # readings further ahead than this are absurd
 MAX_BUFFER_BYTES = 64 * 1024 * 1024  # rows held in memory while the disk refuses them
@@ -66,6 +73,72 @@ def zenoh_reason(err: Exception) -> str:
     """Zenoh's error text without the Rust source locations it appends ('... at /path/x.rs:61.')."""
     text = re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", " ".join(str(err).split()))
     return text.replace("[", "").replace("]", "").strip()
+
+
+class ByteQueue:
+    """FIFO bounded by the summed cost (bytes of memory) of its items, not their number. An item
+    costlier than the whole bound is still let in when the queue is empty, so none is too big."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self._items: deque[tuple[Any, int]] = deque()
+        self.bytes = 0
+        self._cond = threading.Condition()
+
+    def put(self, item: Any, cost: int, timeout: float) -> bool:
+        """Wait up to ``timeout`` for room; False if there was none."""
+        end = time.monotonic() + timeout
+        with self._cond:
+            while self._items and self.bytes + cost > self.max_bytes:
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+            self._items.append((item, cost))
+            self.bytes += cost
+            self._cond.notify_all()
+            return True
+
+    def get(self, timeout: float) -> Any:
+        """The oldest item, waiting up to ``timeout``; None if there is none."""
+        with self._cond:
+            if not self._items and timeout > 0:
+                self._cond.wait(timeout)
+            if not self._items:
+                return None
+            item, cost = self._items.popleft()
+            self.bytes -= cost
+            self._cond.notify_all()
+            return item
+
+    def qsize(self) -> int:
+        return len(self._items)
+
+    def empty(self) -> bool:
+        return not self._items
+
+
+def _check_folder_name(agent: str) -> None:
+    if agent.startswith("."):  # would name a hidden folder (or ..) under rssi/
+        raise wire.InvalidField(f"agent id {agent!r} may not start with a dot")
+
+
+def batch_cost(batch: RawBatch) -> int:
+    return BATCH_COST + ROW_COST * len(batch.rows)
+
+
+def descriptor_budget(open_files: int) -> int:
+    """Files the writer may hold open: the configured number, at most half the soft RLIMIT_NOFILE
+    (Zenoh's sockets and the rest of the process need the other half)."""
+    try:
+        import resource
+
+        soft, _hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    except (ImportError, OSError, ValueError):
+        return open_files
+    if soft == resource.RLIM_INFINITY:
+        return open_files
+    return max(4, min(open_files, soft // 2))
 
 
 def software_version() -> str:
@@ -120,7 +193,7 @@ class Collector:
     def __init__(self, cfg: CollectorConfig, *, clock: Callable[[], int] = time.time_ns,
                  monotonic: Callable[[], float] = time.monotonic, drain_grace_s: float = 0.3,
                  drain_timeout_s: float = 3.0, status_timeout_s: float = 1.0,
-                 max_buffer_bytes: int = MAX_BUFFER_BYTES, queue_max: int = QUEUE_MAX,
+                 max_buffer_bytes: int = MAX_BUFFER_BYTES, queue_bytes: int | None = None,
                  quarantine_max_bytes: int = QUARANTINE_MAX_BYTES,
                  notifier: Notifier | None = None, file_write: FileWrite = os.write) -> None:
         self.cfg = cfg
@@ -134,7 +207,17 @@ class Collector:
         self._quarantine_max = quarantine_max_bytes
         self._notifier = notifier if notifier is not None else Notifier()
         self.rejects = RejectCounter(monotonic)
-        self._data: queue.Queue[RawBatch] = queue.Queue(maxsize=queue_max)
+        lim = cfg.limits
+        self._data = ByteQueue(int(lim.queue_mb * 2**20) if queue_bytes is None else queue_bytes)
+        self._open_files = descriptor_budget(lim.open_files)
+        # Streams (agent, sensor) accepted since this collector started; others are refused.
+        self._admitted: set[tuple[str, str]] = set()
+        self._agent_streams: Counter[str] = Counter()
+        self._sensor_agents: dict[str, set[str]] = {}  # sensor MAC -> agents publishing it
+        self._refused: Counter[str] = Counter()  # agent -> batches refused (stream caps)
+        self._refused_streams: set[tuple[str, str]] = set()  # at most MAX_AGENT_ENTRIES kept
+        self._refused_log: dict[str, float] = {}
+        self._sub: Any = None
         self._quarantine: queue.Queue[dict[str, Any]] = queue.Queue(maxsize=1000)
         self._cmds: queue.SimpleQueue[tuple[Callable[[], Any], Future]] = queue.SimpleQueue()
         self._ctl: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
@@ -157,7 +240,6 @@ class Collector:
         self._deferred = 0  # batches refused unacked while rows piled up in memory (disk full)
         self._unknown_agents: dict[str, int] = {}
         self._recent: dict[str, float] = {}  # agent -> monotonic time of its last batch
-        self._lost_base: dict[str, int] = {}  # per stream, lost seqs before the run started
         self._clock_log: dict[str, list[dict[str, Any]]] = {}
         self._restarts = 0
         self._resumed: str | None = None
@@ -195,10 +277,17 @@ class Collector:
                          threading.Thread(target=self._control_loop, name="collector-control", daemon=True)]
         for t in self._threads:
             t.start()
-        self._decls.append(zext.declare_advanced_subscriber(
-            s, wire.data_selector(site), self._on_sample,
+        # A bounded FIFO instead of a callback: Zenoh's callback mode queues samples for the
+        # Python thread without a bound; this way Zenoh waits (back-pressure) once 16 are pending.
+        self._sub = zext.declare_advanced_subscriber(
+            s, wire.data_selector(site), zenoh.handlers.FifoChannel(SUB_CHANNEL),
             history=zext.HistoryConfig(detect_late_publishers=True),
-            recovery=zext.RecoveryConfig(heartbeat=True)))
+            recovery=zext.RecoveryConfig(heartbeat=True))
+        self._decls.append(self._sub)
+        rx = threading.Thread(target=self._receive_loop, args=(self._sub.handler,),
+                              name="collector-receive", daemon=True)
+        rx.start()
+        self._threads.append(rx)
         self._decls.append(s.liveliness().declare_subscriber(
             wire.agent_token_selector(site), self._on_token, history=True))
         for cmd in COMMANDS:
@@ -216,13 +305,15 @@ class Collector:
 
     def _resume_unfinished_run(self) -> None:
         """Continue the run a killed collector left active (state.json), before any data flows."""
-        import yaml
+        from ble_groundtruth.safe_yaml import YamlError, load_file
 
         active = find_active_state(self.cfg.data_dir)
         for run_dir, state in active:
             try:
-                doc = yaml.safe_load((run_dir / "run.yaml").read_text(encoding="utf-8")) or {}
-            except (OSError, yaml.YAMLError):
+                doc = load_file(run_dir / "run.yaml") or {}
+            except YamlError:
+                doc = {}
+            if not isinstance(doc, dict):
                 doc = {}
             if doc.get("stop") is not None:  # stopped, but killed before state.json said so
                 continue
@@ -230,22 +321,31 @@ class Collector:
                 log.warning("run %s was also left active; only the newest run (%s) is resumed",
                             state.get("run_id"), self._run.run_id)
                 continue
+            if state.get("version") != STATE_VERSION:
+                raise CollectorError(
+                    f"{run_dir / STATE_FILE}: version {state.get('version')} state of an unfinished run, "
+                    f"written by an older collector (this one resumes version {STATE_VERSION}); finish "
+                    "the run with that collector, or move the file aside to start fresh")
             if state.get("run_id") != run_dir.name:
                 raise CollectorError(f"{run_dir / STATE_FILE}: run_id {state.get('run_id')!r} is not "
                                      "its directory's name; move the file aside to start fresh")
             try:
-                tracker = StreamTracker.from_state(state["tracker"])
+                tracker = StreamTracker.from_state(
+                    state["tracker"], {k: int(v) for k, v in state.get("lost_base", {}).items()})
                 run = RunWriter(self.cfg.data_dir, run_dir.name, state["name"],
                                 int(state["start_ns"]), dict(state["meta"]), resume=state,
-                                write=self._file_write)
+                                write=self._file_write, open_files=self._open_files)
             except (KeyError, TypeError, ValueError) as e:
                 raise CollectorError(f"{run_dir / STATE_FILE}: cannot resume the run: {e!r}") from None
             except OSError as e:
                 raise CollectorError(f"cannot resume run {run_dir}: {e}") from None
             self._run, self._tracker = run, tracker
+            for a, _b, sn in tracker.streams:
+                self._admit_known((a, sn))
+            for key in run.sensors:
+                self._admit_known(key)
             self._run_active = True
             self._resumed = run.run_id
-            self._lost_base = {k: int(v) for k, v in state.get("lost_base", {}).items()}
             self._clock_log = {k: list(v) for k, v in state.get("clock", {}).items()}
             self._restarts = int(state.get("restarts", 0)) + 1
             self._quarantined_bytes = int(state.get("quarantined_bytes", 0))
@@ -334,16 +434,31 @@ class Collector:
 
     # -- Zenoh callbacks: cheap, never raise -------------------------------------------------------
 
+    def _receive_loop(self, handler: Any) -> None:
+        """Take samples from the subscriber's channel until it is undeclared."""
+        while True:
+            try:
+                sample = handler.recv()
+            except Exception:  # noqa: BLE001 - the channel is closed: the subscriber is gone
+                return
+            self._on_sample(sample)
+
     def _on_sample(self, sample: Any) -> None:
         key = str(sample.key_expr)
         payload = b""
         try:
             payload = sample.payload.to_bytes()
             _site, agent, sensor = wire.parse_data_key(key)
+            _check_folder_name(agent)
             batch = decode(payload)
+            # The key (which the ACL checks) says who sent it; the payload must agree.
             if batch.agent_id != agent or batch.sensor != sensor:
                 self._reject("key_mismatch", key,
                              f"batch of agent {batch.agent_id}, sensor {batch.sensor} on this key", payload)
+                return
+            if batch.seq >= SEQ_LIMIT or batch.floor >= SEQ_LIMIT:
+                self._reject("seq_out_of_range", key,
+                             f"seq {batch.seq} / floor {batch.floor} not below 2^40", payload)
                 return
         except wire.WireError as e:
             self._reject(reject_reason(e), key, str(e), payload)
@@ -351,11 +466,15 @@ class Collector:
         except Exception as e:  # noqa: BLE001 - a callback must not die on one bad sample
             self._reject("malformed", key, f"{type(e).__name__}: {e}", payload)
             return
+        if batch.skipped:
+            # The rest of the batch is kept and acknowledged, so one absurd value (a scanner's
+            # +42 dBm) neither costs the other readings nor makes the agent re-send forever.
+            self._reject("bad_reading", key,
+                         f"{batch.skipped} of {batch.skipped + len(batch.rows)} readings of seq "
+                         f"{batch.seq} skipped ({batch.skip_reason})", payload, count=batch.skipped)
         batch = self._drop_future_readings(batch, key, payload)
-        try:
-            # Waiting here is the back-pressure: Zenoh (BLOCK congestion control) slows the senders.
-            self._data.put(batch, timeout=QUEUE_WAIT_S)
-        except queue.Full:
+        # Waiting here is the back-pressure: Zenoh (BLOCK congestion control) slows the senders.
+        if not self._data.put(batch, batch_cost(batch), timeout=QUEUE_WAIT_S):
             # Not handled, so never acknowledged: the agent's spool sends it again later.
             now = self._mono()
             with self._lock:
@@ -364,8 +483,8 @@ class Collector:
                     return
                 self._overflow_log = now
                 n = self._overflow
-            log.warning("receive queue full (%d batches): dropped a batch of %s unacknowledged "
-                        "(%d so far); the writer cannot keep up", self._data.maxsize, key, n)
+            log.warning("receive queue full (%.0f MiB): dropped a batch of %s unacknowledged "
+                        "(%d so far); the writer cannot keep up", self._data.max_bytes / 2**20, key, n)
 
     def _drop_future_readings(self, batch: RawBatch, key: str, payload: bytes) -> RawBatch:
         """Readings stamped more than FUTURE_LIMIT_NS ahead of our clock are quarantined, the
@@ -381,12 +500,12 @@ class Collector:
         self._reject("future_timestamp", key,
                      f"{bad} of {len(batch.rows)} readings of seq {batch.seq} stamped "
                      f"{wire.format_ts(first)}, more than a day ahead of the collector's clock",
-                     payload)
+                     payload, count=bad)
         return replace(batch, rows=good)
 
-    def _reject(self, reason: str, key: str, message: str, payload: bytes) -> None:
+    def _reject(self, reason: str, key: str, message: str, payload: bytes, count: int = 1) -> None:
         """Count, log (rate-limited) and queue for <run>/rejected.jsonl; never raises."""
-        self.rejects.reject(reason, key, message)
+        self.rejects.reject(reason, key, message, count)
         rec = {"at_ns": self._clock(), "key": key, "reason": reason, "error": message,
                "size": len(payload),
                "payload_b64": base64.b64encode(payload[:QUARANTINE_PAYLOAD]).decode("ascii")}
@@ -482,12 +601,22 @@ class Collector:
             for reply in replies:
                 if reply.ok is None:
                     continue
+                key = str(reply.ok.key_expr)
                 try:
+                    # The agent is the one named by the reply's key (which the ACL lets only that
+                    # agent answer on), never the id the payload claims.
+                    agent = wire.check_id(key.rsplit("/", 1)[-1], "agent id")
+                    if key != wire.agent_status_key(self.cfg.site, agent):
+                        raise wire.InvalidField(f"not an agent status key: {key}")
                     info = wire.from_json(reply.ok.payload.to_bytes(), "agent status")
-                    agent = wire.check_id(info.get("agent_id"), "agent id")
                 except wire.WireError as e:
-                    log.warning("ignoring an agent status reply on %s: %s", reply.ok.key_expr, e)
+                    log.warning("ignoring an agent status reply on %s: %s", key, e)
                     continue
+                claimed = info.get("agent_id")
+                if claimed != agent:
+                    log.warning("agent %s's status reply names itself %r; credited to %s (the key)",
+                                agent, claimed, agent)
+                    info = {**info, "agent_id": agent}
                 with self._lock:
                     self._agent_info[agent] = info
         except Exception as e:  # noqa: BLE001 - agent status is best effort; the data path is not
@@ -572,6 +701,7 @@ class Collector:
                     moved |= {a for a, alive in self._alive.items() if alive}
                 # Also agents heard from lately whose token is missing or late.
                 moved |= {a for a, t in self._recent.items() if now - t < 60}
+                self._prune_live(now)
             self._publish_acks(moved)
             if self._stopping is not None:
                 self._maybe_finish_stop(now)
@@ -617,21 +747,20 @@ class Collector:
         return set()
 
     def _state(self) -> dict[str, Any]:
-        return self._run.state({"tracker": self._tracker.to_state(), "lost_base": self._lost_base,
+        return self._run.state({"tracker": self._tracker.to_state(), "lost_base": self._tracker.lost_base,
                                 "clock": self._clock_log, "restarts": self._restarts,
                                 "quarantined_bytes": self._quarantined_bytes})
 
     def _ingest_some(self) -> None:
-        try:
-            first = self._data.get(timeout=0.05)
-        except queue.Empty:
+        first = self._data.get(timeout=0.05)
+        if first is None:
             return
         batches = [first]
-        try:
-            for _ in range(5000):
-                batches.append(self._data.get_nowait())
-        except queue.Empty:
-            pass
+        for _ in range(5000):
+            b = self._data.get(timeout=0)
+            if b is None:
+                break
+            batches.append(b)
         now = self._mono()
         run, tracker, live = self._run, self._tracker, self._live
         # While the disk refuses rows, memory holds them up to a bound; past it, batches are
@@ -642,7 +771,10 @@ class Collector:
         with self._lock:
             alive = dict(self._alive)
         self._dirty = True  # even a duplicate may carry a higher floor
+        admitted = self._admitted
         for b in batches:
+            if (b.agent_id, b.sensor) not in admitted and not self._admit(b.agent_id, b.sensor, now):
+                continue
             self._recent[b.agent_id] = now
             if capped and buffered >= self._max_buffer:
                 self._deferred += 1
@@ -657,7 +789,8 @@ class Collector:
                 if n == 0:
                     log.warning("data from agent %s, which has no liveliness token (not a running "
                                 "agent of this site?); recorded and counted as unknown_agent", b.agent_id)
-                self._unknown_agents[b.agent_id] = n + 1
+                if n or len(self._unknown_agents) < MAX_AGENT_ENTRIES:
+                    self._unknown_agents[b.agent_id] = n + 1
             if b.rows:
                 sl = live.get((b.agent_id, b.sensor))
                 if sl is None:
@@ -669,6 +802,53 @@ class Collector:
                     buffered += len(text) if capped else 0
                 else:
                     self._discarded += len(b.rows)
+
+    def _admit(self, agent: str, sensor: str, now: float) -> bool:
+        """Accept a new (agent, sensor) stream under the stream caps, or refuse its batch (not
+        written, not acknowledged, counted). Writer thread only."""
+        lim = self.cfg.limits
+        key = (agent, sensor)
+        if self._agent_streams[agent] >= lim.streams_per_agent or len(self._admitted) >= lim.streams_total:
+            if agent in self._refused or len(self._refused) < MAX_AGENT_ENTRIES:
+                self._refused[agent] += 1
+            else:
+                self._refused["(other agents)"] += 1
+            if len(self._refused_streams) < MAX_AGENT_ENTRIES:
+                self._refused_streams.add(key)
+            if now - self._refused_log.get(agent, -1e9) >= 60 and len(self._refused_log) < MAX_AGENT_ENTRIES:
+                self._refused_log[agent] = now
+                which = (f"agent {agent} already has {lim.streams_per_agent} streams"
+                         if self._agent_streams[agent] >= lim.streams_per_agent
+                         else f"the collector already has {lim.streams_total} streams")
+                log.warning("refused sensor %s of agent %s: %s (limits.streams_per_agent / "
+                            "streams_total); its batches are not written (%d refused so far)",
+                            sensor, agent, which, self._refused[agent])
+            return False
+        self._admit_known(key)
+        return True
+
+    def _admit_known(self, key: tuple[str, str]) -> None:
+        if key in self._admitted:
+            return
+        agent, sensor = key
+        self._admitted.add(key)
+        self._agent_streams[agent] += 1
+        agents = self._sensor_agents.setdefault(sensor, set())
+        agents.add(agent)
+        if len(agents) > 1:
+            log.warning("sensor %s is published by agents %s: kept as separate streams "
+                        "(rssi/<agent>/%s.mbd); a copied adapter address or a misconfigured agent?",
+                        sensor, ", ".join(sorted(agents)), sensor)
+
+    def shared_sensors(self) -> dict[str, list[str]]:
+        """Sensor MACs published by more than one agent since the collector started."""
+        return {m: sorted(a) for m, a in sorted(self._sensor_agents.items()) if len(a) > 1}
+
+    def _prune_live(self, now: float) -> None:
+        for k in [k for k, sl in self._live.items() if now - sl.last_seen > LIVE_IDLE_S]:
+            del self._live[k]
+        for a in [a for a, t in self._recent.items() if now - t >= 60]:
+            del self._recent[a]
 
     def _write_quarantine(self) -> None:
         recs = []
@@ -731,8 +911,9 @@ class Collector:
                 break
             run_id = f"{base}-{i}"
         meta = {"site": self.cfg.site, "software_version": software_version()}
-        run = RunWriter(self.cfg.data_dir, run_id, name or "", t_ns, meta, write=self._file_write)
-        self._lost_base = {"/".join(k): st.lost_total() for k, st in self._tracker.streams.items()}
+        run = RunWriter(self.cfg.data_dir, run_id, name or "", t_ns, meta, write=self._file_write,
+                        open_files=self._open_files)
+        self._tracker.reset_run_totals()
         self._clock_log = {a: [smp] for a, smp in clock_samples.items()}
         self._restarts = self._quarantined_bytes = self._quarantine_dropped = 0
         self._deferred = 0
@@ -800,25 +981,24 @@ class Collector:
             infos = {a: dict(i) for a, i in self._agent_info.items()}
         agents: dict[str, Any] = {}
         gaps_total = missing_total = lost_total = 0
-        for sensor, stats in sorted(run.sensors.items()):
-            info = infos.get(stats.agent_id, {})
-            a = agents.setdefault(stats.agent_id, {
+        per_stream = self._tracker.stream_totals()
+        for (agent_id, sensor), stats in sorted(run.sensors.items()):
+            info = infos.get(agent_id, {})
+            a = agents.setdefault(agent_id, {
                 "hostname": info.get("hostname"), "version": info.get("version"),
                 "backend": info.get("backend"), "boot_ids": [], "sensors": {}})
             adapter = next((ad for ad in info.get("adapters", []) if isinstance(ad, dict)
                             and str(ad.get("mac", "")).replace(":", "").lower() == sensor), {})
-            gaps = missing = lost = 0
-            for (ag, boot, sn), ss in self._tracker.streams.items():
-                if ag == stats.agent_id and sn == sensor:
-                    gaps += ss.gaps
-                    missing += self._tracker.missing((ag, boot, sn))
-                    lost += ss.lost_total() - self._lost_base.get(f"{ag}/{boot}/{sn}", 0)
-                    if boot not in a["boot_ids"]:
-                        a["boot_ids"].append(boot)
+            t = per_stream.get((agent_id, sensor))
+            gaps, missing, lost = (t.gaps, t.missing, t.lost) if t else (0, 0, 0)
+            for boot in (t.boots if t else ()):
+                if boot not in a["boot_ids"]:
+                    a["boot_ids"].append(boot)
             gaps_total += gaps
             missing_total += missing
             lost_total += lost
             a["sensors"][sensor] = {"adapter": adapter.get("name"), "mac": sensor,
+                                    "file": f"rssi/{agent_id}/{sensor}.mbd",
                                     "backend": adapter.get("backend", info.get("backend")),
                                     "mode": adapter.get("mode"), "readings": stats.readings,
                                     "batches": stats.batches, "gaps": gaps,
@@ -826,7 +1006,10 @@ class Collector:
         for agent, samples in self._clock_log.items():
             agents.setdefault(agent, {"hostname": infos.get(agent, {}).get("hostname"),
                                       "boot_ids": [], "sensors": {}})["clock"] = samples
-        extra = {"stopped_by": reason, "gaps": gaps_total, "missing_batches": missing_total,
+        shared = run.shared_sensors()
+        extra = {"layout": "rssi/<agent>/<sensor_mac>.mbd", "shared_sensors": shared,
+                 "refused_streams": self._refused_summary(),
+                 "stopped_by": reason, "gaps": gaps_total, "missing_batches": missing_total,
                  "lost_batches": lost_total, "duplicates_dropped": self._tracker.duplicates,
                  "rejected_payloads": self.rejects.snapshot(), "restarts": self._restarts}
         run.write_yaml(stop_ns=self._clock(), agents=agents, extra=extra)
@@ -837,14 +1020,21 @@ class Collector:
         with self._lock:
             alive = dict(self._alive)
             overflow = self._overflow
-        agents: dict[str, Any] = {a: {"alive": v, "sensors": {}} for a, v in alive.items()}
-        for (agent, sensor), sl in sorted(self._live.items()):
+        agents: dict[str, Any] = {}
+        for a, v in sorted(alive.items()):
+            if len(agents) >= STATUS_MAX_STREAMS:
+                break
+            agents[a] = {"alive": v, "sensors": {}}
+        # At most STATUS_MAX_STREAMS streams, the most recently heard first; the rest are counted.
+        shown = sorted(self._live.items(), key=lambda kv: -kv[1].last_seen)[:STATUS_MAX_STREAMS]
+        for (agent, sensor), sl in sorted(shown, key=lambda kv: kv[0]):
             ag = agents.setdefault(agent, {"alive": alive.get(agent, False), "sensors": {}})
             ag["sensors"][sensor] = {"rate_hz": round(sl.rate(now), 2),
                                      "last_seen_age_s": round(now - sl.last_seen, 3),
                                      "last_rssi": sl.last_rssi, "readings": sl.readings,
                                      "recent_rssi": list(sl.rssi)}
         run = None
+        open_files = 0 if self._run is None else self._run.open_count
         if self._run is not None:
             r = self._run
             run = {"run_id": r.run_id, "name": r.name, "run_dir": str(r.dir.resolve()),
@@ -858,8 +1048,18 @@ class Collector:
                 "write_errors": self._write_errors,
                 "disk_full": self._run is not None and self._run.disk_full,
                 "deferred_batches": self._deferred, "queue_overflow": overflow,
-                "unknown_agents": dict(self._unknown_agents),
-                "quarantine_dropped": self._quarantine_dropped}
+                "unknown_agents": dict(Counter(self._unknown_agents).most_common(20)),
+                "quarantine_dropped": self._quarantine_dropped,
+                "streams": {"total": len(self._live), "shown": len(shown),
+                            "admitted": len(self._admitted), "open_files": open_files},
+                "refused_streams": self._refused_summary(),
+                "shared_sensors": dict(list(self.shared_sensors().items())[:50]),
+                "queue_bytes": self._data.bytes}
+
+    def _refused_summary(self) -> dict[str, Any]:
+        """Batches refused by the stream caps: total, streams, and the 20 worst agents."""
+        return {"batches": sum(self._refused.values()), "streams": len(self._refused_streams),
+                "by_agent": dict(self._refused.most_common(20))}
 
 
 def clock_sample(msg: dict[str, Any], t1: int, t4: int, at: str) -> dict[str, Any]:

@@ -83,6 +83,7 @@ class Publisher:
         self._interval: dict[str, int] = {}  # stream id -> current re-send interval (ns), backed off
         self._old_boots: set[str] = set()
         self.resent = 0
+        self.last_ack_ns: int | None = None  # monotonic time of the last ack for this agent
         # Held for a whole re-send pass; close() takes it so no pass outlives the publishers.
         self._resend_lock = threading.Lock()
         self._closing = False
@@ -299,6 +300,7 @@ class Publisher:
             log.warning("ignoring an ack without a 'streams' object")
             return
         now = self.mono_ns()
+        self.last_ack_ns = now
         advanced: list[tuple[str, int]] = []
         with self._lock:
             for mac, seq in streams.items():

@@ -1,6 +1,6 @@
 """Harness for the cross-process reliability scenarios (issue 5): real `collector serve` and
 `sensor-agent run` processes on loopback Zenoh, faults injected from outside, and a checker
-that compares a run's rssi/*.mbd files with the exact readings the agents were given.
+that compares a run's rssi/<agent>/*.mbd files with the exact readings the agents were given.
 
 Both tests/reliability/test_*.py and bench/reliability_scenarios.py drive the scenarios below;
 the tests assert zero lost / zero duplicated, the bench prints the counts at a larger scale.
@@ -288,7 +288,7 @@ class Tally:
 
 def read_rows(run_dir: Path, sensors: Iterable[str] | None = None) -> tuple[Counter[str], int]:
     """Every row of the run's rssi files (only these sensors' files if given) and the torn count."""
-    files = sorted((run_dir / "rssi").glob("*.mbd"))
+    files = sorted((run_dir / "rssi").glob("*/*.mbd"))
     if sensors is not None:
         wanted = set(sensors)
         files = [f for f in files if f.stem in wanted]
@@ -336,7 +336,7 @@ def tally(run_dir: Path, expected: Iterable[str], sensors: Iterable[str] | None 
 
 def count_lines(run_dir: Path) -> int:
     n = 0
-    for f in (run_dir / "rssi").glob("*.mbd"):
+    for f in (run_dir / "rssi").glob("*/*.mbd"):
         try:
             n += f.read_bytes().count(b"\n")
         except OSError:

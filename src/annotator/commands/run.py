@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
 
-from annotator.commands._common import console, default_jobs, one_line_errors
+from annotator.commands._common import LazyProgress, console, default_jobs, one_line_errors
 from annotator.errors import ConfigError
 
 
@@ -51,9 +51,11 @@ def run(
         exp = load_experiment(experiment)
         settings = RunSettings(track=TrackSettings(method=method, jobs=jobs), max_gap=max_gap,
                                beacon=mac, plots=plots)
-        with Progress(TextColumn("{task.description:>12}"), BarColumn(),
-                      TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn(),
-                      console=console) as bar:
+        # Lazy: the bars appear with the first frame, so an error in the RSSI files (read
+        # first) is printed alone.
+        with LazyProgress(TextColumn("{task.description:>12}"), BarColumn(),
+                          TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn(),
+                          console=console) as bar:
             tasks: dict[str, int] = {}
 
             def progress(name: str, done: int, total: int) -> None:

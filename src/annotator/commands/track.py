@@ -8,9 +8,9 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 
-from annotator.commands._common import default_jobs, one_line_errors
+from annotator.commands._common import LazyProgress, default_jobs, one_line_errors
 
 
 class Method(StrEnum):
@@ -85,11 +85,14 @@ def track(
                                       downscale=downscale, board_refine=board_refine,
                                       threshold_windows=(3, 23, 10) if thorough_detect else (7, 7, 10)),
             paper=PaperSettings(frames=batch_frames, close=close, keep=keep, q=q, process=process_noise))
-        with Progress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn(),
-                      TimeRemainingColumn(), console=console) as bar:
-            tasks = {name: bar.add_task(name, total=None) for name in exp.videos}
+        # Lazy: no bars until a video reports its first frames.
+        with LazyProgress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn(),
+                          TimeRemainingColumn(), console=console) as bar:
+            tasks: dict[str, int] = {}
 
             def report(name: str, done: int, total: int) -> None:
+                if not tasks:
+                    tasks.update({n: bar.add_task(n, total=None) for n in exp.videos})
                 bar.update(tasks[name], completed=done, total=max(total, done))
 
             traj = track_experiment(exp, settings, report)

@@ -25,7 +25,7 @@ from dbus_fast import BusType, Message, MessageType, Variant
 from dbus_fast.aio import MessageBus
 from dbus_fast.errors import DBusError
 
-from ble_groundtruth.wire import RSSI_MAX, RSSI_MIN, Reading, WireError, normalize_mac
+from ble_groundtruth.wire import Reading, WireError, normalize_mac
 from sensor_agent.errors import BackendError
 from sensor_agent.scanning.adverts import parse_eddystone, parse_ibeacon
 from sensor_agent.scanning.base import AdapterInfo, AdvertSink, Clocks, ScannerBackend
@@ -232,8 +232,9 @@ class BleakBackend(ScannerBackend):
             beacon = normalize_mac(device.address)
         except WireError:
             return  # not a MAC-shaped address (should not happen with BlueZ)
-        rssi = max(RSSI_MIN, min(RSSI_MAX, int(adv.rssi)))
-        reading = Reading(t_ns, beacon, rssi, mono, parse_ibeacon(adv.manufacturer_data),
+        # Passed on as BlueZ reports it: the agent skips and counts an implausible value (BlueZ
+        # says 127 for "unknown") instead of a clamp turning it into a plausible-looking one.
+        reading = Reading(t_ns, beacon, int(adv.rssi), mono, parse_ibeacon(adv.manufacturer_data),
                           parse_eddystone(adv.service_data))
         if self._sink is not None:
             self._sink(s.adapter.address, reading)
