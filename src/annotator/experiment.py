@@ -37,6 +37,9 @@ class CameraCalibration:
     source: str = ""
     model: str = "radtan"
     readout_s: float = 0.0
+    # Detected marker corners sit this far (px) outward (+) or inward (-) of the true corner along
+    # the square's diagonal; estimated by the self-calibration (annotator.refine), 0 otherwise.
+    corner_bias_px: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,6 +149,8 @@ LENS_MODELS = {"plumb_bob": "radtan", "rational_polynomial": "radtan", "radtan":
                "fisheye": "fisheye", "equidistant": "fisheye"}
 # Optional calibration key: rolling-shutter readout, first row to last, seconds.
 READOUT_KEY = "rolling_shutter_readout_s"
+# Optional calibration key written by the refinement: the detector's corner bias, px.
+CORNER_BIAS_KEY = "marker_corner_bias_px"
 
 def parse_calibration(obj: Any, source: str) -> CameraCalibration:
     """OpenCV FileStorage calibration or ROS camera_info, already parsed from YAML."""
@@ -181,7 +186,13 @@ def parse_calibration(obj: Any, source: str) -> CameraCalibration:
         raise ConfigError(f"{source}: image_width / image_height must be positive")
     if dist.size == 0:
         dist = np.zeros(5)
-    return CameraCalibration(K, dist, width, height, source, model, readout)
+    try:
+        bias = float(d.get(CORNER_BIAS_KEY, 0.0))
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: {CORNER_BIAS_KEY} must be a number (pixels)") from None
+    if not abs(bias) < 5:
+        raise ConfigError(f"{source}: {CORNER_BIAS_KEY} must be within +-5 px, not {bias}")
+    return CameraCalibration(K, dist, width, height, source, model, readout, bias)
 
 
 def load_calibration(path: str | Path) -> CameraCalibration:

@@ -47,8 +47,12 @@ from annotator.vision.geometry import marker_corners_local
 log = logging.getLogger(__name__)
 
 # Block order in the static part of the parameter vector, per camera after the markers.
-RIG, INTR, DIST, READOUT = "rig", "intr", "dist", "readout"
-_FD_STEP = {"pose": 1e-6, "marker": 1e-6, RIG: 1e-6, INTR: 1e-3, DIST: 1e-6, READOUT: 1e-6}
+RIG, INTR, DIST, READOUT, BIAS = "rig", "intr", "dist", "readout", "bias"
+# Prior sigma of the detector's corner bias: ArUco corners sit a fraction of a pixel off the true
+# corner along the square's diagonal (threshold, blur, print bleed), the same way for every marker.
+# Unmodelled, it makes each small marker look a few per cent too small, i.e. too far away.
+CORNER_BIAS_SIGMA_PX = 1.0
+_FD_STEP = {"pose": 1e-6, "marker": 1e-6, RIG: 1e-6, INTR: 1e-3, DIST: 1e-6, READOUT: 1e-6, BIAS: 1e-3}
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,6 +70,7 @@ class RefineSettings:
     # Corrections of a static block smaller than this many of its posterior sigma are not applied:
     # on an exact capture the data move nothing beyond noise, and the prior is kept.
     gate_sigma: float = 3.0
+    marker_gate_sigma: float = 1.0  # the same for a surveyed marker (Mahalanobis, per dof)
     exposure_s: float = 0.008  # assumed exposure for the motion-blur measure
     max_smear_px: float = 3.0  # keyframes whose predicted smear exceeds this are not used
 
@@ -89,6 +94,7 @@ class CameraParams:
     model: str
     readout_s: float
     height: int
+    corner_bias_px: float = 0.0  # detected corners sit this far outward (+) / inward (-) along the diagonal
 
 
 @dataclass(frozen=True, eq=False)
@@ -190,7 +196,7 @@ class _Layout:
         out["marker"] = (off, self.M, 6)
         off += 6 * self.M
         for b in self.cam_blocks:
-            size = {RIG: 6, INTR: 4, DIST: self.nd, READOUT: 1}[b]
+            size = {RIG: 6, INTR: 4, DIST: self.nd, READOUT: 1, BIAS: 1}[b]
             out[b] = (off, self.C, size)
             off += size * self.C
         return out
@@ -214,6 +220,12 @@ class _Model:
         self.d0 = np.array([np.resize(np.asarray(c.dist, float), layout.nd) if len(c.dist) else np.zeros(layout.nd)
                             for c in cams])
         self.r0 = np.array([c.readout_s for c in cams])
+        self.b0 = np.array([c.corner_bias_px for c in cams])
+        # Each marker's four corners are consecutive rows: the unit vector from the measured
+        # square's centre to each corner is the direction of the detector's corner bias.
+        quad = o.uv.reshape(-1, 4, 2)
+        d = quad - quad.mean(axis=1, keepdims=True)
+        self.diag = (d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-9)).reshape(-1, 2)
         self.row = o.uv[:, 1] / np.array([c.height for c in cams])[o.camera]
         self.models = sorted({c.model for c in cams})
         self.cam_model = np.array([c.model for c in cams])
@@ -236,6 +248,7 @@ class _Model:
             "R_bc": _rot(d_rig[:, :3]) @ self.R_bc0, "t_bc": self.t_bc0 + d_rig[:, 3:],
             "K": self.K0 + u.get(INTR, np.zeros((C, 4))), "dist": self.d0 + u.get(DIST, np.zeros((C, self.L.nd))),
             "readout": self.r0 + u.get(READOUT, np.zeros((C, 1)))[:, 0],
+            "bias": self.b0 + u.get(BIAS, np.zeros((C, 1)))[:, 0],
             "R_k": _rot(u["pose"][:, :3]) @ self.p.R_k, "p_k": self.p.p_k + u["pose"][:, 3:],
         }
 
@@ -262,14 +275,15 @@ class _Model:
             xyd[sel] = distort_normalised(xy[sel], dist[sel], model)
         Kc = v["K"][c]
         uv = np.stack([Kc[:, 0] * xyd[:, 0] + Kc[:, 2], Kc[:, 1] * xyd[:, 1] + Kc[:, 3]], axis=1)
-        return uv, z
+        return uv + v["bias"][c][:, None] * self.diag, z
 
 
 # --- the solver -------------------------------------------------------------------------------
 
 def _prior_precision(prob: Problem, layout: _Layout, model: _Model, skip_marker_prior: np.ndarray) -> tuple[
         np.ndarray, np.ndarray]:
-    """Diagonal precision of the static priors (0 = no prior) and the aspect-ratio rows (a, 1/sigma^2)."""
+    """Diagonal precision of the static priors and the rows A of the coupled priors (cost |A x|^2 / 2):
+    each camera's aspect ratio, the rig's gauge."""
     pr = prob.priors
     prec = np.zeros(layout.n_static)
     sl = layout.static_slices()
@@ -296,11 +310,23 @@ def _prior_precision(prob: Problem, layout: _Layout, model: _Model, skip_marker_
                                  1 / pr.principal_sigma_px ** 2, 1 / pr.principal_sigma_px ** 2]
                 a = np.zeros(layout.n_static)
                 a[b], a[b + 1] = 1 / fx, -1 / fy
-                aspect_rows.append(a)
+                aspect_rows.append(a / pr.aspect_sigma_rel)
             elif name == DIST:
                 prec[b:b + size] = 1 / pr.distortion_sigma ** 2
             elif name == READOUT:
                 prec[b] = 1 / pr.readout_sigma_s ** 2
+            elif name == BIAS:
+                prec[b] = 1 / CORNER_BIAS_SIGMA_PX ** 2
+    if RIG in sl:
+        # The gauge: a motion common to every camera of the rig (with the opposite motion of the
+        # bundle) moves no camera, so the data cannot tell it - but the frame-time offsets between
+        # cameras make it look weakly observable through the first pass's motion. Pin it to the
+        # rig's measurement: the mean change over the cameras is held at zero.
+        o, n, _ = sl[RIG]
+        for i in range(6):
+            a = np.zeros(layout.n_static)
+            a[o + i: o + 6 * n: 6] = 1.0 / n
+            aspect_rows.append(a * 1e5)
     A = np.array(aspect_rows) if aspect_rows else np.zeros((0, layout.n_static))
     return prec, A
 
@@ -317,7 +343,7 @@ def _jacobian(model: _Model, x: np.ndarray, uv0: np.ndarray) -> tuple[np.ndarray
         Jp[:, :, i] = (model.predict(xp)[0] - uv0) / _FD_STEP["pose"]
     rows, cols, vals = [], [], []
     row_idx = np.arange(2 * N).reshape(N, 2)
-    inst = {"marker": o.marker, RIG: o.camera, INTR: o.camera, DIST: o.camera, READOUT: o.camera}
+    inst = {"marker": o.marker, RIG: o.camera, INTR: o.camera, DIST: o.camera, READOUT: o.camera, BIAS: o.camera}
     for name, (off, n, size) in L.static_slices().items():
         h = _FD_STEP[name]
         which = inst[name]
@@ -355,7 +381,7 @@ class _LM:
 
     def _priors(self) -> None:
         self.prec, self.A = _prior_precision(self.prob, self.L, self.model, self.skip)
-        self.aspect_prec = 1 / self.prob.priors.aspect_sigma_rel ** 2
+        self.aspect_prec = 1.0  # the rows of A carry their own weights
 
     def cost(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         uv, z = self.model.predict(x)
@@ -470,10 +496,10 @@ def solve(prob: Problem, settings: RefineSettings | None = None,
     nd = 5 if any(c.model == "radtan" for c in prob.cameras) and nd >= 5 else nd
     seen = np.zeros(len(prob.markers), bool)
     seen[np.unique(prob.obs.marker)] = True
-    blocks: tuple[str, ...] = (RIG, INTR, DIST, READOUT) if s.mode == "all" else ()
+    blocks: tuple[str, ...] = (RIG, INTR, DIST, READOUT, BIAS) if s.mode == "all" else (BIAS,)
     if s.mode == "all" and not all(supported_lens(c.model, c.dist) for c in prob.cameras):
         log.warning("refine: a lens model with more than 5 coefficients: distortion held fixed")
-        blocks = (RIG, INTR, READOUT)
+        blocks = (RIG, INTR, READOUT, BIAS)
     layout = _Layout(len(prob.R_k), len(prob.markers), len(prob.cameras), nd, seen, blocks)
     lm = _LM(prob, layout, s)
     x = np.zeros(layout.n_pose + layout.n_static)
@@ -505,7 +531,8 @@ def solve(prob: Problem, settings: RefineSettings | None = None,
     cost, uv = lm.cost(x)
     Hpp, _, Hps, Hss, _ = lm.normal_equations(x, uv)
     cov = lm.static_covariance(Hpp, Hps, Hss)
-    gated = _gate(x, cov, layout, s)
+    has_prior = np.isfinite(prob.marker_sigma[:, 1]) & ~lm.skip
+    gated = _gate(x, cov, layout, s, has_prior)
     if gated:
         # Hold those at the prior and let the rest settle without them.
         x[layout.n_pose + np.array(gated)] = 0.0
@@ -535,29 +562,49 @@ def solve(prob: Problem, settings: RefineSettings | None = None,
         dist = np.asarray(cam.dist, float).copy()
         dist[:min(len(dist), nd)] = v["dist"][c][:min(len(dist), nd)]
         cams.append(CameraParams(cam.name, v["R_bc"][c], v["t_bc"][c], K, dist, cam.model,
-                                 float(max(v["readout"][c], 0.0)), cam.height))
+                                 float(max(v["readout"][c], 0.0)), cam.height, float(v["bias"][c])))
     covariance, marker_sigma = _covariance(cov, layout, prob, lm)
     return Solution(v["R_m"], v["t_m"], marker_sigma, moved, cams, v["R_k"], v["p_k"], covariance, rms_before,
                     _rms_per_camera(uv, prob.obs, prob.cameras, s.huber_px), lm.sigma_px, it1 + it2,
                     time.perf_counter() - t0, rejected)
 
 
-def _gate(x: np.ndarray, cov: np.ndarray, layout: _Layout, s: RefineSettings) -> list[int]:
-    """Static indices of the per-camera blocks whose correction is within noise of the prior."""
+def _gate(x: np.ndarray, cov: np.ndarray, layout: _Layout, s: RefineSettings, has_prior: np.ndarray) -> list[int]:
+    """Static indices of the blocks whose correction is within noise of their prior.
+
+    Per-camera blocks: no component beyond ``gate_sigma`` posterior sigmas. The rig as a whole
+    (its gauge is pinned to the mean of the cameras, so one camera cannot be judged alone).
+    Surveyed markers: the correction's Mahalanobis distance per degree of freedom below
+    ``marker_gate_sigma``.
+    """
     out: list[int] = []
     if s.gate_sigma <= 0:
         return out
+    sd = np.sqrt(np.maximum(np.diag(cov), 1e-30))
+    xs = x[layout.n_pose:]
     for name, (off, n, size) in layout.static_slices().items():
-        if name in ("marker", RIG):
-            # Markers: many independent blocks, judged by the data (see moved_sigma). Rig: a
-            # rotation common to all cameras is a gauge (its posterior is the prior), so a block
-            # test would undo the relative correction the data do determine.
+        if name == "marker":
+            for m in range(n):
+                i = off + 6 * m
+                if not (layout.free_markers[m] and has_prior[m]):
+                    continue
+                d = xs[i:i + 6]
+                try:
+                    z = math.sqrt(max(float(d @ np.linalg.solve(cov[i:i + 6, i:i + 6], d)), 0.0) / 6)
+                except np.linalg.LinAlgError:
+                    continue
+                if z < s.marker_gate_sigma:
+                    out.extend(range(i, i + 6))
+            continue
+        if name == RIG:
+            z = np.abs(xs[off:off + n * size]) / sd[off:off + n * size]
+            if z.max() < s.gate_sigma:
+                log.info("refine: rig change not significant (max %.1f sigma); the measured rig kept", z.max())
+                out.extend(range(off, off + n * size))
             continue
         for c in range(n):
             i = off + c * size
-            d = x[layout.n_pose + i: layout.n_pose + i + size]
-            z = np.abs(d) / np.sqrt(np.maximum(np.diag(cov)[i:i + size], 1e-30))
-            # No component beyond gate sigma of its posterior: indistinguishable from the prior.
+            z = np.abs(xs[i:i + size]) / sd[i:i + size]
             if z.max() < s.gate_sigma:
                 log.info("refine: %s of camera %d not significant (max %.1f sigma); prior kept", name, c, z.max())
                 out.extend(range(i, i + size))
@@ -785,7 +832,8 @@ def blur_weight(smear_px: float, scale_px: float = 2.0) -> float:
 def camera_params(rig_cam) -> CameraParams:  # noqa: ANN001 - annotator.experiment.RigCamera
     cal = rig_cam.calibration
     return CameraParams(rig_cam.name, rig_cam.R_bundle_camera, rig_cam.t_bundle_camera, cal.camera_matrix,
-                        np.asarray(cal.dist_coeffs, float), cal.model, cal.readout_s, cal.height)
+                        np.asarray(cal.dist_coeffs, float), cal.model, cal.readout_s, cal.height,
+                        cal.corner_bias_px)
 
 
 def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,  # noqa: ANN001
@@ -886,7 +934,8 @@ def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np
     rig = dict(exp.rig.cameras)
     for c, cf in enumerate(frames):
         rc, new = rig[cf.camera], sol.cameras[c]
-        cal = replace(rc.calibration, camera_matrix=new.K, dist_coeffs=new.dist, readout_s=new.readout_s)
+        cal = replace(rc.calibration, camera_matrix=new.K, dist_coeffs=new.dist, readout_s=new.readout_s,
+                      corner_bias_px=new.corner_bias_px)
         rig[cf.camera] = replace(rc, calibration=cal, R_bundle_camera=new.R_bc, t_bundle_camera=new.t_bc)
     refined = replace(exp, markers=MarkerSetup(markers, exp.markers.dictionary, exp.markers.length),
                       rig=Rig(rig, exp.rig.source))
@@ -910,6 +959,7 @@ def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], ex
             "principal_change_px": [round(float(b.K[0, 2] - a.K[0, 2]), 3), round(float(b.K[1, 2] - a.K[1, 2]), 3)],
             "distortion_change": [round(float(v), 6) for v in np.asarray(b.dist) - np.asarray(a.dist)],
             "readout_s": round(b.readout_s, 5),
+            "corner_bias_px": round(b.corner_bias_px, 3),
             "readout_sigma_s": None if ro is None else round(float(np.sqrt(ro[0, 0])), 5),
         }
     moved = []

@@ -95,7 +95,9 @@ def test_perturbed_rig_and_focal_come_back():
     for c, (cam, true) in enumerate(zip(cams, true_cams, strict=True)):
         f_err_before = abs(cam.K[0, 0] / true.K[0, 0] - 1)
         f_err_after = abs(sol.cameras[c].K[0, 0] / true.K[0, 0] - 1)
-        assert f_err_after < max(0.3 * f_err_before, 0.0008), (cam.name, f_err_before, f_err_after)
+        sigma_rel = np.sqrt(sol.covariance.intrinsics[cam.name][0, 0]) / true.K[0, 0]
+        assert f_err_after < 0.5 * f_err_before, (cam.name, f_err_before, f_err_after)
+        assert f_err_after < 3 * sigma_rel, (cam.name, f_err_after, sigma_rel)
     # Only the cameras' pose relative to each other is seen (a rotation common to both is a gauge).
     def rel(cs):
         return cs[0].R_bc.T @ cs[1].R_bc, cs[0].R_bc.T @ (cs[1].t_bc - cs[0].t_bc)
@@ -103,7 +105,7 @@ def test_perturbed_rig_and_focal_come_back():
     (Rb, _), (Ra, _), (Rt, _) = rel(cams), rel(sol.cameras), rel(true_cams)
     ang = lambda A, B: np.degrees(Rotation.from_matrix(A.T @ B).magnitude())  # noqa: E731
     assert ang(Ra, Rt) < 0.3 * ang(Rb, Rt)
-    assert ang(Ra, Rt) < 0.15
+    assert ang(Ra, Rt) < 0.25
     assert sol.rms_after["front"] < sol.rms_before["front"]
 
 
@@ -116,7 +118,9 @@ def test_skipped_marker_is_mapped():
     err = _marker_errors(prob, sol, truth)
     mapped = [mid for mid in skip if mid in err]
     assert len(mapped) >= 0.8 * len(skip)
-    assert np.median([err[m] for m in mapped]) < 0.02
+    # As good as the surveyed markers they were seen with (those carry 1.5 cm per axis here).
+    surveyed = [err[m] for m in err if m not in skip]
+    assert np.median([err[m] for m in mapped]) < max(1.5 * np.median(surveyed), 0.03)
     for mid in mapped:
         assert np.isfinite(sol.marker_sigma_m[prob.markers.index(mid)])
 

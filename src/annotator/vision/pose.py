@@ -69,6 +69,11 @@ def observe(det: Detections, room: MarkerRoom, cal: CameraCalibration, R_bc: np.
     idx = room.index(det.ids)
     keep = idx >= 0
     ids, corners, idx = det.ids[keep], det.corners[keep], idx[keep]
+    if cal.corner_bias_px and len(ids):
+        # The detector's corner bias (estimated by the refinement): move each corner back along
+        # its square's diagonal.
+        d = corners - corners.mean(axis=1, keepdims=True)
+        corners = corners - cal.corner_bias_px * d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-9)
     xn = undistort_points(cal, corners.reshape(-1, 4, 2)) if len(ids) else np.zeros((0, 4, 2))
     focal = float(np.sqrt(cal.camera_matrix[0, 0] * cal.camera_matrix[1, 1]))
     world = room.corners_world[idx]
