@@ -497,6 +497,8 @@ class RunResult:
     labels: Any  # annotator.labeling.Labels, one per reading of `rssi`
     rssi: Any  # annotator.rssi_io.RssiTable: the bundle beacon's readings
     report: dict[str, Any]
+    refinement: Refinement | None = None  # what the self-calibration did (None: --refine none, paper)
+    params: ParameterCovariance | None = None  # uncertainty of the map, rig and lenses tracked with
 
 
 def frames_to_trajectory(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings,
@@ -575,7 +577,8 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
         with _worker_pool(track) as pool:
             frames = _all_videos(exp, track, progress, pool)
     with _worker_pool(track) as pool:
-        traj = frames_to_trajectory(frames, exp, track, pool)
+        result = frames_to_result(frames, exp, track, pool)
+    traj = result.trajectory
 
     poses = Poses(traj.t, traj.position, traj.rotation, sigma=traj.quality.get("sigma_m"),
                   markers=traj.quality.get("markers"))
@@ -599,6 +602,12 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
             span=(float(valid_t[0]), float(valid_t[-1])) if valid_t.size else None,
             markers=exp.markers.markers)
         report["plots"] = {k: p.name for k, p in plots.items()}
+    if result.refinement is not None:
+        from annotator.refine import write_refined
+
+        report["refinement"] = {**result.refinement.report,
+                                "files": {k: f"refined/{v}" for k, v in write_refined(out / "refined",
+                                                                                     result.refinement).items()}}
     write_report(out / "report.json", report)
     log.info("run: %d of %d readings labelled into %s", int(labels.labelled.sum()), len(table), out)
-    return RunResult(traj, sync, labels, table, report)
+    return RunResult(traj, sync, labels, table, report, result.refinement, result.params)

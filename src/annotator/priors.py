@@ -41,7 +41,7 @@ class Priors:
     """1-sigma uncertainties of the inputs the user measured (defaults: a tape-measured room)."""
 
     mode: str = "all"  # none | map | all: what refinement may change (CLI --refine overrides)
-    survey_sigma_m: float = 0.01  # marker centre, per axis
+    survey_sigma_m: float = 0.015  # marker centre, per axis
     survey_sigma_deg: float = 1.0  # marker orientation, per axis
     markers: dict[int, MarkerPrior] = field(default_factory=dict)  # per-marker overrides
     rig_sigma_m: float = 0.003  # camera position in the bundle, per axis
