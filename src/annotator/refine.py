@@ -35,7 +35,9 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -147,6 +149,16 @@ class Solution:
 
 # --- projection -------------------------------------------------------------------------------
 
+def _mv(R: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """R[n] @ v[n] for stacks of 3x3 matrices and 3-vectors."""
+    return (R @ v[:, :, None])[:, :, 0]
+
+
+def _mtv(R: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """R[n]^T @ v[n]."""
+    return (np.swapaxes(R, 1, 2) @ v[:, :, None])[:, :, 0]
+
+
 def _rot(rv: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(rv.reshape(-1, 3)).as_matrix().reshape(*rv.shape[:-1], 3, 3)
 
@@ -229,6 +241,7 @@ class _Model:
         self.row = o.uv[:, 1] / np.array([c.height for c in cams])[o.camera]
         self.models = sorted({c.model for c in cams})
         self.cam_model = np.array([c.model for c in cams])
+        self._cache: dict[str, tuple[bytes, Any]] = {}
 
     def unpack(self, x: np.ndarray) -> dict[str, np.ndarray]:
         L = self.L
@@ -252,19 +265,33 @@ class _Model:
             "R_k": _rot(u["pose"][:, :3]) @ self.p.R_k, "p_k": self.p.p_k + u["pose"][:, 3:],
         }
 
+    def _stage(self, name: str, key: np.ndarray, compute: Callable[[], Any]) -> Any:
+        """The last result of a stage, recomputed only when its inputs changed: a forward
+        difference changes one block, so most evaluations reuse most stages."""
+        k = key.tobytes()
+        hit = self._cache.get(name)
+        if hit is not None and hit[0] == k:
+            return hit[1]
+        value = compute()
+        self._cache[name] = (k, value)
+        return value
+
     def predict(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 2) pixels and (N,) depth."""
         v = self.static_values(x)
         o = self.p.obs
-        X = np.einsum("nij,nj->ni", v["R_m"][o.marker], self.local) + v["t_m"][o.marker]
-        Rk, pk = v["R_k"][o.keyframe], v["p_k"][o.keyframe]
-        Yk = np.einsum("nji,nj->ni", Rk, X - pk)  # R_k^T (X - p_k)
-        tau = v["readout"][o.camera] * self.row
-        R_D = _rot(o.omega * tau[:, None]) @ o.R_D
-        t_D = o.t_D + o.vel * tau[:, None]
-        Y = np.einsum("nji,nj->ni", R_D, Yk - t_D)
+        Yk = self._stage("Yk", np.concatenate([v["R_m"].ravel(), v["t_m"].ravel(), v["R_k"].ravel(), v["p_k"].ravel()]),
+                         lambda: _mtv(v["R_k"][o.keyframe], _mv(v["R_m"][o.marker], self.local) + v["t_m"][o.marker]
+                                      - v["p_k"][o.keyframe]))  # R_k^T (X - p_k)
+
+        def motion() -> tuple[np.ndarray, np.ndarray]:
+            tau = v["readout"][o.camera] * self.row
+            return _rot(o.omega * tau[:, None]) @ o.R_D, o.t_D + o.vel * tau[:, None]
+
+        R_D, t_D = self._stage("motion", v["readout"], motion)
+        Y = _mtv(R_D, Yk - t_D)
         c = o.camera
-        Xc = np.einsum("nji,nj->ni", v["R_bc"][c], Y - v["t_bc"][c])
+        Xc = _mtv(v["R_bc"][c], Y - v["t_bc"][c])
         z = Xc[:, 2]
         zs = np.where(np.abs(z) < 1e-6, 1e-6, z)
         xy = Xc[:, :2] / zs[:, None]
@@ -427,22 +454,24 @@ class _LM:
         except np.linalg.LinAlgError:
             return None
         B = Hps.reshape(L.K, 6, -1)  # (K, 6, S)
-        HinvB = np.einsum("kij,kjs->kis", Hinv, B)
-        Hinvg = np.einsum("kij,kj->ki", Hinv, gp)
-        S = Hss + lam * np.diag(np.maximum(np.diag(Hss), 1e-9)) - np.einsum("kis,kit->st", B, HinvB)
-        rhs = gs - np.einsum("kis,ki->s", B, Hinvg)
+        HinvB = Hinv @ B
+        Hinvg = (Hinv @ gp[:, :, None])[:, :, 0]
+        Bf = B.reshape(-1, B.shape[2])
+        S = Hss + lam * np.diag(np.maximum(np.diag(Hss), 1e-9)) - Bf.T @ HinvB.reshape(Bf.shape)
+        rhs = gs - Bf.T @ Hinvg.ravel()
         try:
             dxs = -np.linalg.solve(S, rhs)
         except np.linalg.LinAlgError:
             return None
-        dxp = -(Hinvg + np.einsum("kis,s->ki", HinvB, dxs))
+        dxp = -(Hinvg + HinvB @ dxs)
         return np.concatenate([dxp.ravel(), dxs])
 
     def static_covariance(self, Hpp: np.ndarray, Hps: np.ndarray, Hss: np.ndarray) -> np.ndarray:
         L = self.L
         Hinv = np.linalg.inv(Hpp + 1e-12 * np.eye(6))
         B = Hps.reshape(L.K, 6, -1)
-        S = Hss - np.einsum("kis,kij,kjt->st", B, Hinv, B)
+        Bf = B.reshape(-1, B.shape[2])
+        S = Hss - Bf.T @ (Hinv @ B).reshape(Bf.shape)
         return np.linalg.pinv(S)
 
     def solve(self, x: np.ndarray, iterations: int) -> tuple[np.ndarray, int]:
@@ -466,7 +495,7 @@ class _LM:
                     improved = True
                     break
                 lam *= 10
-            if not improved or rel < 1e-7:
+            if not improved or rel < 1e-5:
                 break
         return x, it
 
@@ -528,7 +557,7 @@ def solve(prob: Problem, settings: RefineSettings | None = None,
     lm.skip = seen & (dev > s.moved_sigma)
     lm._priors()
     x, it2 = lm.solve(x, s.iterations)
-    cost, uv = lm.cost(x)
+    _, uv = lm.cost(x)
     Hpp, _, Hps, Hss, _ = lm.normal_equations(x, uv)
     cov = lm.static_covariance(Hpp, Hps, Hss)
     has_prior = np.isfinite(prob.marker_sigma[:, 1]) & ~lm.skip
