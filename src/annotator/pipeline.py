@@ -420,17 +420,26 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
         meas = _stack(joint)
         pos, R, sig = smooth(meas, t_out, s, pool)
     refinement = None
-    if settings.refine != "none":
-        refinement = refine_capture(frames, exp, t_out, pos, R, RefineSettings(mode=settings.refine,
-                                                                                exposure_s=settings.exposure_s))
-    if refinement is not None:
-        # Track again with the refined map, rig and lenses; the first pass gives the motion.
+    given = exp
+    rounds = 2 if settings.refine != "none" else 0
+    while rounds:
+        rounds -= 1
+        initial = None if refinement is None else _mapped_poses(refinement)
+        again = refine_capture(frames, given, t_out, pos, R,
+                               RefineSettings(mode=settings.refine, exposure_s=settings.exposure_s), initial)
+        if again is None:
+            break
+        refinement = again
+        # Track again with the refined map, rig and lenses; the last pass gives the motion.
         exp = refinement.experiment
         room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
         joint = resolve_ambiguities(joint_measurements(frames, exp, room, settings, t_out, pos, R, pool,
                                                        resolve_singles=True), s.max_gap_s)
         meas = _stack(joint)
         pos, R, sig = smooth(meas, t_out, s, pool)
+        if not refinement.mapped:
+            break  # a second round only helps when markers were mapped from a trajectory with gaps
+    if refinement is not None:
         params = refinement.covariance
     else:
         cams = {n: c.calibration.camera_matrix for n, c in exp.rig.cameras.items()}
@@ -443,6 +452,13 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
     rms = np.where(hit, meas.rms_px[idx] if len(meas.t) else np.nan, np.nan)
     traj = Trajectory(t_out, pos, R, {"markers": n_markers.astype(float), "rms_px": rms, "sigma_m": sig})
     return TrackResult(traj, refinement, params)
+
+
+def _mapped_poses(refinement: Refinement) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """(R_world_marker, centre) of the markers a refinement mapped from the video."""
+    markers = refinement.experiment.markers.markers
+    return {mid: (Rotation.from_euler("xyz", markers[mid].euler_xyz).as_matrix(), np.asarray(markers[mid].position))
+            for mid in refinement.mapped}
 
 
 def _track_paper(frames: list[CameraFrames], settings: TrackSettings) -> Trajectory:

@@ -740,13 +740,15 @@ def marker_views(keyframes: list[Keyframe], cameras: list[CameraParams],
 
 
 def build_problem(survey: dict[int, tuple[np.ndarray, np.ndarray]], length: float, cameras: list[CameraParams],
-                  keyframes: list[Keyframe], priors: Priors,
-                  moved_m: float = 0.05) -> tuple[Problem, dict[int, tuple[np.ndarray, np.ndarray]]]:
+                  keyframes: list[Keyframe], priors: Priors, moved_m: float = 0.05,
+                  initial: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+                  ) -> tuple[Problem, dict[int, tuple[np.ndarray, np.ndarray]]]:
     """The problem over every marker seen in the keyframes (surveyed or not) and the start values.
 
     ``survey`` maps marker id -> (R_world_marker, centre). Markers not in it, or marked unknown in
     the priors, are free; they start from the median of their views. A surveyed marker whose views
     put it more than ``moved_m`` (and 5 sigma) away from the survey starts from the views too.
+    ``initial`` gives start poses for free markers (an earlier refinement's) instead.
     Returns the problem and the start poses that differ from the survey.
     """
     views = marker_views(keyframes, cameras, length)
@@ -755,6 +757,10 @@ def build_problem(survey: dict[int, tuple[np.ndarray, np.ndarray]], length: floa
         pos = np.median(np.array([c for _, c in vs]), axis=0)
         R = _medoid_rotation([r for r, _ in vs])
         starts[mid] = (R, pos)
+    seen_ids = {int(i) for kf in keyframes for v in kf.views for i in v.ids}
+    for mid, pose in (initial or {}).items():
+        if mid not in survey and mid in seen_ids:
+            starts[mid] = pose
     ids = sorted(set(survey) | set(starts))
     R_m, t_m, sig, start_moved, kept = [], [], [], {}, []
     for mid in ids:
@@ -934,8 +940,12 @@ class Refinement:
 
 
 def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,  # noqa: ANN001
-                   settings: RefineSettings | None = None) -> Refinement | None:
-    """Refine the experiment's map (mode map) and rig, lenses, readouts (mode all) from a first pass."""
+                   settings: RefineSettings | None = None,
+                   initial: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> Refinement | None:
+    """Refine the experiment's map (mode map) and rig, lenses, readouts (mode all) from a first pass.
+
+    ``initial``: start poses (R_world_marker, centre) of markers the survey lacks, from an
+    earlier round."""
     from dataclasses import replace
 
     from annotator.experiment import MarkerSetup, Rig
@@ -951,7 +961,7 @@ def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np
     cams = [camera_params(exp.rig.cameras[cf.camera]) for cf in frames]
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
     survey = {int(m): (room.R_world_marker[i], room.t_world_marker[i]) for i, m in enumerate(room.ids)}
-    prob, starts = build_problem(survey, exp.markers.length, cams, keyframes, exp.priors)
+    prob, starts = build_problem(survey, exp.markers.length, cams, keyframes, exp.priors, initial=initial)
     sol = solve(prob, s, starts)
     euler = Rotation.from_matrix(sol.R_m).as_euler("xyz")
     markers = dict(exp.markers.markers)
