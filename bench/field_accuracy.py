@@ -18,6 +18,7 @@ capture would have (the condition's errors; see docs/renderer.md) and scores the
     lens        a wide k1 = -0.28 lens (calibrated exactly)
     flicker     10 % lamp flicker at 100 Hz
     all         all of the above at once (`annotator simulate --errors field`)
+    surveyed8   all of the above, and only 8 of the room's markers in the map (the rest skipped)
 
 When `annotator track --help` offers `--refine`, every condition is tracked twice: with
 `--refine none` and with the default. Columns: posed share of rows; position error median and
@@ -70,7 +71,7 @@ FILE_KEYS = ("survey_m", "survey_deg", "rig_m", "rig_deg", "focal_rel", "princip
 class Condition:
     name: str
     video: dict[str, object] = field(default_factory=dict)  # overrides of the clean video
-    files: dict[str, float] = field(default_factory=dict)  # FileErrors magnitudes
+    files: dict[str, float | int] = field(default_factory=dict)  # FileErrors magnitudes
 
 
 CLEAN_VIDEO: dict[str, object] = {"lens": "mild", "readout": 0.0, "exposure": 0.0, "flicker": 0.0}
@@ -85,6 +86,8 @@ CONDITIONS = {c.name: c for c in (
     Condition("flicker", video={"flicker": FIELD["flicker"]}),
     Condition("all", video={k: FIELD[k] for k in VIDEO_KEYS},
               files={k: float(FIELD[k]) for k in FILE_KEYS}),
+    Condition("surveyed8", video={k: FIELD[k] for k in VIDEO_KEYS},
+              files={**{k: float(FIELD[k]) for k in FILE_KEYS}, "surveyed": 8}),
 )}
 
 
@@ -228,6 +231,22 @@ def pooled_text(rows: list[Row]) -> list[str]:
     return out
 
 
+def side_by_side(rows: list[Row]) -> str:
+    """Per condition and seed: `--refine none` beside the default (median / p95 cm, rotation deg)."""
+    by = {(r.condition, r.seed, r.refine): r for r in rows}
+    lines = [f"{'condition':11} {'seed':>4} | {'refine none: med / p95 / rot':>30} | {'default: med / p95 / rot':>30} | "
+             f"{'refine s':>8}"]
+    for cond, seed in dict.fromkeys((r.condition, r.seed) for r in rows):
+        a, b = by.get((cond, seed, "none")), by.get((cond, seed, "default"))
+        if a is None or b is None:
+            continue
+        cell = lambda r: (f"{fmt(r.median_cm, '6.2f')} / {fmt(r.p95_cm, '6.2f')} cm / "  # noqa: E731
+                          f"{fmt(r.rot_median_deg, '5.2f')} deg")
+        lines.append(f"{cond:11} {seed:4d} | {cell(a):>30} | {cell(b):>30} | {b.seconds - a.seconds:7.0f}s")
+    lines.append("refine s: the default's time minus refine none's (the refinement and the second pass).")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--duration", type=float, default=30.0, help="length of the walk, s (default 30)")
@@ -270,6 +289,9 @@ def main() -> None:
     print(HEADER)
     for r in rows:
         print(row_text(r))
+    if len(modes) > 1:
+        print()
+        print(side_by_side(rows))
     print(f"conditions: {', '.join(names)} (see --help); errors in cm against the exact truth at the same time; "
           f"'<2.8sig' = share of posed rows with 3-D error < {COVERAGE_K} x sigma_m (~95 % if sigma is honest); "
           f"'err/sig' = median of 3-D error / sigma_m (~1.5 if honest).")

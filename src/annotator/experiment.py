@@ -39,6 +39,9 @@ class CameraCalibration:
     model: str = "radtan"
     readout_s: float = 0.0
     exposure_s: float | None = None  # optional: exposure time, for the motion-blur measure
+    # Detected marker corners sit this far (px) outward (+) or inward (-) of the true corner along
+    # the square's diagonal; estimated by the self-calibration (annotator.refine), 0 otherwise.
+    corner_bias_px: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -163,6 +166,8 @@ LENS_MODELS = {"plumb_bob": "radtan", "rational_polynomial": "radtan", "radtan":
 READOUT_KEY = "rolling_shutter_readout_s"
 # Optional calibration key: exposure time, seconds (the motion-blur measure; default half a frame).
 EXPOSURE_KEY = "exposure_s"
+# Optional calibration key written by the refinement: the detector's corner bias, px.
+CORNER_BIAS_KEY = "marker_corner_bias_px"
 
 def parse_calibration(obj: Any, source: str) -> CameraCalibration:
     """OpenCV FileStorage calibration or ROS camera_info, already parsed from YAML."""
@@ -202,7 +207,14 @@ def parse_calibration(obj: Any, source: str) -> CameraCalibration:
             raise ConfigError(f"{source}: {EXPOSURE_KEY} must be a number (seconds)") from None
         if not 0.0 <= exposure < 1.0:
             raise ConfigError(f"{source}: {EXPOSURE_KEY} must be between 0 and 1 s, not {exposure}")
-    return CameraCalibration(K, dist, width, height, source, model, readout, exposure)
+    try:
+        bias = float(d.get(CORNER_BIAS_KEY, 0.0))
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: {CORNER_BIAS_KEY} must be a number (pixels)") from None
+    if not abs(bias) < 5:
+        raise ConfigError(f"{source}: {CORNER_BIAS_KEY} must be within +-5 px, not {bias}")
+    return CameraCalibration(K, dist, width, height, source, model, readout, exposure_s=exposure,
+                             corner_bias_px=bias)
 
 
 def load_calibration(path: str | Path) -> CameraCalibration:
