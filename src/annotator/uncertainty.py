@@ -149,10 +149,7 @@ class FrameView:
 
 
 def _undistort(cal: CameraCalibration, pixels: np.ndarray, K: np.ndarray | None = None) -> np.ndarray:
-    if K is None:
-        return undistort_points(cal, pixels)
-    return undistort_points(CameraCalibration(K, cal.dist_coeffs, cal.width, cal.height, cal.source, cal.model,
-                                              cal.readout_s), pixels)
+    return undistort_points(cal if K is None else replace(cal, camera_matrix=K), pixels)
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,6 +174,10 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
     if not keep.any():
         return None
     ids, pix, idx = v.ids[keep], v.pixels[keep], idx[keep]
+    bias = float(getattr(v.cal, "corner_bias_px", 0.0) or 0.0)
+    if bias:  # a refined detector corner bias: each corner back along its square's diagonal
+        d_c = pix - pix.mean(axis=1, keepdims=True)
+        pix = pix - bias * d_c / np.maximum(np.linalg.norm(d_c, axis=2, keepdims=True), 1e-9)
     K = v.cal.camera_matrix
     focal = float(np.sqrt(K[0, 0] * K[1, 1]))
     xn = _undistort(v.cal, pix).reshape(-1, 2)
