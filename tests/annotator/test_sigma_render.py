@@ -39,8 +39,8 @@ def test_sigma_covers_field_errors_without_being_useless(field_track):
     z = cmp.position_error[ok] / sigma
     print(f"error median {100 * np.median(pos):.2f} cm, sigma median {100 * np.median(sigma):.2f} cm, "
           f"within 2.8 sigma {100 * np.mean(z < 2.8):.1f} %, median error/sigma {np.median(z):.2f}")
-    # These errors are centimetres (the smoother alone claims millimetres and covered 0 %).
-    assert np.median(pos) > 0.01
+    # The smoother's noise alone claims far too little for these errors (it covered 0 % before).
+    assert np.mean(cmp.position_error[ok] < 2.8 * traj.quality["sigma_smoother_m"][ok]) < 0.5
     assert np.mean(z < 2.8) >= 0.8
     # Not useless: a 3-D error is typically ~1.5 per-axis sigma; far below that, sigma is padding.
     assert 0.5 < np.median(z) < 3.0
