@@ -378,7 +378,7 @@ def _views_at(frames: Sequence[object], exp: Experiment, t_out: np.ndarray, pos:
 
 
 def _scales(var: np.ndarray, q: np.ndarray, e: np.ndarray, dof: np.ndarray,
-            settings: UncertaintySettings) -> dict[str, float]:
+            settings: UncertaintySettings, shrink: bool = True) -> dict[str, float]:
     """Each block's scale from the residual energy of the whole capture.
 
     Regression over the rows: e = c dof + sum_b s_b^2 q_b (e: energy beyond the within-marker
@@ -388,6 +388,8 @@ def _scales(var: np.ndarray, q: np.ndarray, e: np.ndarray, dof: np.ndarray,
     hold significantly more than the (shrunk) priors predict, every block is inflated by the
     lower end of that common factor's 2-sigma range (the priors were optimistic, or something
     unmodelled moves the corners).
+    ``shrink`` False (a posterior covariance, e.g. from refinement: its parameters were fitted to these
+    same residuals, which therefore no longer show their errors): blocks are never scaled down.
     """
     out = {b: 1.0 for b in BLOCKS}
     use = np.isfinite(e) & (dof > 2) & np.isfinite(q).all(1)
@@ -407,7 +409,8 @@ def _scales(var: np.ndarray, q: np.ndarray, e: np.ndarray, dof: np.ndarray,
     coef, se = fit([dof[use]] + [q[use, k] for k in ks])
     for c, k in enumerate(ks, 1):
         upper = coef[c] + 2.0 * se[c]
-        out[BLOCKS[k]] = float(np.clip(math.sqrt(max(upper, 0.0)), settings.min_scale, 1.0))
+        if shrink:
+            out[BLOCKS[k]] = float(np.clip(math.sqrt(max(upper, 0.0)), settings.min_scale, 1.0))
     shrunk = q[use] @ np.array([out[b] ** 2 for b in BLOCKS])
     coef2, se2 = fit([dof[use], shrunk])
     lower = coef2[1] - 2.0 * se2[1]
@@ -423,6 +426,9 @@ def row_uncertainty(frames: Sequence[object], exp: Experiment, t_out: np.ndarray
                     params: ParameterCovariance | None = None,
                     settings: UncertaintySettings | None = None) -> RowUncertainty:
     """Parameter, blur and smear figures of every trajectory row (pose of the smoothed trajectory).
+
+    ``params`` None: the experiment's priors, checked against the capture's residuals (see
+    ``_scales``); given: a posterior (refinement), only ever scaled up by that check.
 
     ``frames`` are the pipeline's CameraFrames (camera, t, detections, frame_interval).
     """
@@ -452,7 +458,7 @@ def row_uncertainty(frames: Sequence[object], exp: Experiment, t_out: np.ndarray
         var[k], q[k], e[k], dof[k] = out
         sp = jac["image_speed"]
         smear[k] = float(np.median(sp)) * max(exposure[v.camera] for v in views[k])  # type: ignore[arg-type]
-    scales = _scales(var, q, e, dof, s)
+    scales = _scales(var, q, e, dof, s, shrink=params is None)
     var = var * np.array([scales[b] ** 2 for b in BLOCKS])[None, :]
     if log.isEnabledFor(logging.DEBUG) and np.isfinite(var).any():
         med = np.sqrt(np.nanmedian(var, axis=0))
