@@ -448,10 +448,9 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
         pos, R, sig = smooth(meas, t_out, s, pool)
         if not refinement.mapped:
             break  # a second round only helps when markers were mapped from a trajectory with gaps
-    if params is not None:
-        pass  # the caller's
-    elif refinement is not None:
-        params = refinement.covariance
+    posterior = params if params is not None else (refinement.covariance if refinement is not None else None)
+    if posterior is not None:
+        params = posterior
     else:
         cams = {n: c.calibration.camera_matrix for n, c in exp.rig.cameras.items()}
         params = ParameterCovariance.from_priors(exp.priors, [int(i) for i in room.ids], cams)
@@ -461,7 +460,8 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
     hit = (len(meas.t) > 0) & (np.abs(meas.t[idx] - t_out) < 1e-6) if len(meas.t) else np.zeros(len(t_out), bool)
     n_markers = np.where(hit, meas.n_markers[idx] if len(meas.t) else 0, 0)
     rms = np.where(hit, meas.rms_px[idx] if len(meas.t) else np.nan, np.nan)
-    u = row_uncertainty(frames, exp, t_out, pos, R, params, settings.uncertainty)
+    # The priors (posterior None) are checked against the residuals; a posterior is not shrunk.
+    u = row_uncertainty(frames, exp, t_out, pos, R, posterior, settings.uncertainty)
     traj = Trajectory(t_out, pos, R, {"markers": n_markers.astype(float), "rms_px": rms,
                                       **total_sigma(sig, u, settings.uncertainty)})
     return TrackResult(traj, refinement, params)
