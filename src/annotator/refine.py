@@ -979,8 +979,11 @@ def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np
     rig = dict(exp.rig.cameras)
     for c, cf in enumerate(frames):
         rc, new = rig[cf.camera], sol.cameras[c]
-        cal = replace(rc.calibration, camera_matrix=new.K, dist_coeffs=new.dist, readout_s=new.readout_s,
-                      corner_bias_px=new.corner_bias_px)
+        # The corner bias is estimated (it keeps small markers from looking too far away in the
+        # adjustment) and reported, but not applied to the final pass: its frames see several
+        # markers each, where a constant correction of a bias that varies with a marker's size
+        # in the image removes no more error than it adds (measured on the renders).
+        cal = replace(rc.calibration, camera_matrix=new.K, dist_coeffs=new.dist, readout_s=new.readout_s)
         rig[cf.camera] = replace(rc, calibration=cal, R_bundle_camera=new.R_bc, t_bundle_camera=new.t_bc)
     refined = replace(exp, markers=MarkerSetup(markers, exp.markers.dictionary, exp.markers.length),
                       rig=Rig(rig, exp.rig.source))
@@ -1034,7 +1037,8 @@ def _write_calibration(path: object, cal) -> None:  # noqa: ANN001 - CameraCalib
         if cal.model != "radtan":
             fs.write("distortion_model", cal.model)
         fs.write(READOUT_KEY, float(cal.readout_s))
-        fs.write(CORNER_BIAS_KEY, float(cal.corner_bias_px))
+        if cal.corner_bias_px:
+            fs.write(CORNER_BIAS_KEY, float(cal.corner_bias_px))
     finally:
         fs.release()
 
