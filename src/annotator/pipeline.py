@@ -3,7 +3,9 @@
 Per video (in parallel processes with jobs > 1): decode by PTS -> detect markers -> per-frame
 bundle pose from that camera. Then, for method ``rig``: choose between mirror solutions of
 single-marker frames -> smooth (pass 1) -> joint two-camera solves of near-simultaneous frames,
-motion-compensated with the pass-1 trajectory -> smooth again. Method ``paper``: per-marker poses
+motion-compensated with the pass-1 trajectory -> smooth again -> (refine != none) self-calibration
+over keyframes (annotator.refine) -> joint solves with the refined map, rig and lenses (rolling
+shutter from the previous pass's motion) -> smooth again. Method ``paper``: per-marker poses
 -> batches -> selection -> random-walk Kalman filter.
 With jobs > 1 one process pool serves the whole run: the videos, then the joint solves and the
 rotation half of each smoothing pass.
@@ -381,10 +383,13 @@ def _single_solver(exp: Experiment, room: MarkerRoom, settings: TrackSettings,
     """A frame's single-camera pose: the first pass's, or (resolve) solved again with ``exp``'s
     parameters (after refinement the first pass's poses carry the old map, rig and lenses)."""
     def single(cf: CameraFrames, j: int) -> BundlePose | None:
-        if not resolve or cf.poses[j] is None:
+        if not resolve or (cf.poses[j] is None and not len(cf.detections[j].ids)):
             return cf.poses[j]
         cam = exp.rig.cameras[cf.camera]
         obs = observe(cf.detections[j], room, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera)
+        # A frame the first pass could not solve may see markers the refinement mapped.
+        if cf.poses[j] is None:
+            return solve_bundle_pose([obs], room, settings.solver)
         prior = (cf.poses[j].R_wb, cf.poses[j].t_wb)
         return solve_bundle_pose([obs], room, settings.solver, prior, prior_first=True)
     return single

@@ -72,7 +72,12 @@ class RefineSettings:
     # Corrections of a static block smaller than this many of its posterior sigma are not applied:
     # on an exact capture the data move nothing beyond noise, and the prior is kept.
     gate_sigma: float = 3.0
-    marker_gate_sigma: float = 1.0  # the same for a surveyed marker (Mahalanobis, per dof)
+    marker_gate_sigma: float = 1.0  # the same for a surveyed marker (Mahalanobis, per dof) ...
+    # ... against its posterior widened by these floors: corner errors that are the same in every
+    # frame (a bias that depends on the marker's size in the image, print flaws) move a marker by a
+    # few mm with a confidence the data do not have.
+    marker_floor_m: float = 0.005
+    marker_floor_deg: float = 0.3
     exposure_s: float = 0.008  # assumed exposure for the motion-blur measure
     max_smear_px: float = 3.0  # keyframes whose predicted smear exceeds this are not used
 
@@ -618,8 +623,9 @@ def _gate(x: np.ndarray, cov: np.ndarray, layout: _Layout, s: RefineSettings, ha
                 if not (layout.free_markers[m] and has_prior[m]):
                     continue
                 d = xs[i:i + 6]
+                floor = np.diag([math.radians(s.marker_floor_deg) ** 2] * 3 + [s.marker_floor_m ** 2] * 3)
                 try:
-                    z = math.sqrt(max(float(d @ np.linalg.solve(cov[i:i + 6, i:i + 6], d)), 0.0) / 6)
+                    z = math.sqrt(max(float(d @ np.linalg.solve(cov[i:i + 6, i:i + 6] + floor, d)), 0.0) / 6)
                 except np.linalg.LinAlgError:
                     continue
                 if z < s.marker_gate_sigma:
@@ -973,8 +979,11 @@ def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np
     rig = dict(exp.rig.cameras)
     for c, cf in enumerate(frames):
         rc, new = rig[cf.camera], sol.cameras[c]
-        cal = replace(rc.calibration, camera_matrix=new.K, dist_coeffs=new.dist, readout_s=new.readout_s,
-                      corner_bias_px=new.corner_bias_px)
+        # The corner bias is estimated (it keeps small markers from looking too far away in the
+        # adjustment) and reported, but not applied to the final pass: its frames see several
+        # markers each, where a constant correction of a bias that varies with a marker's size
+        # in the image removes no more error than it adds (measured on the renders).
+        cal = replace(rc.calibration, camera_matrix=new.K, dist_coeffs=new.dist, readout_s=new.readout_s)
         rig[cf.camera] = replace(rc, calibration=cal, R_bundle_camera=new.R_bc, t_bundle_camera=new.t_bc)
     refined = replace(exp, markers=MarkerSetup(markers, exp.markers.dictionary, exp.markers.length),
                       rig=Rig(rig, exp.rig.source))
@@ -1028,7 +1037,8 @@ def _write_calibration(path: object, cal) -> None:  # noqa: ANN001 - CameraCalib
         if cal.model != "radtan":
             fs.write("distortion_model", cal.model)
         fs.write(READOUT_KEY, float(cal.readout_s))
-        fs.write(CORNER_BIAS_KEY, float(cal.corner_bias_px))
+        if cal.corner_bias_px:
+            fs.write(CORNER_BIAS_KEY, float(cal.corner_bias_px))
     finally:
         fs.release()
 

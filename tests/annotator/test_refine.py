@@ -56,11 +56,11 @@ def _scene(seed: int = 0, survey=(0.015, 1.0), rig=(0.003, 1.0), focal_rel=0.004
     return truth, survey_map, cams, true_cams, keyframes, room.length
 
 
-def _solve(survey_map, cams, keyframes, length, priors=None, mode="all"):
+def _solve(survey_map, cams, keyframes, length, priors=None, mode="all", **settings):
     priors = priors or Priors(survey_sigma_m=0.015, survey_sigma_deg=1.0, rig_sigma_m=0.003, rig_sigma_deg=1.0,
                               focal_sigma_rel=0.005, readout_sigma_s=1e-4)
     prob, starts = build_problem(survey_map, length, cams, keyframes, priors)
-    return prob, solve(prob, RefineSettings(mode=mode), starts)
+    return prob, solve(prob, RefineSettings(mode=mode, **settings), starts)
 
 
 def _marker_errors(prob, sol, truth):
@@ -72,7 +72,8 @@ def _marker_errors(prob, sol, truth):
 
 def test_perturbed_map_comes_back_within_its_sigma():
     truth, survey_map, cams, true_cams, keyframes, length = _scene(rig=(0, 0), focal_rel=0)
-    prob, sol = _solve(survey_map, true_cams, keyframes, length, mode="map")
+    # The estimate itself: no gate (a marker whose correction is within noise would keep its survey).
+    prob, sol = _solve(survey_map, true_cams, keyframes, length, mode="map", gate_sigma=0)
     before, after, sig = [], [], []
     counts = np.bincount(prob.obs.marker, minlength=len(prob.markers))
     for m, mid in enumerate(prob.markers):
@@ -107,6 +108,19 @@ def test_perturbed_rig_and_focal_come_back():
     assert ang(Ra, Rt) < 0.3 * ang(Rb, Rt)
     assert ang(Ra, Rt) < 0.25
     assert sol.rms_after["front"] < sol.rms_before["front"]
+
+
+def test_exact_files_stay_exact():
+    """Nothing the data do not demand is changed: an exact map, rig and lens come back unchanged."""
+    truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=5, survey=(0, 0), rig=(0, 0), focal_rel=0)
+    prob, sol = _solve(survey_map, true_cams, keyframes, length)
+    moved = [np.linalg.norm(sol.t_m[m] - survey_map[mid][1]) for m, mid in enumerate(prob.markers)]
+    assert np.median(moved) < 1e-6
+    assert max(moved) < 0.005
+    for c, cam in enumerate(true_cams):
+        assert np.allclose(sol.cameras[c].K, cam.K)
+        assert np.allclose(sol.cameras[c].R_bc, cam.R_bc)
+    assert not sol.moved
 
 
 def test_skipped_marker_is_mapped():
