@@ -135,7 +135,7 @@ def bare(args) -> dict:
 
 def collector(args) -> dict:
     from collector.config import CollectorConfig
-    from collector.server import Collector
+    from collector.service import Collector
 
     ep = f"tcp/127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory() as tmp:

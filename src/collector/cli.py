@@ -1,4 +1,4 @@
-"""`collector` command line: a thin typer app over collector.server (serve, record) and
+"""`collector` command line: a thin typer app over collector.service (serve, record) and
 collector.client (start, stop, status, runs, live)."""
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ def serve(
     """Run the collector: the Zenoh router agents connect to. Stops cleanly on Ctrl-C / SIGTERM.
 
     A run left active by a killed collector is resumed on the same data directory."""
-    from collector.server import Collector
+    from collector.service import Collector
 
     try:
         cfg = _load(config, data_dir, listen, site, insecure)
@@ -108,7 +108,7 @@ def record(
     insecure: InsecureOpt = False,
 ) -> None:
     """Serve, start a run, record until --duration or Ctrl-C, stop it, exit: all in the foreground."""
-    from collector.server import Collector
+    from collector.service import Collector
 
     try:
         cfg = _load(config, data_dir, listen, site, insecure)

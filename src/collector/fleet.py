@@ -19,7 +19,7 @@ from rich.table import Table
 
 from ble_groundtruth import wire
 from ble_groundtruth.deploy.inventory import InventoryError, load_inventory
-from ble_groundtruth.zenoh_config import SessionSpec, TlsFiles, build_config
+from ble_groundtruth.zenoh_config import SessionSpec, TlsFiles, build_config, zenoh_reason
 
 app = typer.Typer(
     name="fleet", no_args_is_help=True, help="The deployed fleet (reads deploy/'s inventory)."
@@ -202,7 +202,7 @@ def status(
         session = zenoh.open(build_config(SessionSpec(mode="client", connect=[endpoint], tls=tls)))
     except zenoh.ZError as e:
         err_console.print(
-            f"[red]cannot reach the collector at {escape(endpoint)}: {escape(str(e).splitlines()[0])}[/red]"
+            f"[red]cannot reach the collector at {escape(endpoint)}: {escape(zenoh_reason(e))}[/red]"
         )
         raise typer.Exit(1) from None
     try:

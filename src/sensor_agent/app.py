@@ -21,7 +21,7 @@ from typing import Any
 from ble_groundtruth import __version__
 from ble_groundtruth.sdnotify import Notifier
 from ble_groundtruth.wire import Reading, check_reading
-from ble_groundtruth.zenoh_config import SessionSpec, build_config
+from ble_groundtruth.zenoh_config import SessionSpec, build_config, zenoh_reason
 from sensor_agent.clockhealth import read_chrony
 from sensor_agent.config import AgentConfig, AllowList
 from sensor_agent.errors import AckTimeout, AgentError, BackendError
@@ -259,8 +259,7 @@ class Agent:
         try:
             session = await asyncio.to_thread(zenoh.open, build_config(spec))
         except zenoh.ZError as e:
-            # Zenoh appends the Rust source location after two spaces; the reason comes first.
-            reason = str(e).splitlines()[0].split("  at ")[0].strip() if str(e) else ""
+            reason = zenoh_reason(e)
             if "Unable to connect" in reason or "Timeout" in reason:
                 if first:
                     log.warning("cannot reach the Zenoh router at %s yet (%s); recording "

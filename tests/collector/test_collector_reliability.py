@@ -22,9 +22,10 @@ from ble_groundtruth import wire
 from ble_groundtruth.sdnotify import Notifier
 from collector.client import CollectorClient
 from collector.config import CollectorConfig, load_config
+from collector.control import clock_sample
 from collector.errors import CollectorError, CommandFailed, ConfigError
 from collector.ingest import StreamTracker, decode
-from collector.server import Collector, clock_sample
+from collector.service import Collector
 from collector.store import STATE_FILE, RunWriter, repair_file
 
 A, B = "b827eb4521b4", "000000000101"
@@ -241,15 +242,9 @@ def test_restart_resumes_the_same_run_without_loss_or_duplicates(tmp_path, endpo
     for b in sent[:20]:
         ag.put(b)
     wait_for(lambda: ag.acked(A) == 19, what="acks before the crash")
-    # Simulate the crash: freeze the old collector (session closed, threads stopped, files not
-    # finalised, run.yaml still says stop: null) and leave a torn line as a killed write would.
-    first._closing.set()
-    for d in first._decls:
-        d.undeclare()
-    first._session.close()
-    first._session = None
-    for t in first._threads:
-        t.join(5)
+    # Simulate the crash: the old collector stops as a killed one would (run not finalised,
+    # run.yaml still says stop: null), and a torn line is left as a killed write would.
+    first.abandon()
     mbd = Path(run["run_dir"]) / "rssi" / "pi-01" / f"{A}.mbd"
     with mbd.open("ab") as f:
         f.write(b"1700000000.12345,b827eb4521b4,e78")
@@ -515,8 +510,8 @@ def test_full_receive_queue_drops_unacknowledged_after_waiting(tmp_path, caplog)
     c = Collector(CollectorConfig(data_dir=tmp_path), queue_bytes=2 * one)
     key = wire.data_key("default", "pi-01", A)
     for i in range(4):
-        c._on_sample(_Sample(key, wire.to_wire(make_batch(i, sensor=A))))
-    status = c._do_status()
+        c.inbox.on_sample(_Sample(key, wire.to_wire(make_batch(i, sensor=A))))
+    status = c.status_now()
     assert (status["queue"], status["queue_overflow"]) == (2, 2)
-    assert c._tracker.streams == {}  # dropped before dedupe: nothing will be acknowledged for them
+    assert c.writer.tracker.streams == {}  # dropped before dedupe: nothing will be acknowledged for them
     assert sum("receive queue full" in r.message for r in caplog.records) == 1  # rate-limited

@@ -15,7 +15,7 @@ from ble_groundtruth import wire
 from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import CollectorError, CommandFailed, Unreachable
-from collector.server import Collector
+from collector.service import Collector
 
 A, B = "b827eb4521b4", "000000000101"
 
