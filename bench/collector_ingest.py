@@ -14,13 +14,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import subprocess
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from loopback import free_port  # noqa: E402 - the tests' port helper, on the path above
 
 AGENT, BOOT = "bench", "00000000000000be"
 T0 = 1_700_000_000 * 10**9
@@ -84,12 +86,6 @@ def publisher(connect: str, seconds: float, batch: int, sensors: int, rate: floa
     sys.stdout.flush()
     time.sleep(0.5)
     s.close()
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def run_publisher(ep: str, args) -> tuple[subprocess.Popen, float]:

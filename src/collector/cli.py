@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from ble_groundtruth.wire import WireError
 from collector.errors import CollectorError
 from collector.fleet import app as fleet_app
 
@@ -158,12 +159,12 @@ def start(
     checked first: one warning line per agent off by more than --max-offset-ms."""
     try:
         with _client(connect, site, root_ca, cert, key) as c:
-            reply = c.start(name, max_offset_ms=max_offset_ms, strict=strict)
-    except CollectorError as e:
+            reply = c.start_typed(name, max_offset_ms=max_offset_ms, strict=strict)
+    except (CollectorError, WireError) as e:
         raise _fail(e) from None
-    for w in reply.get("clock_warnings", []):
+    for w in reply.clock_warnings:
         err_console.print(f"[yellow]warning: {escape(w)}", highlight=False, soft_wrap=True)
-    console.print(reply["run_id"], highlight=False)
+    console.print(reply.run_id, highlight=False)
 
 
 @app.command()
@@ -172,12 +173,12 @@ def stop(connect: ConnectOpt = DEFAULT_ENDPOINT, site: SiteOpt = "default", root
     """Stop the current run after draining what is in flight; prints the run directory."""
     try:
         with _client(connect, site, root_ca, cert, key) as c:
-            reply = c.stop()
-    except CollectorError as e:
+            reply = c.stop_typed()
+    except (CollectorError, WireError) as e:
         raise _fail(e) from None
-    if reply.get("missing_batches"):
-        err_console.print(f"[yellow]{reply['missing_batches']} batches never arrived (see run.yaml)")
-    console.print(reply["run_dir"], highlight=False, soft_wrap=True)
+    if reply.missing_batches:
+        err_console.print(f"[yellow]{reply.missing_batches} batches never arrived (see run.yaml)")
+    console.print(reply.run_dir, highlight=False, soft_wrap=True)
 
 
 @app.command()

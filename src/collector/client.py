@@ -7,6 +7,7 @@ import json
 from typing import Any
 
 from ble_groundtruth import wire
+from ble_groundtruth.messages import Reply, StartReply, StartRequest, StopReply
 from ble_groundtruth.zenoh_config import DEFAULT_ENDPOINT, SessionSpec, TlsFiles, build_config
 from collector.errors import CommandFailed, Unreachable
 
@@ -56,24 +57,28 @@ class CollectorClient:
         for reply in replies:
             if reply.ok is None:
                 raise CommandFailed(f"{command}: {reply.err.payload.to_string()}")
-            msg = wire.from_json(reply.ok.payload.to_bytes(), f"{command} reply")
-            if not msg.get("ok"):
-                raise CommandFailed(f"{command}: {msg.get('error', 'failed without a reason')}")
-            msg.pop("ok", None)
-            return msg
+            msg = Reply.from_dict(wire.from_json(reply.ok.payload.to_bytes(), f"{command} reply"),
+                                  command)
+            if not msg.ok:
+                raise CommandFailed(f"{command}: {msg.error or 'failed without a reason'}")
+            return msg.body
         raise Unreachable(self._no_reply(command))
 
     def start(self, name: str | None = None, *, max_offset_ms: float | None = None,
               strict: bool = False) -> dict[str, Any]:
-        req: dict[str, Any] = {"name": name}
-        if max_offset_ms is not None:
-            req["max_offset_ms"] = max_offset_ms
-        if strict:
-            req["strict"] = True
-        return self.call("start", req)
+        return self.call("start", StartRequest(name, max_offset_ms, strict).to_dict())
 
     def stop(self) -> dict[str, Any]:
         return self.call("stop")
+
+    def start_typed(self, name: str | None = None, *, max_offset_ms: float | None = None,
+                    strict: bool = False) -> StartReply:
+        """``start``, its reply checked and typed."""
+        return StartReply.from_dict(self.start(name, max_offset_ms=max_offset_ms, strict=strict))
+
+    def stop_typed(self) -> StopReply:
+        """``stop``, its reply checked and typed."""
+        return StopReply.from_dict(self.stop())
 
     def status(self) -> dict[str, Any]:
         return self.call("status")

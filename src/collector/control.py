@@ -7,6 +7,7 @@ so neither Zenoh's callbacks nor the writer ever wait on the network.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import threading
@@ -15,6 +16,17 @@ from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
 
 from ble_groundtruth import wire
+from ble_groundtruth.messages import (
+    AgentClock,
+    AgentStatus,
+    ClockReply,
+    ClockRequest,
+    ClockSample,
+    Reply,
+    StartReply,
+    StartRequest,
+    StopReply,
+)
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
 from collector.store import iso_utc, list_runs
@@ -34,7 +46,7 @@ class AgentBook:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._alive: dict[str, bool] = {}
-        self._info: dict[str, dict[str, Any]] = {}
+        self._info: dict[str, AgentStatus] = {}
         self._pending: set[str] = set()
 
     def set_alive(self, agent: str, alive: bool) -> None:
@@ -49,13 +61,13 @@ class AgentBook:
         with self._lock:
             return {a for a, alive in self._alive.items() if alive}
 
-    def set_info(self, agent: str, info: dict[str, Any]) -> None:
+    def set_info(self, agent: str, info: AgentStatus) -> None:
         with self._lock:
             self._info[agent] = info
 
-    def infos(self) -> dict[str, dict[str, Any]]:
+    def infos(self) -> dict[str, AgentStatus]:
         with self._lock:
-            return {a: dict(i) for a, i in self._info.items()}
+            return dict(self._info)
 
     def claim_fetch(self, agent: str) -> bool:
         """True if nobody has asked for this agent's status yet (and it is now pending)."""
@@ -68,49 +80,6 @@ class AgentBook:
     def fetched(self, agent: str) -> None:
         with self._lock:
             self._pending.discard(agent)
-
-
-def clock_sample(msg: dict[str, Any], t1: int, t4: int, at: str) -> dict[str, Any]:
-    """One clock measurement from an agent's reply (t1 echoed, t2, t3) and our t4, all Unix ns."""
-    t2, t3 = msg.get("t2"), msg.get("t3")
-    if msg.get("t1") != t1:
-        raise wire.InvalidField("clock reply does not echo our t1")
-    if not (
-        isinstance(t2, int)
-        and not isinstance(t2, bool)
-        and isinstance(t3, int)
-        and not isinstance(t3, bool)
-    ):
-        raise wire.InvalidField("clock reply needs integer t2 and t3 (ns)")
-    chrony = msg.get("chrony")
-    if chrony is not None and not isinstance(chrony, dict):
-        raise wire.InvalidField("clock reply chrony must be an object or null")
-    offset = ((t2 - t1) + (t3 - t4)) / 2
-    rtt = (t4 - t1) - (t3 - t2)
-    return {
-        "at": at,
-        "offset_ms": round(offset / 1e6, 3),
-        "rtt_ms": round(rtt / 1e6, 3),
-        "chrony": chrony,
-    }
-
-
-def _request_name(req: dict[str, Any]) -> str | None:
-    name = req.get("name")
-    if name is not None and not isinstance(name, str):
-        raise CollectorError("start: name must be a string or null")
-    return name
-
-
-def _request_clock_limits(req: dict[str, Any]) -> tuple[float | None, bool]:
-    max_off, strict = req.get("max_offset_ms"), req.get("strict", False)
-    if max_off is not None and (
-        isinstance(max_off, bool) or not isinstance(max_off, int | float) or max_off < 0
-    ):
-        raise CollectorError("start: max_offset_ms must be a non-negative number or null")
-    if not isinstance(strict, bool):
-        raise CollectorError("start: strict must be true or false")
-    return (None if max_off is None else float(max_off)), strict
 
 
 class Control:
@@ -194,27 +163,31 @@ class Control:
                 raw = query.payload.to_bytes()
             if raw.strip():
                 req = wire.from_json(raw, f"{cmd} request")
-            reply: dict[str, Any] | None
+            body: dict[str, Any] = {}
             if cmd == "start":
-                max_off, strict = _request_clock_limits(req)
-                reply = self.start_run(_request_name(req), max_offset_ms=max_off, strict=strict)
+                try:
+                    start = StartRequest.from_dict(req)
+                except wire.InvalidField as e:  # a well-formed request with a bad value
+                    raise CollectorError(str(e)) from None
+                body = self.start_run(start).to_dict()
             elif cmd == "stop":
-                reply = self.stop_run()
+                stopped = self.stop_run()
+                body = {} if stopped is None else stopped.to_dict()
             elif cmd == "status":
-                reply = self.status()
+                body = self.status()
             else:
-                reply = {"runs": list_runs(self.cfg.data_dir)}
-            reply = {"ok": True, **(reply or {})}
+                body = {"runs": list_runs(self.cfg.data_dir)}
+            reply = Reply(True, body=body)
         except wire.WireError as e:
             self.inbox.reject("bad_request", key, str(e), raw)
-            reply = {"ok": False, "error": str(e)}
+            reply = Reply(False, str(e))
         except CollectorError as e:
-            reply = {"ok": False, "error": str(e)}
+            reply = Reply(False, str(e))
         except Exception as e:
             log.exception("control command %s failed", cmd)
-            reply = {"ok": False, "error": f"internal error: {type(e).__name__}: {e}"}
+            reply = Reply(False, f"internal error: {type(e).__name__}: {e}")
         try:
-            query.reply(key, wire.to_json(reply))
+            query.reply(key, wire.to_json(reply.to_dict()))
         except Exception as e:  # noqa: BLE001 - the asker may be gone; the collector goes on
             log.warning("could not answer %s: %s", cmd, e)
         finally:
@@ -222,52 +195,42 @@ class Control:
 
     # -- runs ---------------------------------------------------------------------------------------
 
-    def start_run(
-        self,
-        name: str | None = None,
-        timeout: float = 10.0,
-        *,
-        max_offset_ms: float | None = None,
-        strict: bool = False,
-    ) -> dict[str, Any]:
-        """Start a run; agents' clocks are measured first. With ``strict``, an agent whose clock
-        is off by more than ``max_offset_ms`` refuses the start (CollectorError)."""
+    def start_run(self, req: StartRequest, timeout: float = 10.0) -> StartReply:
+        """Start a run; agents' clocks are measured first. With ``req.strict``, an agent whose
+        clock is off by more than ``req.max_offset_ms`` refuses the start (CollectorError)."""
         w = self.writer
         if w.run_active:  # answer at once, without asking the agents anything first
-            return w.call(lambda: w.start(name, {}), timeout)
+            return w.call(lambda: w.start(req.name, {}), timeout)
         self.refresh_agents()
         samples = self.measure_clocks()
         warnings = []
-        if max_offset_ms is not None:
+        limit = req.max_offset_ms
+        if limit is not None:
             for agent, smp in sorted(samples.items()):
-                if abs(smp["offset_ms"]) > max_offset_ms:
+                if abs(smp.offset_ms) > limit:
                     warnings.append(
-                        f"agent {agent}: clock offset {smp['offset_ms']:+.1f} ms "
-                        f"exceeds {max_offset_ms:g} ms (round trip "
-                        f"{smp['rtt_ms']:.1f} ms)"
+                        f"agent {agent}: clock offset {smp.offset_ms:+.1f} ms "
+                        f"exceeds {limit:g} ms (round trip {smp.rtt_ms:.1f} ms)"
                     )
-        if strict and warnings:
+        if req.strict and warnings:
             more = f" ({len(warnings) - 1} more agents off)" if len(warnings) > 1 else ""
             raise CollectorError(
                 f"{warnings[0]}; fix its time sync (chrony) or start without --strict{more}"
             )
-        reply = w.call(lambda: w.start(name, samples), timeout)
-        reply["clock"] = {
-            a: {"offset_ms": v["offset_ms"], "rtt_ms": v["rtt_ms"]} for a, v in samples.items()
-        }
-        reply["clock_warnings"] = warnings
-        return reply
+        started = w.call(lambda: w.start(req.name, samples), timeout)
+        clock = {a: AgentClock(v.offset_ms, v.rtt_ms) for a, v in samples.items()}
+        return dataclasses.replace(started, clock=clock, clock_warnings=tuple(warnings))
 
     def stop_run(
         self, *, reason: str = "requested", missing_ok: bool = False, timeout: float = 60.0
-    ) -> dict[str, Any] | None:
+    ) -> StopReply | None:
         w = self.writer
         self.refresh_agents()
         if w.run_active:
             samples = self.measure_clocks()
             if samples:
                 w.call(lambda: w.add_clock(samples), timeout)
-        fut: Future[dict[str, Any] | None] = Future()
+        fut: Future[StopReply | None] = Future()
         w.post(lambda: w.stop(fut, reason, missing_ok))
         return fut.result(timeout)
 
@@ -299,11 +262,13 @@ class Control:
                     agent = wire.check_id(key.rsplit("/", 1)[-1], "agent id")
                     if key != wire.agent_status_key(self.cfg.site, agent):
                         raise wire.InvalidField(f"not an agent status key: {key}")
-                    info = wire.from_json(reply.ok.payload.to_bytes(), "agent status")
+                    info = AgentStatus.from_dict(
+                        wire.from_json(reply.ok.payload.to_bytes(), "agent status")
+                    )
                 except wire.WireError as e:
                     log.warning("ignoring an agent status reply on %s: %s", key, e)
                     continue
-                claimed = info.get("agent_id")
+                claimed = info.agent_id
                 if claimed != agent:
                     log.warning(
                         "agent %s's status reply names itself %r; credited to %s (the key)",
@@ -311,27 +276,26 @@ class Control:
                         claimed,
                         agent,
                     )
-                    info = {**info, "agent_id": agent}
+                    info = dataclasses.replace(info, agent_id=agent)
                 self.agents.set_info(agent, info)
         except Exception as e:  # noqa: BLE001 - agent status is best effort; the data path is not
             log.warning("could not query agent status on %s: %s", selector, e)
 
-    def measure_clocks(self) -> dict[str, dict[str, Any]]:
+    def measure_clocks(self) -> dict[str, ClockSample]:
         """Four-timestamp exchange with every live agent (contract 4), one query per agent so
         each reply's arrival time t4 is its own.
 
-        offset = ((t2 - t1) + (t3 - t4)) / 2 is how far the agent's clock is ahead of ours;
-        rtt = (t4 - t1) - (t3 - t2) is the network round trip without the agent's own delay.
+        See ``messages.clock_offset`` for the arithmetic.
         """
         if self.session is None or self.writer.on_writer_thread():
             return {}
-        out: dict[str, dict[str, Any]] = {}
+        out: dict[str, ClockSample] = {}
         for agent in sorted(self.agents.alive_agents()):
             key = wire.agent_clock_key(self.cfg.site, agent)
             try:
                 t1 = self._clock()
                 replies = self.session.get(
-                    key, payload=wire.to_json({"t1": t1}), timeout=self._status_timeout
+                    key, payload=wire.to_json(ClockRequest(t1).to_dict()), timeout=self._status_timeout
                 )
                 for reply in replies:
                     t4 = self._clock()
@@ -342,8 +306,10 @@ class Control:
                             reply.err.payload.to_string()[:200],
                         )
                         break
-                    msg = wire.from_json(reply.ok.payload.to_bytes(), "clock reply")
-                    out[agent] = clock_sample(msg, t1, t4, iso_utc(t4))
+                    msg = ClockReply.from_dict(
+                        wire.from_json(reply.ok.payload.to_bytes(), "clock reply")
+                    )
+                    out[agent] = ClockSample.measure(msg, t1, t4, iso_utc(t4))
                     break
             except wire.WireError as e:
                 log.warning("ignoring the clock reply of agent %s: %s", agent, e)

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from ble_groundtruth import wire
+from ble_groundtruth.messages import ClockSample, StartRequest
 from ble_groundtruth.sdnotify import Notifier
 from ble_groundtruth.zenoh_config import AclFileError, build_config, load_acl, zenoh_reason
 from collector.config import CollectorConfig
@@ -87,10 +88,12 @@ def resume_state(
             write=write,
             open_files=open_files,
         )
-        clock_log = {k: list(v) for k, v in state.get("clock", {}).items()}
+        clock_log = {
+            k: [ClockSample.from_dict(smp) for smp in v] for k, v in state.get("clock", {}).items()
+        }
         restarts = int(state.get("restarts", 0)) + 1
         quarantined = int(state.get("quarantined_bytes", 0))
-    except (KeyError, TypeError, ValueError, AttributeError) as e:
+    except (KeyError, TypeError, ValueError, AttributeError) as e:  # WireError is a ValueError
         raise CollectorError(f"{where}: cannot resume the run: {e!r}") from None
     except OSError as e:
         raise CollectorError(f"cannot resume run {run_dir}: {e}") from None
@@ -338,12 +341,14 @@ class Collector:
     ) -> dict[str, Any]:
         """Start a run; agents' clocks are measured first. With ``strict``, an agent whose clock
         is off by more than ``max_offset_ms`` refuses the start (CollectorError)."""
-        return self.control.start_run(name, timeout, max_offset_ms=max_offset_ms, strict=strict)
+        req = StartRequest(name, max_offset_ms, strict)
+        return self.control.start_run(req, timeout).to_dict()
 
     def stop_run(
         self, *, reason: str = "requested", missing_ok: bool = False, timeout: float = 60.0
     ) -> dict[str, Any] | None:
-        return self.control.stop_run(reason=reason, missing_ok=missing_ok, timeout=timeout)
+        stopped = self.control.stop_run(reason=reason, missing_ok=missing_ok, timeout=timeout)
+        return None if stopped is None else stopped.to_dict()
 
     def status(self, timeout: float = 10.0) -> dict[str, Any]:
         return self.control.status(timeout)
@@ -357,7 +362,7 @@ class Collector:
     def runs(self) -> list[dict[str, Any]]:
         return list_runs(self.cfg.data_dir)
 
-    def measure_clocks(self) -> dict[str, dict[str, Any]]:
+    def measure_clocks(self) -> dict[str, ClockSample]:
         """One clock sample per live agent (see ``control.Control.measure_clocks``)."""
         return self.control.measure_clocks()
 

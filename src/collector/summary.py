@@ -8,6 +8,7 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from ble_groundtruth.messages import AdapterStatus, AgentStatus
 from collector.store import RunWriter, iso_utc
 
 if TYPE_CHECKING:
@@ -41,33 +42,25 @@ def refused_summary(w: Writer) -> dict[str, Any]:
     }
 
 
-def _adapter_of(info: dict[str, Any], sensor: str) -> dict[str, Any]:
-    """The adapter entry of an agent's status whose MAC is ``sensor`` (empty if none)."""
-    for ad in info.get("adapters", []):
-        if isinstance(ad, dict) and str(ad.get("mac", "")).replace(":", "").lower() == sensor:
-            return ad
-    return {}
-
-
-def write_run_yaml(w: Writer, run: RunWriter, reason: str, stop_ns: int) -> dict[str, int]:
+def write_run_yaml(w: Writer, run: RunWriter, reason: str, stop_ns: int) -> RunTotals:
     """Write the final run.yaml of ``run``; returns its gap/missing/lost totals."""
     infos = w.agents.infos()
     agents: dict[str, Any] = {}
     gaps_total = missing_total = lost_total = 0
     per_stream = w.tracker.stream_totals()
     for (agent_id, sensor), stats in sorted(run.sensors.items()):
-        info = infos.get(agent_id, {})
+        info = infos.get(agent_id) or AgentStatus(agent_id)
         a = agents.setdefault(
             agent_id,
             {
-                "hostname": info.get("hostname"),
-                "version": info.get("version"),
-                "backend": info.get("backend"),
+                "hostname": info.hostname,
+                "version": info.version,
+                "backend": info.backend,
                 "boot_ids": [],
                 "sensors": {},
             },
         )
-        adapter = _adapter_of(info, sensor)
+        adapter = info.adapter(sensor) or AdapterStatus(None, sensor)
         t = per_stream.get((agent_id, sensor))
         gaps, missing, lost = (t.gaps, t.missing, t.lost) if t else (0, 0, 0)
         for boot in t.boots if t else ():
@@ -77,11 +70,11 @@ def write_run_yaml(w: Writer, run: RunWriter, reason: str, stop_ns: int) -> dict
         missing_total += missing
         lost_total += lost
         a["sensors"][sensor] = {
-            "adapter": adapter.get("name"),
+            "adapter": adapter.name,
             "mac": sensor,
             "file": f"rssi/{agent_id}/{sensor}.mbd",
-            "backend": adapter.get("backend", info.get("backend")),
-            "mode": adapter.get("mode"),
+            "backend": adapter.backend if adapter.backend is not None else info.backend,
+            "mode": adapter.mode,
             "readings": stats.readings,
             "batches": stats.batches,
             "gaps": gaps,
@@ -89,9 +82,11 @@ def write_run_yaml(w: Writer, run: RunWriter, reason: str, stop_ns: int) -> dict
             "lost_batches": lost,
         }
     for agent, samples in w.clock_log.items():
+        known = infos.get(agent)
         agents.setdefault(
-            agent, {"hostname": infos.get(agent, {}).get("hostname"), "boot_ids": [], "sensors": {}}
-        )["clock"] = samples
+            agent,
+            {"hostname": None if known is None else known.hostname, "boot_ids": [], "sensors": {}},
+        )["clock"] = [smp.to_dict() for smp in samples]
     totals = RunTotals(gaps_total, missing_total, lost_total)
     extra = {
         "layout": "rssi/<agent>/<sensor_mac>.mbd",
@@ -104,7 +99,7 @@ def write_run_yaml(w: Writer, run: RunWriter, reason: str, stop_ns: int) -> dict
         "restarts": w.restarts,
     }
     run.write_yaml(stop_ns=stop_ns, agents=agents, extra=extra)
-    return totals.to_dict()
+    return totals
 
 
 def build_status(w: Writer, now: float) -> dict[str, Any]:
@@ -139,7 +134,7 @@ def build_status(w: Writer, now: float) -> dict[str, Any]:
             "stopping": w.stopping is not None,
             "restarts": w.restarts,
             "buffered_bytes": r.buffered,
-            "clock": {a: v[-1] for a, v in w.clock_log.items() if v},
+            "clock": {a: v[-1].to_dict() for a, v in w.clock_log.items() if v},
         }
     inbox = w.inbox
     return {

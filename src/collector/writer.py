@@ -22,6 +22,7 @@ from importlib import metadata
 from typing import Any, TypeVar
 
 from ble_groundtruth import wire
+from ble_groundtruth.messages import ClockSample, StartReply, StopReply
 from ble_groundtruth.sdnotify import Notifier
 from collector.config import CollectorConfig
 from collector.control import AgentBook
@@ -163,7 +164,7 @@ class SensorLive:
 class Stopping:
     """A stop request waiting for the run to drain."""
 
-    future: Future[dict[str, Any] | None]
+    future: Future[StopReply | None]
     requested: float  # monotonic
     reason: str
 
@@ -174,7 +175,7 @@ class Resumed:
 
     run: RunWriter
     tracker: StreamTracker
-    clock_log: dict[str, list[dict[str, Any]]]
+    clock_log: dict[str, list[ClockSample]]
     restarts: int
     quarantined_bytes: int
 
@@ -375,7 +376,7 @@ class Writer:
         self.deferred = 0  # batches refused unacked while rows piled up in memory (disk full)
         self.unknown_agents: dict[str, int] = {}
         self._recent: dict[str, float] = {}  # agent -> monotonic time of its last batch
-        self.clock_log: dict[str, list[dict[str, Any]]] = {}
+        self.clock_log: dict[str, list[ClockSample]] = {}
         self.restarts = 0
         self._dirty = False  # something to persist since the last state.json
         self._quarantined_bytes = 0
@@ -542,7 +543,7 @@ class Writer:
             {
                 "tracker": self.tracker.to_state(),
                 "lost_base": self.tracker.lost_base,
-                "clock": self.clock_log,
+                "clock": {a: [s.to_dict() for s in v] for a, v in self.clock_log.items()},
                 "restarts": self.restarts,
                 "quarantined_bytes": self._quarantined_bytes,
             }
@@ -705,23 +706,23 @@ class Writer:
             return
         for agent in agents:
             for msg in self.tracker.ack_messages(agent):
-                if not msg["streams"]:
+                if not msg.streams:
                     continue
                 try:
-                    self.publish(wire.ack_key(self.cfg.site, agent), wire.to_json(msg))
+                    self.publish(wire.ack_key(self.cfg.site, agent), wire.to_json(msg.to_dict()))
                 except Exception as e:  # noqa: BLE001 - the next tick retries
                     log.warning("could not publish ack for %s: %s", agent, e)
 
     # -- run start and stop (on the writer thread, through `call`) ---------------------------------
 
-    def add_clock(self, samples: dict[str, dict[str, Any]]) -> None:
+    def add_clock(self, samples: dict[str, ClockSample]) -> None:
         if self.run is None:
             return
         for agent, smp in samples.items():
             self.clock_log.setdefault(agent, []).append(smp)
         self._dirty = True
 
-    def start(self, name: str | None, clock_samples: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    def start(self, name: str | None, clock_samples: dict[str, ClockSample]) -> StartReply:
         if self.run is not None:
             raise CollectorError(f"run {self.run.run_id} is already active; stop it first")
         t_ns = self._clock()
@@ -758,9 +759,9 @@ class Writer:
         self.run_active = True
         log.info("run %s started in %s", run_id, run.dir)
         self._notifier.status(f"recording run {run_id}")
-        return {"run_id": run_id, "run_dir": str(run.dir.resolve())}
+        return StartReply(run_id, str(run.dir.resolve()))
 
-    def stop(self, fut: Future[dict[str, Any] | None], reason: str, missing_ok: bool) -> None:
+    def stop(self, fut: Future[StopReply | None], reason: str, missing_ok: bool) -> None:
         """Ask the run to stop once drained; ``fut`` gets the summary (None: no run, missing_ok)."""
         if self.run is None:
             if missing_ok:
@@ -816,10 +817,12 @@ class Writer:
         log.info("run %s stopped: %d readings", run.run_id, run.readings)
         self._notifier.status("idle: no run active")
         st.future.set_result(
-            {
-                "run_id": run.run_id,
-                "run_dir": str(run.dir.resolve()),
-                "readings": run.readings,
-                **totals,
-            }
+            StopReply(
+                run.run_id,
+                str(run.dir.resolve()),
+                run.readings,
+                totals.gaps,
+                totals.missing_batches,
+                totals.lost_batches,
+            )
         )

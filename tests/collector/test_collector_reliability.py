@@ -19,10 +19,10 @@ import yaml
 from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
 from ble_groundtruth import wire
+from ble_groundtruth.messages import Ack, ClockReply, ClockSample
 from ble_groundtruth.sdnotify import Notifier
 from collector.client import CollectorClient
 from collector.config import CollectorConfig, load_config
-from collector.control import clock_sample
 from collector.errors import CollectorError, CommandFailed, ConfigError
 from collector.ingest import StreamTracker, decode
 from collector.service import Collector
@@ -97,8 +97,8 @@ def test_acks_cover_every_boot_of_an_agent() -> None:
     t.accept(("pi-01", BOOT_NEW, B), 1, floor=0)
     t.accept(("pi-02", BOOT_OLD, A), 0, floor=0)
     assert t.mark_durable() == {"pi-01", "pi-02"}
-    assert t.ack_messages("pi-01") == [{"boot": BOOT_OLD, "streams": {A: 7}},
-                                       {"boot": BOOT_NEW, "streams": {A: 0, B: 1}}]
+    assert t.ack_messages("pi-01") == [Ack(BOOT_OLD, {A: 7}),
+                                       Ack(BOOT_NEW, {A: 0, B: 1})]
 
 
 def test_tracker_state_round_trip_keeps_dedupe() -> None:
@@ -126,11 +126,12 @@ def test_clock_sample_arithmetic() -> None:
     t2 = t1 + 2_000_000 + 30_000_000
     t3 = t2 + 1_000_000
     t4 = t1 + 7_000_000
-    s = clock_sample({"t1": t1, "t2": t2, "t3": t3, "chrony": None}, t1, t4, "x")
-    assert s["rtt_ms"] == 6.0
-    assert s["offset_ms"] == 29.0  # asymmetric paths bias the estimate by half the difference
+    s = ClockSample.measure(ClockReply.from_dict({"t1": t1, "t2": t2, "t3": t3, "chrony": None}),
+                            t1, t4, "x")
+    assert s.rtt_ms == 6.0
+    assert s.offset_ms == 29.0  # asymmetric paths bias the estimate by half the difference
     with pytest.raises(wire.InvalidField, match="t1"):
-        clock_sample({"t1": 5, "t2": t2, "t3": t3}, t1, t4, "x")
+        ClockSample.measure(ClockReply.from_dict({"t1": 5, "t2": t2, "t3": t3}), t1, t4, "x")
 
 
 def test_config_clock_interval(tmp_path) -> None:
