@@ -20,7 +20,7 @@ import json
 import re
 import struct
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeGuard
 
 SCHEMA_VERSION = 1
 MAGIC = b"BGTB"
@@ -72,7 +72,7 @@ class InvalidField(WireError):
 # MAC addresses and identifiers
 
 
-def normalize_mac(mac: str) -> str:
+def normalize_mac(mac: object) -> str:
     """'AA:BB:CC:DD:EE:FF' / 'aabbccddeeff' / 'aa-bb-…' -> 'aabbccddeeff'."""
     if not isinstance(mac, str):
         raise InvalidField(f"MAC address must be a string, got {type(mac).__name__}")
@@ -88,7 +88,7 @@ def colon_mac(mac: str) -> str:
     return ":".join(flat[i : i + 2] for i in range(0, 12, 2)).upper()
 
 
-def check_id(value: str, what: str = "id") -> str:
+def check_id(value: object, what: str = "id") -> str:
     if not isinstance(value, str) or not _ID_RE.match(value):
         raise InvalidField(f"{what} must be 1-64 characters of [A-Za-z0-9_.-], got {value!r}")
     return value
@@ -147,6 +147,13 @@ def parse_data_key(key: str) -> tuple[str, str, str]:
 # Records
 
 
+def _int_in(d: dict[str, Any], name: str, lo: int, hi: int) -> int:
+    v = d.get(name)
+    if not _is_int(v) or not lo <= v <= hi:
+        raise InvalidField(f"ibeacon {name} must be an integer in [{lo}, {hi}], got {v!r}")
+    return v
+
+
 @dataclass(frozen=True, slots=True)
 class IBeacon:
     uuid: str  # 32 lowercase hex digits
@@ -164,11 +171,8 @@ class IBeacon:
         uuid = d.get("uuid")
         if not isinstance(uuid, str) or not _UUID_RE.match(uuid):
             raise InvalidField(f"ibeacon uuid must be 32 hex digits, got {uuid!r}")
-        major, minor, tx = d.get("major"), d.get("minor"), d.get("tx_power")
-        for name, v, lo, hi in (("major", major, 0, 65535), ("minor", minor, 0, 65535), ("tx_power", tx, -128, 127)):
-            if not _is_int(v) or not lo <= v <= hi:
-                raise InvalidField(f"ibeacon {name} must be an integer in [{lo}, {hi}], got {v!r}")
-        return IBeacon(uuid, major, minor, tx)
+        major, minor = _int_in(d, "major", 0, 65535), _int_in(d, "minor", 0, 65535)
+        return IBeacon(uuid, major, minor, _int_in(d, "tx_power", -128, 127))
 
 
 @dataclass(frozen=True, slots=True)
@@ -224,7 +228,7 @@ class Batch:
         return (self.agent_id, self.boot_id, self.sensor)
 
 
-def _is_int(v: Any) -> bool:
+def _is_int(v: object) -> TypeGuard[int]:
     return isinstance(v, int) and not isinstance(v, bool)
 
 

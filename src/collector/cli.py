@@ -120,8 +120,9 @@ def record(
         started = collector.start_run(name)
         console.print(f"recording run {started['run_id']} (Ctrl-C to stop)")
         _wait_for_signal(duration)
-        stopped = collector.stop_run()
-        console.print(f"{stopped['readings']} readings in {stopped['run_dir']}")
+        stopped = collector.stop_run()  # a run is active: never None
+        if stopped is not None:
+            console.print(f"{stopped['readings']} readings in {stopped['run_dir']}")
     except CollectorError as e:
         raise _fail(e) from None
     finally:

@@ -32,6 +32,8 @@ from collector.errors import CollectorError
 from collector.store import iso_utc, list_runs
 
 if TYPE_CHECKING:
+    import zenoh
+
     from collector.writer import Inbox, Writer
 
 log = logging.getLogger(__name__)
@@ -104,7 +106,7 @@ class Control:
         self._mono = monotonic
         self._status_timeout = status_timeout_s
         self._queue: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
-        self.session: Any = None  # the collector's zenoh.Session once open
+        self.session: zenoh.Session | None = None  # the collector's session once open
 
     # -- entry points from Zenoh callbacks and the writer (never block) ---------------------------
 
@@ -295,7 +297,9 @@ class Control:
             try:
                 t1 = self._clock()
                 replies = self.session.get(
-                    key, payload=wire.to_json(ClockRequest(t1).to_dict()), timeout=self._status_timeout
+                    key,
+                    payload=wire.to_json(ClockRequest(t1).to_dict()),
+                    timeout=self._status_timeout,
                 )
                 for reply in replies:
                     t4 = self._clock()
@@ -303,7 +307,7 @@ class Control:
                         log.warning(
                             "agent %s refused the clock check: %s",
                             agent,
-                            reply.err.payload.to_string()[:200],
+                            "" if reply.err is None else reply.err.payload.to_string()[:200],
                         )
                         break
                     msg = ClockReply.from_dict(

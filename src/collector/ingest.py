@@ -106,7 +106,7 @@ def format_rows(sensor: str, rows: list[tuple[int, int, bytes, int]]) -> str:
     so the string always has more than nine digits).
     """
     middles: dict[bytes, str] = {}
-    parts = []
+    parts: list[str] = []
     add = parts.append
     for t, _mono, mac, rssi in rows:
         mid = middles.get(mac)

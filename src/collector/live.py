@@ -8,7 +8,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from rich import box
-from rich.console import Group
+from rich.console import Group, JustifyMethod
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
@@ -39,9 +39,10 @@ def render(status: dict[str, Any]) -> Group:
     agents = status.get("agents", {})
     table = Table(expand=False, box=box.SIMPLE_HEAD, show_edge=False)
     widths = {"agent": max([len(a) for a in agents] + [5]), "sensor": 12, "seen": 5}
-    for col, just in (("agent", "left"), ("sensor", "left"), ("alive", "center"),
-                      ("rate/s", "right"), ("RSSI", "right"), ("seen", "right"),
-                      ("readings", "right")):
+    columns: tuple[tuple[str, JustifyMethod], ...] = (
+        ("agent", "left"), ("sensor", "left"), ("alive", "center"), ("rate/s", "right"),
+        ("RSSI", "right"), ("seen", "right"), ("readings", "right"))
+    for col, just in columns:
         table.add_column(col, justify=just, no_wrap=True, min_width=widths.get(col, len(col)))
     # The sparkline gives way first when the terminal is narrow.
     table.add_column("recent RSSI", no_wrap=True, overflow="crop", max_width=SPARK_WIDTH)

@@ -9,13 +9,14 @@ control thread answers queries; one receive thread drains the data subscriber.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ble_groundtruth import wire
 from ble_groundtruth.messages import ClockSample, StartRequest
@@ -42,6 +43,9 @@ from collector.writer import (
     Writer,
     descriptor_budget,
 )
+
+if TYPE_CHECKING:
+    import zenoh
 
 log = logging.getLogger(__name__)
 
@@ -191,7 +195,7 @@ class Collector:
         self.writer.want_agent_info = self.control.want_agent_info
         self._resumed: str | None = None
         self._closing = threading.Event()
-        self._session: Any = None  # zenoh.Session while open
+        self._session: zenoh.Session | None = None
         self._decls: list[Any] = []
         self._threads: list[threading.Thread] = []
 
@@ -199,7 +203,6 @@ class Collector:
 
     def open(self) -> Collector:
         import zenoh
-        import zenoh.ext as zext
 
         acl_text = None
         if self.cfg.acl is not None:
@@ -208,18 +211,7 @@ class Collector:
             except AclFileError as e:
                 raise CollectorError(zenoh_reason(e)) from None
         conf = build_config(self.cfg.session_spec(acl_text))
-        resumed = find_unfinished_run(
-            self.cfg.data_dir, write=self._file_write, open_files=self._open_files
-        )
-        if resumed is not None:
-            self.writer.adopt(resumed)
-            self._resumed = resumed.run.run_id
-            log.warning(
-                "resumed run %s after an unclean stop (restart %d): %d readings on disk",
-                resumed.run.run_id,
-                resumed.restarts,
-                resumed.run.readings,
-            )
+        self._resume()
         try:
             s = zenoh.open(conf)
         except zenoh.ZError as e:
@@ -229,23 +221,47 @@ class Collector:
             ) from None
         self._session = self.control.session = s
         self.writer.publish = s.put
-        site = self.cfg.site
         self._closing.clear()
-        writer_thread = threading.Thread(
-            target=self.writer.loop, args=(self._closing,), name="collector-writer", daemon=True
+        self._threads = []
+        self.writer.thread = self._start_thread(self.writer.loop, "writer", self._closing)
+        self._start_thread(self.control.loop, "control", self._closing)
+        self._declare(s)
+        listen = ", ".join(self.cfg.listen)
+        log.info(
+            "collector serving site %r on %s, data in %s", self.cfg.site, listen, self.cfg.data_dir
         )
-        self.writer.thread = writer_thread
-        self._threads = [
-            writer_thread,
-            threading.Thread(
-                target=self.control.loop,
-                args=(self._closing,),
-                name="collector-control",
-                daemon=True,
-            ),
-        ]
-        for t in self._threads:
-            t.start()
+        self._notifier.ready(f"serving site {self.cfg.site} on {listen}")
+        return self
+
+    def _resume(self) -> None:
+        """Adopt the run a killed collector left active, if any (before any data flows)."""
+        resumed = find_unfinished_run(
+            self.cfg.data_dir, write=self._file_write, open_files=self._open_files
+        )
+        if resumed is None:
+            return
+        self.writer.adopt(resumed)
+        self._resumed = resumed.run.run_id
+        log.warning(
+            "resumed run %s after an unclean stop (restart %d): %d readings on disk",
+            resumed.run.run_id,
+            resumed.restarts,
+            resumed.run.readings,
+        )
+
+    def _start_thread(self, target: Callable[..., None], name: str, *args: Any) -> threading.Thread:
+        t = threading.Thread(target=target, args=args, name=f"collector-{name}", daemon=True)
+        t.start()
+        self._threads.append(t)
+        return t
+
+    def _declare(self, s: zenoh.Session) -> None:
+        """The data subscriber (with its receive thread), the agents' liveliness subscriber and
+        the control queryables."""
+        import zenoh
+        import zenoh.ext as zext
+
+        site = self.cfg.site
         # A bounded FIFO instead of a callback: Zenoh's callback mode queues samples for the
         # Python thread without a bound; this way Zenoh waits (back-pressure) once 16 are pending.
         sub = zext.declare_advanced_subscriber(
@@ -253,17 +269,10 @@ class Collector:
             wire.data_selector(site),
             zenoh.handlers.FifoChannel(SUB_CHANNEL),
             history=zext.HistoryConfig(detect_late_publishers=True),
-            recovery=zext.RecoveryConfig(heartbeat=True),
+            recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
         )
         self._decls.append(sub)
-        rx = threading.Thread(
-            target=self.inbox.receive_loop,
-            args=(sub.handler,),
-            name="collector-receive",
-            daemon=True,
-        )
-        rx.start()
-        self._threads.append(rx)
+        self._start_thread(self.inbox.receive_loop, "receive", sub.handler)
         self._decls.append(
             s.liveliness().declare_subscriber(
                 wire.agent_token_selector(site), self.control.on_token, history=True
@@ -273,17 +282,9 @@ class Collector:
             self._decls.append(
                 s.declare_queryable(
                     wire.collector_control_key(site, cmd),
-                    lambda q, c=cmd: self.control.on_query(c, q),
+                    functools.partial(self.control.on_query, cmd),
                 )
             )
-        log.info(
-            "collector serving site %r on %s, data in %s",
-            site,
-            ", ".join(self.cfg.listen),
-            self.cfg.data_dir,
-        )
-        self._notifier.ready(f"serving site {site} on {', '.join(self.cfg.listen)}")
-        return self
 
     @property
     def resumed_run(self) -> str | None:
@@ -321,7 +322,8 @@ class Collector:
         self.writer.publish = None
         self.control.session = None
         session, self._session = self._session, None
-        session.close()
+        if session is not None:
+            session.close()
 
     def __enter__(self) -> Collector:
         return self.open()

@@ -276,8 +276,10 @@ class RunWriter:
         self.readings = int(state.get("readings", 0))
 
     def _appender(self, key: StreamKey) -> SensorAppender:
-        return SensorAppender(self.path(key), write=self._write,
-                              opener=lambda a, k=key: self._open_lru(k, a))
+        def opener(app: SensorAppender) -> int:
+            return self._open_lru(key, app)
+
+        return SensorAppender(self.path(key), write=self._write, opener=opener)
 
     def _open_lru(self, key: StreamKey, app: SensorAppender) -> int:
         """Open a stream's file, first closing the least recently used ones over the budget."""
@@ -379,7 +381,7 @@ class RunWriter:
 def find_active_state(data_dir: Path) -> list[tuple[Path, dict[str, Any]]]:
     """Run directories whose state.json says the run is still active (the collector was killed),
     newest first. Unreadable state files are reported and skipped."""
-    out = []
+    out: list[tuple[Path, dict[str, Any]]] = []
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         return out
@@ -401,7 +403,7 @@ def list_runs(data_dir: Path) -> list[dict[str, Any]]:
     """Every run under data_dir (oldest first) with id, name, start, stop and reading count."""
     from ble_groundtruth.safe_yaml import YamlError, load_file
 
-    out = []
+    out: list[dict[str, Any]] = []
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         return out

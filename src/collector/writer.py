@@ -674,7 +674,7 @@ class Writer:
             del self._recent[a]
 
     def _write_quarantine(self) -> None:
-        recs = []
+        recs: list[dict[str, Any]] = []
         try:
             while len(recs) < 1000:
                 recs.append(self.inbox.quarantine.get_nowait())

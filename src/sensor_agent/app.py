@@ -195,7 +195,7 @@ class Agent:
 
         cfg = self.cfg
         await asyncio.to_thread(self.backend.check)  # bad input fails before connecting
-        if self.cert_cn is not None and self.cert_cn != cfg.agent_id:
+        if cfg.tls is not None and self.cert_cn is not None and self.cert_cn != cfg.agent_id:
             log.warning("agent id %r is not the CN %r of this agent's certificate (%s): the "
                         "collector's ACL goes by the certificate's CN, so it will drop everything "
                         "published as %r and nothing will be acknowledged; set agent_id: %s or "
@@ -310,7 +310,7 @@ class Agent:
 
     def _no_ack_cause(self) -> str:
         cfg = self.cfg
-        if self.cert_cn is not None and self.cert_cn != cfg.agent_id:
+        if cfg.tls is not None and self.cert_cn is not None and self.cert_cn != cfg.agent_id:
             return (f"agent id {cfg.agent_id!r} differs from the certificate's CN {self.cert_cn!r}, "
                     "and the collector's ACL drops what this certificate publishes under another id")
         if cfg.tls is not None:
