@@ -366,3 +366,199 @@ class Reply:
         if self.ok:
             return {"ok": True, **self.body}
         return {"ok": False, "error": self.error or "failed without a reason"}
+
+
+# -- collector status ---------------------------------------------------------------------------
+
+
+def _counts(d: Mapping[str, Any], key: str, what: str) -> dict[str, int]:
+    m = _obj(d, key, what, {})
+    for k, v in m.items():
+        if not _is_int(v):
+            raise InvalidField(f"{what}: {key}.{k} must be an integer, got {v!r}")
+    return dict(m)
+
+
+@dataclass(frozen=True, slots=True)
+class SensorRate:
+    """One sensor of one agent in the status reply (since the collector started)."""
+
+    rate_hz: float = 0.0
+    last_seen_age_s: float | None = None
+    last_rssi: int | None = None
+    readings: int = 0
+    recent_rssi: tuple[int, ...] = ()  # the last readings' RSSI, oldest first (sparkline)
+
+    @classmethod
+    def from_dict(cls, d: object, what: str = "sensor") -> SensorRate:
+        m = _mapping(d, what)
+        recent = m.get("recent_rssi") or []
+        if not (isinstance(recent, list) and all(_is_int(v) for v in recent)):
+            raise InvalidField(f"{what}: recent_rssi must be a list of integers")
+        return cls(_num(m, "rate_hz", what, 0.0), _num(m, "last_seen_age_s", what, None),
+                   _int(m, "last_rssi", what, None), _int(m, "readings", what, 0), tuple(recent))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"rate_hz": self.rate_hz, "last_seen_age_s": self.last_seen_age_s,
+                "last_rssi": self.last_rssi, "readings": self.readings,
+                "recent_rssi": list(self.recent_rssi)}
+
+
+@dataclass(frozen=True, slots=True)
+class AgentLive:
+    alive: bool = False  # its liveliness token is present
+    sensors: dict[str, SensorRate] = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, d: object, what: str = "agent") -> AgentLive:
+        m = _mapping(d, what)
+        alive = m.get("alive", False)
+        if not isinstance(alive, bool):
+            raise InvalidField(f"{what}: alive must be true or false")
+        sensors = _obj(m, "sensors", what, {})
+        return cls(alive, {mac: SensorRate.from_dict(s, f"{what}: sensors.{mac}")
+                           for mac, s in sensors.items()})
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"alive": self.alive, "sensors": {k: s.to_dict() for k, s in self.sensors.items()}}
+
+
+@dataclass(frozen=True, slots=True)
+class RunStatus:
+    """The active run in the status reply."""
+
+    run_id: str
+    readings: int = 0
+    name: str = ""
+    run_dir: str = ""
+    start: str = ""  # ISO UTC
+    sensors: int = 0
+    stopping: bool = False
+    restarts: int = 0  # unclean collector stops this run survived
+    buffered_bytes: int = 0  # rows held in memory (the disk refuses them)
+    clock: dict[str, ClockSample] = field(default_factory=dict)  # last sample per agent
+
+    @classmethod
+    def from_dict(cls, d: object) -> RunStatus:
+        what = "status: run"
+        m = _mapping(d, what)
+        stopping = m.get("stopping", False)
+        if not isinstance(stopping, bool):
+            raise InvalidField(f"{what}: stopping must be true or false")
+        clock = _obj(m, "clock", what, {})
+        return cls(_str(m, "run_id", what), _int(m, "readings", what, 0), _str(m, "name", what, ""),
+                   _str(m, "run_dir", what, ""), _str(m, "start", what, ""),
+                   _int(m, "sensors", what, 0), stopping, _int(m, "restarts", what, 0),
+                   _int(m, "buffered_bytes", what, 0),
+                   {a: ClockSample.from_dict(v) for a, v in clock.items()})
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"run_id": self.run_id, "name": self.name, "run_dir": self.run_dir,
+                "start": self.start, "readings": self.readings, "sensors": self.sensors,
+                "stopping": self.stopping, "restarts": self.restarts,
+                "buffered_bytes": self.buffered_bytes,
+                "clock": {a: c.to_dict() for a, c in self.clock.items()}}
+
+
+@dataclass(frozen=True, slots=True)
+class StreamCounts:
+    total: int = 0  # streams with live state
+    shown: int = 0  # of them, listed under agents
+    admitted: int = 0  # accepted under the stream caps since the collector started
+    open_files: int = 0
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> StreamCounts:
+        what = "status: streams"
+        return cls(_int(d, "total", what, 0), _int(d, "shown", what, 0),
+                   _int(d, "admitted", what, 0), _int(d, "open_files", what, 0))
+
+    def to_dict(self) -> dict[str, int]:
+        return {"total": self.total, "shown": self.shown, "admitted": self.admitted,
+                "open_files": self.open_files}
+
+
+@dataclass(frozen=True, slots=True)
+class RefusedStreams:
+    """Batches refused by the stream caps: total, streams, and the worst agents."""
+
+    batches: int = 0
+    streams: int = 0
+    by_agent: dict[str, int] = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> RefusedStreams:
+        what = "status: refused_streams"
+        return cls(_int(d, "batches", what, 0), _int(d, "streams", what, 0),
+                   _counts(d, "by_agent", what))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"batches": self.batches, "streams": self.streams, "by_agent": dict(self.by_agent)}
+
+
+@dataclass(frozen=True, slots=True)
+class CollectorStatus:
+    """The collector's status reply. Every field but ``run`` and ``agents`` has a default, so a
+    reply of an older collector still reads."""
+
+    run: RunStatus | None = None
+    agents: dict[str, AgentLive] = field(default_factory=dict)
+    discarded_no_run: int = 0
+    duplicates_dropped: int = 0
+    rejected_payloads: dict[str, int] = field(default_factory=dict)  # reason -> count
+    queue: int = 0
+    write_errors: int = 0
+    disk_full: bool = False
+    deferred_batches: int = 0
+    queue_overflow: int = 0
+    unknown_agents: dict[str, int] = field(default_factory=dict)
+    quarantine_dropped: int = 0
+    streams: StreamCounts = field(default_factory=StreamCounts)
+    refused_streams: RefusedStreams = field(default_factory=RefusedStreams)
+    shared_sensors: dict[str, list[str]] = field(default_factory=dict)
+    queue_bytes: int = 0
+
+    @classmethod
+    def from_dict(cls, d: object) -> CollectorStatus:
+        what = "status"
+        m = _mapping(d, what)
+        run = m.get("run")
+        agents = _obj(m, "agents", what, {})
+        disk_full = m.get("disk_full", False)
+        if not isinstance(disk_full, bool):
+            raise InvalidField(f"{what}: disk_full must be true or false")
+        shared = _obj(m, "shared_sensors", what, {})
+        for mac, names in shared.items():
+            if not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
+                raise InvalidField(f"{what}: shared_sensors.{mac} must be a list of agent ids")
+        return cls(
+            run=None if run is None else RunStatus.from_dict(run),
+            agents={a: AgentLive.from_dict(v, f"{what}: agents.{a}") for a, v in agents.items()},
+            discarded_no_run=_int(m, "discarded_no_run", what, 0),
+            duplicates_dropped=_int(m, "duplicates_dropped", what, 0),
+            rejected_payloads=_counts(m, "rejected_payloads", what),
+            queue=_int(m, "queue", what, 0), write_errors=_int(m, "write_errors", what, 0),
+            disk_full=disk_full, deferred_batches=_int(m, "deferred_batches", what, 0),
+            queue_overflow=_int(m, "queue_overflow", what, 0),
+            unknown_agents=_counts(m, "unknown_agents", what),
+            quarantine_dropped=_int(m, "quarantine_dropped", what, 0),
+            streams=StreamCounts.from_dict(_obj(m, "streams", what, {})),
+            refused_streams=RefusedStreams.from_dict(_obj(m, "refused_streams", what, {})),
+            shared_sensors={k: list(v) for k, v in shared.items()},
+            queue_bytes=_int(m, "queue_bytes", what, 0))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "run": None if self.run is None else self.run.to_dict(),
+            "agents": {a: v.to_dict() for a, v in self.agents.items()},
+            "discarded_no_run": self.discarded_no_run,
+            "duplicates_dropped": self.duplicates_dropped,
+            "rejected_payloads": dict(self.rejected_payloads), "queue": self.queue,
+            "write_errors": self.write_errors, "disk_full": self.disk_full,
+            "deferred_batches": self.deferred_batches, "queue_overflow": self.queue_overflow,
+            "unknown_agents": dict(self.unknown_agents),
+            "quarantine_dropped": self.quarantine_dropped, "streams": self.streams.to_dict(),
+            "refused_streams": self.refused_streams.to_dict(),
+            "shared_sensors": {k: list(v) for k, v in self.shared_sensors.items()},
+            "queue_bytes": self.queue_bytes,
+        }

@@ -192,17 +192,19 @@ def status(
     key: KeyOpt = None,
 ) -> None:
     """Agents alive, per-sensor reading rates and last-seen times, and the current run."""
+    from ble_groundtruth.messages import CollectorStatus
     from collector.live import render
 
     try:
         with _client(connect, site, root_ca, cert, key) as c:
             reply = c.status()
-    except CollectorError as e:
+            view = None if as_json else render(CollectorStatus.from_dict(reply))
+    except (CollectorError, WireError) as e:
         raise _fail(e) from None
-    if as_json:
+    if view is None:
         console.print_json(json.dumps(reply))
     else:
-        console.print(render(reply))
+        console.print(view)
 
 
 @app.command()
@@ -248,7 +250,7 @@ def live(
     try:
         with _client(connect, site, root_ca, cert, key) as c:
             run_live(c.status, interval_s=interval, duration_s=duration)
-    except CollectorError as e:
+    except (CollectorError, WireError) as e:
         raise _fail(e) from None
 
 

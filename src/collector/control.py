@@ -22,6 +22,7 @@ from ble_groundtruth.messages import (
     ClockReply,
     ClockRequest,
     ClockSample,
+    CollectorStatus,
     Reply,
     StartReply,
     StartRequest,
@@ -176,7 +177,7 @@ class Control:
                 stopped = self.stop_run()
                 body = {} if stopped is None else stopped.to_dict()
             elif cmd == "status":
-                body = self.status()
+                body = self.status().to_dict()
             else:
                 body = {"runs": list_runs(self.cfg.data_dir)}
             reply = Reply(True, body=body)
@@ -236,7 +237,7 @@ class Control:
         w.post(lambda: w.stop(fut, reason, missing_ok))
         return fut.result(timeout)
 
-    def status(self, timeout: float = 10.0) -> dict[str, Any]:
+    def status(self, timeout: float = 10.0) -> CollectorStatus:
         from collector.summary import build_status
 
         return self.writer.call(lambda: build_status(self.writer, self._mono()), timeout)

@@ -353,13 +353,14 @@ class Collector:
         return None if stopped is None else stopped.to_dict()
 
     def status(self, timeout: float = 10.0) -> dict[str, Any]:
-        return self.control.status(timeout)
+        """The status reply as it goes on the wire (``messages.CollectorStatus.to_dict``)."""
+        return self.control.status(timeout).to_dict()
 
     def status_now(self) -> dict[str, Any]:
         """The status reply built on the calling thread: for a collector that is not open."""
         if self._session is not None:
             raise CollectorError("status_now is for a collector that is not open; use status()")
-        return build_status(self.writer, self._mono())
+        return build_status(self.writer, self._mono()).to_dict()
 
     def runs(self) -> list[dict[str, Any]]:
         return list_runs(self.cfg.data_dir)

@@ -8,7 +8,16 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from ble_groundtruth.messages import AdapterStatus, AgentStatus
+from ble_groundtruth.messages import (
+    AdapterStatus,
+    AgentLive,
+    AgentStatus,
+    CollectorStatus,
+    RefusedStreams,
+    RunStatus,
+    SensorRate,
+    StreamCounts,
+)
 from collector.store import RunWriter, iso_utc
 
 if TYPE_CHECKING:
@@ -33,13 +42,11 @@ class RunTotals:
         }
 
 
-def refused_summary(w: Writer) -> dict[str, Any]:
+def refused_summary(w: Writer) -> RefusedStreams:
     """Batches refused by the stream caps: total, streams, and the 20 worst agents."""
-    return {
-        "batches": sum(w.refused.values()),
-        "streams": len(w.refused_streams),
-        "by_agent": dict(w.refused.most_common(20)),
-    }
+    return RefusedStreams(
+        sum(w.refused.values()), len(w.refused_streams), dict(w.refused.most_common(20))
+    )
 
 
 def write_run_yaml(w: Writer, run: RunWriter, reason: str, stop_ns: int) -> RunTotals:
@@ -91,7 +98,7 @@ def write_run_yaml(w: Writer, run: RunWriter, reason: str, stop_ns: int) -> RunT
     extra = {
         "layout": "rssi/<agent>/<sensor_mac>.mbd",
         "shared_sensors": run.shared_sensors(),
-        "refused_streams": refused_summary(w),
+        "refused_streams": refused_summary(w).to_dict(),
         "stopped_by": reason,
         **totals.to_dict(),
         "duplicates_dropped": w.tracker.duplicates,
@@ -102,61 +109,61 @@ def write_run_yaml(w: Writer, run: RunWriter, reason: str, stop_ns: int) -> RunT
     return totals
 
 
-def build_status(w: Writer, now: float) -> dict[str, Any]:
+def build_status(w: Writer, now: float) -> CollectorStatus:
     """The status reply (``now`` is monotonic seconds)."""
     alive = w.agents.alive_map()
-    agents: dict[str, Any] = {}
-    for a, v in sorted(alive.items()):
-        if len(agents) >= STATUS_MAX_STREAMS:
+    sensors: dict[str, dict[str, SensorRate]] = {}
+    for a in sorted(alive):
+        if len(sensors) >= STATUS_MAX_STREAMS:
             break
-        agents[a] = {"alive": v, "sensors": {}}
+        sensors[a] = {}
     # At most STATUS_MAX_STREAMS streams, the most recently heard first; the rest are counted.
     shown = sorted(w.live.items(), key=lambda kv: -kv[1].last_seen)[:STATUS_MAX_STREAMS]
     for (agent, sensor), sl in sorted(shown, key=lambda kv: kv[0]):
-        ag = agents.setdefault(agent, {"alive": alive.get(agent, False), "sensors": {}})
-        ag["sensors"][sensor] = {
-            "rate_hz": round(sl.rate(now), 2),
-            "last_seen_age_s": round(now - sl.last_seen, 3),
-            "last_rssi": sl.last_rssi,
-            "readings": sl.readings,
-            "recent_rssi": list(sl.rssi),
-        }
+        sensors.setdefault(agent, {})[sensor] = SensorRate(
+            rate_hz=round(sl.rate(now), 2),
+            last_seen_age_s=round(now - sl.last_seen, 3),
+            last_rssi=sl.last_rssi,
+            readings=sl.readings,
+            recent_rssi=tuple(sl.rssi),
+        )
+    agents = {a: AgentLive(alive.get(a, False), s) for a, s in sensors.items()}
     run = None
     r = w.run
     if r is not None:
-        run = {
-            "run_id": r.run_id,
-            "name": r.name,
-            "run_dir": str(r.dir.resolve()),
-            "start": iso_utc(r.start_ns),
-            "readings": r.readings,
-            "sensors": len(r.sensors),
-            "stopping": w.stopping is not None,
-            "restarts": w.restarts,
-            "buffered_bytes": r.buffered,
-            "clock": {a: v[-1].to_dict() for a, v in w.clock_log.items() if v},
-        }
+        run = RunStatus(
+            run_id=r.run_id,
+            name=r.name,
+            run_dir=str(r.dir.resolve()),
+            start=iso_utc(r.start_ns),
+            readings=r.readings,
+            sensors=len(r.sensors),
+            stopping=w.stopping is not None,
+            restarts=w.restarts,
+            buffered_bytes=r.buffered,
+            clock={a: v[-1] for a, v in w.clock_log.items() if v},
+        )
     inbox = w.inbox
-    return {
-        "run": run,
-        "agents": agents,
-        "discarded_no_run": w.discarded,
-        "duplicates_dropped": w.tracker.duplicates,
-        "rejected_payloads": inbox.rejects.snapshot(),
-        "queue": inbox.data.qsize(),
-        "write_errors": w.write_errors,
-        "disk_full": r is not None and r.disk_full,
-        "deferred_batches": w.deferred,
-        "queue_overflow": inbox.overflow,
-        "unknown_agents": dict(Counter(w.unknown_agents).most_common(20)),
-        "quarantine_dropped": inbox.quarantine_dropped,
-        "streams": {
-            "total": len(w.live),
-            "shown": len(shown),
-            "admitted": len(w.admitted),
-            "open_files": 0 if r is None else r.open_count,
-        },
-        "refused_streams": refused_summary(w),
-        "shared_sensors": dict(list(w.shared_sensors().items())[:50]),
-        "queue_bytes": inbox.data.bytes,
-    }
+    return CollectorStatus(
+        run=run,
+        agents=agents,
+        discarded_no_run=w.discarded,
+        duplicates_dropped=w.tracker.duplicates,
+        rejected_payloads=inbox.rejects.snapshot(),
+        queue=inbox.data.qsize(),
+        write_errors=w.write_errors,
+        disk_full=r is not None and r.disk_full,
+        deferred_batches=w.deferred,
+        queue_overflow=inbox.overflow,
+        unknown_agents=dict(Counter(w.unknown_agents).most_common(20)),
+        quarantine_dropped=inbox.quarantine_dropped,
+        streams=StreamCounts(
+            total=len(w.live),
+            shown=len(shown),
+            admitted=len(w.admitted),
+            open_files=0 if r is None else r.open_count,
+        ),
+        refused_streams=refused_summary(w),
+        shared_sensors=dict(list(w.shared_sensors().items())[:50]),
+        queue_bytes=inbox.data.bytes,
+    )
