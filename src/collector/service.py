@@ -371,4 +371,4 @@ class Collector:
 
     def shared_sensors(self) -> dict[str, list[str]]:
         """Sensor MACs published by more than one agent since the collector started."""
-        return self.writer.shared_sensors()
+        return self.writer.gate.shared_sensors()

@@ -45,7 +45,9 @@ class RunTotals:
 def refused_summary(w: Writer) -> RefusedStreams:
     """Batches refused by the stream caps: total, streams, and the 20 worst agents."""
     return RefusedStreams(
-        sum(w.refused.values()), len(w.refused_streams), dict(w.refused.most_common(20))
+        sum(w.gate.refused.values()),
+        len(w.gate.refused_streams),
+        dict(w.gate.refused.most_common(20)),
     )
 
 
@@ -160,10 +162,10 @@ def build_status(w: Writer, now: float) -> CollectorStatus:
         streams=StreamCounts(
             total=len(w.live),
             shown=len(shown),
-            admitted=len(w.admitted),
+            admitted=len(w.gate.admitted),
             open_files=0 if r is None else r.open_count,
         ),
         refused_streams=refused_summary(w),
-        shared_sensors=dict(list(w.shared_sensors().items())[:50]),
+        shared_sensors=dict(list(w.gate.shared_sensors().items())[:50]),
         queue_bytes=inbox.data.bytes,
     )

@@ -24,7 +24,7 @@ from typing import Any, TypeVar
 from ble_groundtruth import wire
 from ble_groundtruth.messages import ClockSample, StartReply, StopReply
 from ble_groundtruth.sdnotify import Notifier
-from collector.config import CollectorConfig
+from collector.config import CollectorConfig, Limits
 from collector.control import AgentBook
 from collector.errors import CollectorError
 from collector.ingest import (
@@ -320,6 +320,81 @@ class Inbox:
             self.count_quarantine_dropped(1)
 
 
+class StreamGate:
+    """Which (agent, sensor) streams the collector accepts: the stream caps
+    (``limits.streams_per_agent``, ``limits.streams_total``), counters of what they refused,
+    and sensors published by more than one agent. Writer thread only."""
+
+    def __init__(self, limits: Limits) -> None:
+        self._limits = limits
+        # Streams (agent, sensor) accepted since this collector started; others are refused.
+        self.admitted: set[tuple[str, str]] = set()
+        self._agent_streams: Counter[str] = Counter()
+        self._sensor_agents: dict[str, set[str]] = {}  # sensor MAC -> agents publishing it
+        self.refused: Counter[str] = Counter()  # agent -> batches refused (stream caps)
+        self.refused_streams: set[tuple[str, str]] = set()  # at most MAX_AGENT_ENTRIES kept
+        self._refused_log: dict[str, float] = {}
+
+    def admit(self, agent: str, sensor: str, now: float) -> bool:
+        """Accept a new (agent, sensor) stream under the stream caps, or refuse its batch (not
+        written, not acknowledged, counted)."""
+        lim = self._limits
+        key = (agent, sensor)
+        if (
+            self._agent_streams[agent] >= lim.streams_per_agent
+            or len(self.admitted) >= lim.streams_total
+        ):
+            if agent in self.refused or len(self.refused) < MAX_AGENT_ENTRIES:
+                self.refused[agent] += 1
+            else:
+                self.refused["(other agents)"] += 1
+            if len(self.refused_streams) < MAX_AGENT_ENTRIES:
+                self.refused_streams.add(key)
+            if (
+                now - self._refused_log.get(agent, -1e9) >= 60
+                and len(self._refused_log) < MAX_AGENT_ENTRIES
+            ):
+                self._refused_log[agent] = now
+                which = (
+                    f"agent {agent} already has {lim.streams_per_agent} streams"
+                    if self._agent_streams[agent] >= lim.streams_per_agent
+                    else f"the collector already has {lim.streams_total} streams"
+                )
+                log.warning(
+                    "refused sensor %s of agent %s: %s (limits.streams_per_agent / "
+                    "streams_total); its batches are not written (%d refused so far)",
+                    sensor,
+                    agent,
+                    which,
+                    self.refused[agent],
+                )
+            return False
+        self.admit_known(key)
+        return True
+
+    def admit_known(self, key: tuple[str, str]) -> None:
+        """Count a stream as admitted without checking the caps (a resumed run's streams)."""
+        if key in self.admitted:
+            return
+        agent, sensor = key
+        self.admitted.add(key)
+        self._agent_streams[agent] += 1
+        agents = self._sensor_agents.setdefault(sensor, set())
+        agents.add(agent)
+        if len(agents) > 1:
+            log.warning(
+                "sensor %s is published by agents %s: kept as separate streams "
+                "(rssi/<agent>/%s.mbd); a copied adapter address or a misconfigured agent?",
+                sensor,
+                ", ".join(sorted(agents)),
+                sensor,
+            )
+
+    def shared_sensors(self) -> dict[str, list[str]]:
+        """Sensor MACs published by more than one agent since the collector started."""
+        return {m: sorted(a) for m, a in sorted(self._sensor_agents.items()) if len(a) > 1}
+
+
 class Writer:
     """Owns the run: every attribute below is read and written on the writer thread only
     (``call`` runs a function there), except ``inbox`` and ``agents``, which are thread-safe."""
@@ -359,13 +434,7 @@ class Writer:
         self.want_agent_info: Callable[[str], None] = lambda _agent: None
         self.thread: threading.Thread | None = None
         self.run_active = False  # mirror of `run is not None` for the other threads
-        # Streams (agent, sensor) accepted since this collector started; others are refused.
-        self.admitted: set[tuple[str, str]] = set()
-        self._agent_streams: Counter[str] = Counter()
-        self._sensor_agents: dict[str, set[str]] = {}  # sensor MAC -> agents publishing it
-        self.refused: Counter[str] = Counter()  # agent -> batches refused (stream caps)
-        self.refused_streams: set[tuple[str, str]] = set()  # at most MAX_AGENT_ENTRIES kept
-        self._refused_log: dict[str, float] = {}
+        self.gate = StreamGate(cfg.limits)
         self.tracker = StreamTracker()
         self.run: RunWriter | None = None
         self.stopping: Stopping | None = None
@@ -405,9 +474,9 @@ class Writer:
         run, tracker = resumed.run, resumed.tracker
         self.run, self.tracker = run, tracker
         for a, _b, sn in tracker.streams:
-            self._admit_known((a, sn))
+            self.gate.admit_known((a, sn))
         for key in run.sensors:
-            self._admit_known(key)
+            self.gate.admit_known(key)
         self.run_active = True
         self.clock_log = resumed.clock_log
         self.restarts = resumed.restarts
@@ -569,11 +638,10 @@ class Writer:
         buffered = run.buffered if run is not None and capped else 0
         alive = self.agents.alive_map()
         self._dirty = True  # even a duplicate may carry a higher floor
-        admitted = self.admitted
+        gate = self.gate
+        admitted = gate.admitted
         for b in batches:
-            if (b.agent_id, b.sensor) not in admitted and not self._admit(
-                b.agent_id, b.sensor, now
-            ):
+            if (b.agent_id, b.sensor) not in admitted and not gate.admit(b.agent_id, b.sensor, now):
                 continue
             self._recent[b.agent_id] = now
             if capped and buffered >= self._max_buffer:
@@ -608,64 +676,6 @@ class Writer:
             )
         if n or len(self.unknown_agents) < MAX_AGENT_ENTRIES:
             self.unknown_agents[agent] = n + 1
-
-    def _admit(self, agent: str, sensor: str, now: float) -> bool:
-        """Accept a new (agent, sensor) stream under the stream caps, or refuse its batch (not
-        written, not acknowledged, counted)."""
-        lim = self.cfg.limits
-        key = (agent, sensor)
-        if (
-            self._agent_streams[agent] >= lim.streams_per_agent
-            or len(self.admitted) >= lim.streams_total
-        ):
-            if agent in self.refused or len(self.refused) < MAX_AGENT_ENTRIES:
-                self.refused[agent] += 1
-            else:
-                self.refused["(other agents)"] += 1
-            if len(self.refused_streams) < MAX_AGENT_ENTRIES:
-                self.refused_streams.add(key)
-            if (
-                now - self._refused_log.get(agent, -1e9) >= 60
-                and len(self._refused_log) < MAX_AGENT_ENTRIES
-            ):
-                self._refused_log[agent] = now
-                which = (
-                    f"agent {agent} already has {lim.streams_per_agent} streams"
-                    if self._agent_streams[agent] >= lim.streams_per_agent
-                    else f"the collector already has {lim.streams_total} streams"
-                )
-                log.warning(
-                    "refused sensor %s of agent %s: %s (limits.streams_per_agent / "
-                    "streams_total); its batches are not written (%d refused so far)",
-                    sensor,
-                    agent,
-                    which,
-                    self.refused[agent],
-                )
-            return False
-        self._admit_known(key)
-        return True
-
-    def _admit_known(self, key: tuple[str, str]) -> None:
-        if key in self.admitted:
-            return
-        agent, sensor = key
-        self.admitted.add(key)
-        self._agent_streams[agent] += 1
-        agents = self._sensor_agents.setdefault(sensor, set())
-        agents.add(agent)
-        if len(agents) > 1:
-            log.warning(
-                "sensor %s is published by agents %s: kept as separate streams "
-                "(rssi/<agent>/%s.mbd); a copied adapter address or a misconfigured agent?",
-                sensor,
-                ", ".join(sorted(agents)),
-                sensor,
-            )
-
-    def shared_sensors(self) -> dict[str, list[str]]:
-        """Sensor MACs published by more than one agent since the collector started."""
-        return {m: sorted(a) for m, a in sorted(self._sensor_agents.items()) if len(a) > 1}
 
     def _prune_live(self, now: float) -> None:
         for k in [k for k, sl in self.live.items() if now - sl.last_seen > LIVE_IDLE_S]:
