@@ -35,7 +35,8 @@ from collector.store import iso_utc, list_runs
 if TYPE_CHECKING:
     import zenoh
 
-    from collector.writer import Inbox, Writer
+    from collector.inbox import Inbox
+    from collector.writer import Writer
 
 log = logging.getLogger(__name__)
 

@@ -25,6 +25,7 @@ from ble_groundtruth.zenoh_config import AclFileError, build_config, load_acl, z
 from collector.config import CollectorConfig
 from collector.control import COMMANDS, AgentBook, Control
 from collector.errors import CollectorError
+from collector.inbox import Inbox
 from collector.ingest import StreamTracker
 from collector.store import (
     STATE_FILE,
@@ -38,7 +39,6 @@ from collector.summary import build_status
 from collector.writer import (
     MAX_BUFFER_BYTES,
     QUARANTINE_MAX_BYTES,
-    Inbox,
     Resumed,
     Writer,
     descriptor_budget,
