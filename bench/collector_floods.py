@@ -23,7 +23,6 @@ import argparse
 import json
 import resource
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -38,13 +37,10 @@ from ble_groundtruth import wire
 from ble_groundtruth.zenoh_config import SessionSpec, build_config
 from collector.client import CollectorClient
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from loopback import free_port  # noqa: E402 - the tests' port helper, on the path above
+
 T0 = 1_795_318_500 * 10**9
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def status_kb(pid: int, field: str) -> int:

@@ -40,11 +40,11 @@ class YamlError(ValueError):
     names the file."""
 
 
-class SafeLoader(BaseLoader):  # type: ignore[misc, valid-type]
+class SafeLoader(BaseLoader):
     """The safe loader used here; subclass it to add constructors (e.g. OpenCV's matrix tag)."""
 
 
-class _NoAliasDumper(_BaseDumper):  # type: ignore[misc, valid-type]
+class _NoAliasDumper(_BaseDumper):
     def ignore_aliases(self, data: Any) -> bool:
         return True
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +18,14 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 # for its key and Zenoh's headers. Larger messages are refused while they arrive, before Zenoh
 # reassembles them (its default would let 1 GiB through).
 MAX_MESSAGE_BYTES = 4 * 1024 * 1024 + 64 * 1024
+_RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+
+
+def zenoh_reason(err: BaseException) -> str:
+    """Zenoh's error text on one line, without the Rust source locations it appends
+    ('... at /path/x.rs:61.') and the brackets around its error chain; '' if it has none."""
+    text = _RUST_LOCATION.sub("", " ".join(str(err).split()))
+    return text.replace("[", "").replace("]", "").strip()
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,8 +98,8 @@ def load_acl(path: str | Path) -> str:
     try:
         zenoh.Config().insert_json5("access_control", text)
     except zenoh.ZError as e:
-        first = str(e).splitlines()[0] if str(e) else "invalid"
-        raise AclFileError(f"{p}: not a valid zenoh access_control section: {first}") from e
+        reason = zenoh_reason(e) or "invalid"
+        raise AclFileError(f"{p}: not a valid zenoh access_control section: {reason}") from e
     return text
 
 

@@ -200,14 +200,14 @@ def _str(v: Any, name: str, field: str) -> str:
 def check_files(cfg: CollectorConfig) -> None:
     """What `serve --check` adds to parsing: the TLS files are PEM of the right kind, the ACL file
     is accepted by zenoh, and the whole Zenoh configuration builds. One ConfigError line otherwise."""
-    from ble_groundtruth.zenoh_config import AclFileError, build_config, load_acl
+    from ble_groundtruth.zenoh_config import AclFileError, build_config, load_acl, zenoh_reason
 
     acl_text = None
     if cfg.acl is not None:
         try:
             acl_text = load_acl(cfg.acl)
         except AclFileError as e:
-            raise ConfigError(" ".join(str(e).split())) from None
+            raise ConfigError(zenoh_reason(e)) from None
     if cfg.tls is not None:
         from cryptography import x509
         from cryptography.hazmat.primitives.serialization import load_pem_private_key
@@ -226,4 +226,4 @@ def check_files(cfg: CollectorConfig) -> None:
     try:
         build_config(cfg.session_spec(acl_text))
     except Exception as e:  # noqa: BLE001 - zenoh reports config problems as ZError or ValueError
-        raise ConfigError(f"zenoh rejects the configuration: {' '.join(str(e).split())}") from None
+        raise ConfigError(f"zenoh rejects the configuration: {zenoh_reason(e)}") from None

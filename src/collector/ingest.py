@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import logging
-import struct
 import threading
 from collections import Counter
 from collections.abc import Callable
@@ -13,11 +12,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ble_groundtruth import wire
+from ble_groundtruth.messages import Ack
 
 log = logging.getLogger(__name__)
 
-_HEAD = struct.Struct("<4sHHI")
-_READING = struct.Struct("<qq6sb")
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,17 +61,17 @@ def decode(payload: bytes) -> RawBatch:
 
 
 def _decode_fast(data: bytes) -> RawBatch | None:
-    if len(data) > wire.MAX_PAYLOAD_BYTES or len(data) < _HEAD.size:
+    if len(data) > wire.MAX_PAYLOAD_BYTES or len(data) < wire.BATCH_HEAD.size:
         return None
-    magic, version, meta_len, n = _HEAD.unpack_from(data, 0)
+    magic, version, meta_len, n = wire.BATCH_HEAD.unpack_from(data, 0)
     if magic != wire.MAGIC or version != wire.SCHEMA_VERSION or meta_len > wire.MAX_META_BYTES \
             or n > wire.MAX_READINGS:
         return None
-    start = _HEAD.size + meta_len
-    end = start + n * _READING.size
+    start = wire.BATCH_HEAD.size + meta_len
+    end = start + n * wire.BATCH_READING.size
     if len(data) != end:  # trailing extras (or a bad length): let the full decoder judge
         return None
-    meta = json.loads(data[_HEAD.size:start].decode("utf-8"))
+    meta = json.loads(data[wire.BATCH_HEAD.size:start].decode("utf-8"))
     if not isinstance(meta, dict):
         return None
     agent = wire.check_id(meta.get("agent"), "agent id")
@@ -90,7 +88,7 @@ def _decode_fast(data: bytes) -> RawBatch | None:
     floor = meta.get("floor", -1)
     if type(floor) is not int or not -1 <= floor < 2**63:
         return None
-    rows = list(_READING.iter_unpack(data[start:end]))
+    rows = list(wire.BATCH_READING.iter_unpack(data[start:end]))
     if rows:
         ts = [r[0] for r in rows]
         rs = [r[3] for r in rows]
@@ -108,7 +106,7 @@ def format_rows(sensor: str, rows: list[tuple[int, int, bytes, int]]) -> str:
     so the string always has more than nine digits).
     """
     middles: dict[bytes, str] = {}
-    parts = []
+    parts: list[str] = []
     add = parts.append
     for t, _mono, mac, rssi in rows:
         mid = middles.get(mac)
@@ -371,7 +369,7 @@ class StreamTracker:
                 moved.add(agent)
         return moved
 
-    def ack_messages(self, agent_id: str) -> list[dict[str, Any]]:
+    def ack_messages(self, agent_id: str) -> list[Ack]:
         """One ack JSON per boot of this agent (contract 2), most recent boots only, oldest first."""
         per_boot: dict[str, dict[str, int]] = {}
         for (a, b, s), st in self.streams.items():
@@ -380,9 +378,9 @@ class StreamTracker:
                 if st.acked_upto >= 0:
                     streams[s] = st.acked_upto
         boots = list(per_boot.items())[-self.MAX_ACK_BOOTS:]
-        return [{"boot": b, "streams": s} for b, s in boots]
+        return [Ack(b, s) for b, s in boots]
 
-    def ack_message(self, agent_id: str) -> dict | None:
+    def ack_message(self, agent_id: str) -> Ack | None:
         """The ack JSON for an agent's most recent boot (dicts keep insertion order)."""
         msgs = self.ack_messages(agent_id)
         return msgs[-1] if msgs else None

@@ -21,6 +21,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from ble_groundtruth.atomic import write_atomic
 from collector.errors import CollectorError
 
 log = logging.getLogger(__name__)
@@ -53,35 +54,13 @@ def write_yaml_atomic(path: Path, data: dict[str, Any]) -> None:
     """Replace a YAML file in one rename, so a crash never leaves half a run.yaml."""
     from ble_groundtruth.safe_yaml import dump
 
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with tmp.open("w", encoding="utf-8") as f:
-        dump(data, f, sort_keys=False)  # no anchors: safe_yaml refuses them on reading
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    # no anchors: safe_yaml refuses them on reading
+    write_atomic(path, dump(data, sort_keys=False) or "")
 
 
 def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
     """Temp file, fsync, rename, directory fsync: after a crash either the old or the new file."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    try:
-        with tmp.open("w", encoding="utf-8") as f:
-            json.dump(data, f, separators=(",", ":"))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)  # a half-written temp file must not eat the space we lack
-        raise
-    _fsync_dir(path.parent)
+    write_atomic(path, json.dumps(data, separators=(",", ":")))
 
 
 def is_disk_full(err: OSError) -> bool:
@@ -297,8 +276,10 @@ class RunWriter:
         self.readings = int(state.get("readings", 0))
 
     def _appender(self, key: StreamKey) -> SensorAppender:
-        return SensorAppender(self.path(key), write=self._write,
-                              opener=lambda a, k=key: self._open_lru(k, a))
+        def opener(app: SensorAppender) -> int:
+            return self._open_lru(key, app)
+
+        return SensorAppender(self.path(key), write=self._write, opener=opener)
 
     def _open_lru(self, key: StreamKey, app: SensorAppender) -> int:
         """Open a stream's file, first closing the least recently used ones over the budget."""
@@ -400,7 +381,7 @@ class RunWriter:
 def find_active_state(data_dir: Path) -> list[tuple[Path, dict[str, Any]]]:
     """Run directories whose state.json says the run is still active (the collector was killed),
     newest first. Unreadable state files are reported and skipped."""
-    out = []
+    out: list[tuple[Path, dict[str, Any]]] = []
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         return out
@@ -422,7 +403,7 @@ def list_runs(data_dir: Path) -> list[dict[str, Any]]:
     """Every run under data_dir (oldest first) with id, name, start, stop and reading count."""
     from ble_groundtruth.safe_yaml import YamlError, load_file
 
-    out = []
+    out: list[dict[str, Any]] = []
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         return out
@@ -477,9 +458,6 @@ def export_merged(run_dir: Path, out_dir: Path) -> dict[str, int]:
                     raise CollectorError(f"{p}:{lineno}: bad timestamp: {e}") from None
         rows.sort(key=lambda r: r[0])
         dest = out_dir / f"{mac}.mbd"
-        tmp = dest.with_suffix(".mbd.tmp")
-        with tmp.open("w", encoding="ascii") as f:
-            f.writelines(line + "\n" for _t, line in rows)
-        os.replace(tmp, dest)
+        write_atomic(dest, "".join(line + "\n" for _t, line in rows))
         counts[mac] = len(rows)
     return counts

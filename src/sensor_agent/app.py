@@ -19,9 +19,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from ble_groundtruth import __version__
+from ble_groundtruth.messages import AdapterStatus, AgentStatus
 from ble_groundtruth.sdnotify import Notifier
 from ble_groundtruth.wire import Reading, check_reading
-from ble_groundtruth.zenoh_config import SessionSpec, build_config
+from ble_groundtruth.zenoh_config import SessionSpec, build_config, zenoh_reason
 from sensor_agent.clockhealth import read_chrony
 from sensor_agent.config import AgentConfig, AllowList
 from sensor_agent.errors import AckTimeout, AgentError, BackendError
@@ -165,19 +166,17 @@ class Agent:
     def status(self) -> dict[str, Any]:
         """The status queryable's reply (see the agent/collector contract)."""
         now_mono = self.clocks.mono_ns()
-        adapters = []
-        for info in self.backend.adapters:
-            st = self.stats.get(info.mac)
-            a = _adapter_status(info, st, now_mono, self.backend.restarts(info.mac))
-            a["power_cycles"] = self.backend.power_cycles(info.mac)
-            adapters.append(a)
+        adapters = tuple(
+            _adapter_status(info, self.stats.get(info.mac), now_mono,
+                            self.backend.restarts(info.mac), self.backend.power_cycles(info.mac))
+            for info in self.backend.adapters)
         pub = self._publisher
-        return {"agent_id": self.cfg.agent_id, "boot_id": self.boot_id, "version": __version__,
-                "backend": self.cfg.backend, "hostname": socket.gethostname(),
-                "started_ns": self.started_ns, "now_ns": self.clocks.wall_ns(),
-                "adapters": adapters, "spool": self.spool_status(),
-                "resent": 0 if pub is None else pub.resent, "chrony": self._chrony,
-                "bad_readings": self.bad_readings}
+        return AgentStatus(
+            agent_id=self.cfg.agent_id, boot_id=self.boot_id, version=__version__,
+            backend=self.cfg.backend, hostname=socket.gethostname(), started_ns=self.started_ns,
+            now_ns=self.clocks.wall_ns(), adapters=adapters, spool=self.spool_status(),
+            resent=0 if pub is None else pub.resent, chrony=self._chrony,
+            bad_readings=self.bad_readings).to_dict()
 
     def spool_status(self) -> dict[str, Any] | None:
         """The spool's counters for the status reply; None when running without a spool."""
@@ -196,7 +195,7 @@ class Agent:
 
         cfg = self.cfg
         await asyncio.to_thread(self.backend.check)  # bad input fails before connecting
-        if self.cert_cn is not None and self.cert_cn != cfg.agent_id:
+        if cfg.tls is not None and self.cert_cn is not None and self.cert_cn != cfg.agent_id:
             log.warning("agent id %r is not the CN %r of this agent's certificate (%s): the "
                         "collector's ACL goes by the certificate's CN, so it will drop everything "
                         "published as %r and nothing will be acknowledged; set agent_id: %s or "
@@ -259,8 +258,7 @@ class Agent:
         try:
             session = await asyncio.to_thread(zenoh.open, build_config(spec))
         except zenoh.ZError as e:
-            # Zenoh appends the Rust source location after two spaces; the reason comes first.
-            reason = str(e).splitlines()[0].split("  at ")[0].strip() if str(e) else ""
+            reason = zenoh_reason(e)
             if "Unable to connect" in reason or "Timeout" in reason:
                 if first:
                     log.warning("cannot reach the Zenoh router at %s yet (%s); recording "
@@ -312,7 +310,7 @@ class Agent:
 
     def _no_ack_cause(self) -> str:
         cfg = self.cfg
-        if self.cert_cn is not None and self.cert_cn != cfg.agent_id:
+        if cfg.tls is not None and self.cert_cn is not None and self.cert_cn != cfg.agent_id:
             return (f"agent id {cfg.agent_id!r} differs from the certificate's CN {self.cert_cn!r}, "
                     "and the collector's ACL drops what this certificate publishes under another id")
         if cfg.tls is not None:
@@ -438,15 +436,16 @@ def _cert_cn(cfg: AgentConfig) -> str | None:
 
 
 def _adapter_status(info: AdapterInfo, st: AdapterStats | None, now_mono: int,
-                    restarts: int) -> dict[str, Any]:
+                    restarts: int, power_cycles: int) -> AdapterStatus:
     last_age = None
     if st is not None and st.last_mono_ns is not None:
         last_age = round(max(0, now_mono - st.last_mono_ns) / 1e9, 3)
-    return {"name": info.name, "mac": info.mac, "backend": info.backend, "mode": info.mode,
-            "adverts_per_s": 0.0 if st is None else round(st.rate(now_mono), 2),
-            "last_advert_age_s": last_age, "restarts": restarts,
-            "readings_total": 0 if st is None else st.readings_total,
-            "bad_readings": 0 if st is None else st.bad_readings}
+    return AdapterStatus(
+        name=info.name, mac=info.mac, backend=info.backend, mode=info.mode,
+        adverts_per_s=0.0 if st is None else round(st.rate(now_mono), 2),
+        last_advert_age_s=last_age, restarts=restarts,
+        readings_total=0 if st is None else st.readings_total,
+        bad_readings=0 if st is None else st.bad_readings, power_cycles=power_cycles)
 
 
 async def run_agent(cfg: AgentConfig, *, wait_ack: bool = True, clocks: Clocks | None = None,

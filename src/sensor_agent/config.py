@@ -333,11 +333,11 @@ def _simulated(f: _Fields, raw: Any) -> SimulatedConfig:
         if isinstance(ev, str) or not isinstance(ev, Sequence):
             raise f.fail("simulated.events", "a list of cover events", ev)
         events = []
-        for i, e in enumerate(ev):
-            if not isinstance(e, Mapping):
-                raise f.fail(f"simulated.events[{i}]", "a mapping", e)
+        for i, item in enumerate(ev):
+            if not isinstance(item, Mapping):
+                raise f.fail(f"simulated.events[{i}]", "a mapping", item)
             try:
-                events.append(CoverEvent.from_dict(e))
+                events.append(CoverEvent.from_dict(item))
             except MotionError as err:
                 raise ConfigError(f"{f.source}: simulated.events[{i}]: {err}") from None
         kw["events"] = tuple(events)

@@ -19,8 +19,9 @@ from ble_groundtruth import wire
 from collector.client import CollectorClient
 from collector.config import CollectorConfig, Limits
 from collector.errors import CollectorError
+from collector.inbox import ByteQueue
 from collector.ingest import StreamTracker
-from collector.server import ByteQueue, Collector
+from collector.service import Collector
 from collector.store import RunWriter
 
 A, B = "b827eb4521b4", "000000000101"

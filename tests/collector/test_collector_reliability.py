@@ -19,12 +19,13 @@ import yaml
 from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
 from ble_groundtruth import wire
+from ble_groundtruth.messages import Ack, ClockReply, ClockSample
 from ble_groundtruth.sdnotify import Notifier
 from collector.client import CollectorClient
 from collector.config import CollectorConfig, load_config
 from collector.errors import CollectorError, CommandFailed, ConfigError
 from collector.ingest import StreamTracker, decode
-from collector.server import Collector, clock_sample
+from collector.service import Collector
 from collector.store import STATE_FILE, RunWriter, repair_file
 
 A, B = "b827eb4521b4", "000000000101"
@@ -96,8 +97,8 @@ def test_acks_cover_every_boot_of_an_agent() -> None:
     t.accept(("pi-01", BOOT_NEW, B), 1, floor=0)
     t.accept(("pi-02", BOOT_OLD, A), 0, floor=0)
     assert t.mark_durable() == {"pi-01", "pi-02"}
-    assert t.ack_messages("pi-01") == [{"boot": BOOT_OLD, "streams": {A: 7}},
-                                       {"boot": BOOT_NEW, "streams": {A: 0, B: 1}}]
+    assert t.ack_messages("pi-01") == [Ack(BOOT_OLD, {A: 7}),
+                                       Ack(BOOT_NEW, {A: 0, B: 1})]
 
 
 def test_tracker_state_round_trip_keeps_dedupe() -> None:
@@ -125,11 +126,12 @@ def test_clock_sample_arithmetic() -> None:
     t2 = t1 + 2_000_000 + 30_000_000
     t3 = t2 + 1_000_000
     t4 = t1 + 7_000_000
-    s = clock_sample({"t1": t1, "t2": t2, "t3": t3, "chrony": None}, t1, t4, "x")
-    assert s["rtt_ms"] == 6.0
-    assert s["offset_ms"] == 29.0  # asymmetric paths bias the estimate by half the difference
+    s = ClockSample.measure(ClockReply.from_dict({"t1": t1, "t2": t2, "t3": t3, "chrony": None}),
+                            t1, t4, "x")
+    assert s.rtt_ms == 6.0
+    assert s.offset_ms == 29.0  # asymmetric paths bias the estimate by half the difference
     with pytest.raises(wire.InvalidField, match="t1"):
-        clock_sample({"t1": 5, "t2": t2, "t3": t3}, t1, t4, "x")
+        ClockSample.measure(ClockReply.from_dict({"t1": 5, "t2": t2, "t3": t3}), t1, t4, "x")
 
 
 def test_config_clock_interval(tmp_path) -> None:
@@ -241,15 +243,9 @@ def test_restart_resumes_the_same_run_without_loss_or_duplicates(tmp_path, endpo
     for b in sent[:20]:
         ag.put(b)
     wait_for(lambda: ag.acked(A) == 19, what="acks before the crash")
-    # Simulate the crash: freeze the old collector (session closed, threads stopped, files not
-    # finalised, run.yaml still says stop: null) and leave a torn line as a killed write would.
-    first._closing.set()
-    for d in first._decls:
-        d.undeclare()
-    first._session.close()
-    first._session = None
-    for t in first._threads:
-        t.join(5)
+    # Simulate the crash: the old collector stops as a killed one would (run not finalised,
+    # run.yaml still says stop: null), and a torn line is left as a killed write would.
+    first.abandon()
     mbd = Path(run["run_dir"]) / "rssi" / "pi-01" / f"{A}.mbd"
     with mbd.open("ab") as f:
         f.write(b"1700000000.12345,b827eb4521b4,e78")
@@ -515,8 +511,8 @@ def test_full_receive_queue_drops_unacknowledged_after_waiting(tmp_path, caplog)
     c = Collector(CollectorConfig(data_dir=tmp_path), queue_bytes=2 * one)
     key = wire.data_key("default", "pi-01", A)
     for i in range(4):
-        c._on_sample(_Sample(key, wire.to_wire(make_batch(i, sensor=A))))
-    status = c._do_status()
+        c.inbox.on_sample(_Sample(key, wire.to_wire(make_batch(i, sensor=A))))
+    status = c.status_now()
     assert (status["queue"], status["queue_overflow"]) == (2, 2)
-    assert c._tracker.streams == {}  # dropped before dedupe: nothing will be acknowledged for them
+    assert c.writer.tracker.streams == {}  # dropped before dedupe: nothing will be acknowledged for them
     assert sum("receive queue full" in r.message for r in caplog.records) == 1  # rate-limited

@@ -20,7 +20,7 @@ from test_collector_reliability import resend_until_acked, with_floor
 from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
-from collector.server import Collector
+from collector.service import Collector
 from collector.store import STATE_FILE
 
 A = "b827eb4521b4"

@@ -3,7 +3,6 @@ for an agent): runs, acks, rejects, dedupe, status, and the control queryables."
 
 from __future__ import annotations
 
-import struct
 import threading
 from pathlib import Path
 
@@ -15,7 +14,7 @@ from ble_groundtruth import wire
 from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import CollectorError, CommandFailed, Unreachable
-from collector.server import Collector
+from collector.service import Collector
 
 A, B = "b827eb4521b4", "000000000101"
 
@@ -78,8 +77,8 @@ def test_run_holds_exactly_the_published_rows(agent, client) -> None:
 
 def _raw(sensor: str, rssis: list[int], seq: int = 99) -> bytes:
     meta = (f'{{"agent":"pi-01","boot":"0123456789abcdef","sensor":"{sensor}","seq":{seq}}}').encode()
-    return (struct.pack("<4sHHI", wire.MAGIC, 1, len(meta), len(rssis)) + meta
-            + b"".join(struct.pack("<qq6sb", 1_700_000_000 * 10**9 + i, 0, bytes(6), r)
+    return (wire.BATCH_HEAD.pack(wire.MAGIC, 1, len(meta), len(rssis)) + meta
+            + b"".join(wire.BATCH_READING.pack(1_700_000_000 * 10**9 + i, 0, bytes(6), r)
                        for i, r in enumerate(rssis)))
 
 

@@ -16,7 +16,7 @@ from ble_groundtruth.zenoh_config import TlsFiles
 from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import Unreachable
-from collector.server import Collector
+from collector.service import Collector
 from loopback import free_port
 
 

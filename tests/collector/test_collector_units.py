@@ -12,6 +12,7 @@ from collector_helpers import make_batch
 
 from ble_groundtruth import wire
 from ble_groundtruth.formats.mbd import format_row, iter_rows
+from ble_groundtruth.messages import Ack
 from collector.config import CollectorConfig, load_config
 from collector.errors import CollectorError, ConfigError
 from collector.ingest import RejectCounter, StreamTracker, decode, format_rows, reject_reason
@@ -113,9 +114,9 @@ def test_tracker_dedupes_and_keeps_contiguous_watermark() -> None:
     assert t.accept(S, 2)  # recovery fills the gap: watermark jumps over what was already there
     assert st.done_upto == 4
     assert t.missing(S) == 0
-    assert t.ack_message("pi-01") == {"boot": S[1], "streams": {}}  # nothing durable yet
+    assert t.ack_message("pi-01") == Ack(S[1], {})  # nothing durable yet
     assert t.mark_durable() == {"pi-01"}
-    assert t.ack_message("pi-01") == {"boot": S[1], "streams": {"b827eb4521b4": 4}}
+    assert t.ack_message("pi-01") == Ack(S[1], {"b827eb4521b4": 4})
     assert t.mark_durable() == set()  # unchanged -> nobody to tell
 
 
@@ -125,7 +126,7 @@ def test_tracker_acks_only_the_latest_boot() -> None:
     t.accept(("pi-01", "fedcba9876543210", S[2]), 0)
     t.accept(("pi-01", "fedcba9876543210", S[2]), 1)
     t.mark_durable()
-    assert t.ack_message("pi-01") == {"boot": "fedcba9876543210", "streams": {S[2]: 1}}
+    assert t.ack_message("pi-01") == Ack("fedcba9876543210", {S[2]: 1})
     assert t.ack_message("nobody") is None
 
 
@@ -135,7 +136,7 @@ def test_tracker_stream_first_seen_late() -> None:
     assert t.streams[S].first_seq == 5
     assert t.streams[S].done_upto == 5
     t.mark_durable()
-    assert t.ack_message("pi-01")["streams"] == {S[2]: 5}
+    assert t.ack_message("pi-01").streams == {S[2]: 5}
     assert t.accept(S, 4)  # from before the collector joined (e.g. history): written once
     assert not t.accept(S, 4)
     assert not t.accept(S, 5)

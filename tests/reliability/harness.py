@@ -31,18 +31,12 @@ import yaml
 from ble_groundtruth import wire
 from ble_groundtruth.formats.mbd import format_row, parse_line
 from collector.errors import CollectorError
+from loopback import free_port  # noqa: F401 - also the bench's port helper
 
 log = logging.getLogger(__name__)
 
 SITE = "default"
 BIN = Path(sys.executable).parent
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nobody listens on right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _command(script: str, module: str) -> list[str]:
@@ -613,7 +607,7 @@ def agent_restart(root: Path, scale: Scale, *, pause_s: float = 2.0) -> Result:
 
 def _mutations(rng: Any, valid: bytes) -> list[tuple[str, bytes]]:
     """Kinds of broken payloads, each derived from a valid batch or made from scratch."""
-    head = struct.Struct("<4sHHI")
+    head = wire.BATCH_HEAD
     magic, ver, mlen, n = head.unpack_from(valid, 0)
     meta = valid[head.size:head.size + mlen]
     body = valid[head.size + mlen:]

@@ -4,22 +4,18 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from ble_groundtruth.atomic import write_atomic
+
 
 def write_text_atomic(path: Path, text: str) -> None:
-    """Write to a temporary sibling, then rename: readers never see half a file, and a failure
-    leaves whatever was there before untouched."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    """Write to a temporary sibling, fsync, then rename: readers never see half a file, and a
+    failure leaves whatever was there before untouched (see ``ble_groundtruth.atomic``)."""
+    write_atomic(path, text)
 
 
 # --- reading: every problem becomes the caller's one-line error type ----------------------------

@@ -99,9 +99,10 @@ class MapParams:
 def parse_par(text: str, source: str = "<par>") -> MapParams:
     try:
         d = json_loads(text)
-        p = MapParams(tuple(finite(v, "origin") for v in d["origin"]),
-                      tuple(finite(v, "limits") for v in d["limits"]),
-                      tuple(int(v) for v in d["direction"]), finite(d["parity"], "parity"))
+        ox, oy = (finite(v, "origin") for v in d["origin"])
+        x0, y0, x1, y1 = (finite(v, "limits") for v in d["limits"])
+        a, b, sx, sy = (int(v) for v in d["direction"])
+        p = MapParams((ox, oy), (x0, y0, x1, y1), (a, b, sx, sy), finite(d["parity"], "parity"))
     except (ValueError, KeyError, TypeError, OverflowError) as e:
         raise SiteConfigError(f"{source}: expected origin, limits, direction, parity ({e})") from None
     if (len(p.origin) != 2 or len(p.limits) != 4 or len(p.direction) != 4 or not p.parity > 0

@@ -38,13 +38,6 @@ class FingerprintHistograms:
     fingerprints: FingerprintTable
 
 
-def bins_from_range(lo: int, hi: int) -> tuple[float, ...]:
-    """Edges ``lo, lo+1, ..., hi`` (one bin per integer dBm, the last one closed at ``hi``)."""
-    if hi <= lo:
-        raise ValueError(f"empty bin range {lo}:{hi}")
-    return tuple(float(v) for v in range(lo, hi + 1))
-
-
 def check_edges(obj: object) -> tuple[float, ...]:
     """Bin edges as floats; ValueError unless at least two, finite and strictly increasing."""
     if not isinstance(obj, list | tuple) or len(obj) < 2:

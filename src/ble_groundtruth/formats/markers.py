@@ -6,7 +6,6 @@ Standard library only: rotations are returned as nested lists; the annotator con
 
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,16 +22,6 @@ class MarkerPose:
     id: int
     position: tuple[float, float, float]  # marker centre, world frame, metres
     euler_xyz: tuple[float, float, float]  # rx, ry, rz radians (R = Rz Ry Rx)
-
-    def rotation(self) -> list[list[float]]:
-        """3x3 marker->world rotation as nested lists."""
-        rx, ry, rz = self.euler_xyz
-        cx, sx, cy, sy, cz, sz = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry), math.cos(rz), math.sin(rz)
-        return [
-            [cz * cy, cz * sy * sx - sz * cx, cz * sy * cx + sz * sx],
-            [sz * cy, sz * sy * sx + cz * cx, sz * sy * cx - cz * sx],
-            [-sy, cy * sx, cy * cx],
-        ]
 
 
 _LINE = re.compile(r"^\s*(\d+)\s*:\s*(\[[^\]]*\])\s*:\s*(\[[^\]]*\])\s*$")

@@ -74,4 +74,3 @@ def read_rows(paths: Iterable[str | Path]) -> list[MbdRow]:
 
 TRACK_COLUMNS = ["ts", "sensor", "beacon", "rssi", "x", "y", "z",
                  "r11", "r12", "r13", "r21", "r22", "r23", "r31", "r32", "r33"]
-FINGERPRINT_COLUMNS = TRACK_COLUMNS[:4]

@@ -84,9 +84,9 @@ def load_mbd(paths: str | Path | Iterable[str | Path]) -> pd.DataFrame:
     })
     if any_pose:
         nan_row = (math.nan,) * len(POSE_COLUMNS)
-        pose = np.array([p if p is not None else nan_row for p in poses], dtype=float)
+        pose_arr = np.array([p if p is not None else nan_row for p in poses], dtype=float)
         for i, name in enumerate(POSE_COLUMNS):
-            df[name] = pose[:, i]
+            df[name] = pose_arr[:, i]
     return df
 
 

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from bleak import BleakScanner
-from bleak.args.bluez import OrPattern
+from bleak.args.bluez import BlueZScannerArgs, OrPattern
 from bleak.assigned_numbers import AdvertisementDataType
 from bleak.backends.device import BLEDevice
 from bleak.backends.scanner import AdvertisementData
@@ -41,7 +41,7 @@ NO_BLUEZ = "D-Bus service org.bluez not found; is bluetoothd running?"
 # Passive scanning only reports advertisements matching a monitor pattern. Almost every LE
 # advertiser sends a Flags field; these three values cover general/limited discoverable and
 # LE-only devices (the same choice Home Assistant's scanner makes), plus Apple's iBeacon prefix.
-PASSIVE_OR_PATTERNS = [
+PASSIVE_OR_PATTERNS: list[OrPattern | tuple[int, AdvertisementDataType, bytes]] = [
     OrPattern(0, AdvertisementDataType.FLAGS, b"\x02"),
     OrPattern(0, AdvertisementDataType.FLAGS, b"\x06"),
     OrPattern(0, AdvertisementDataType.FLAGS, b"\x1a"),
@@ -143,13 +143,13 @@ class _AdapterScanner:
         self.silent_restarts = 0  # restarts since the last advertisement
 
     def _new_scanner(self) -> BleakScanner:
-        bluez: dict = {"adapter": self.adapter.name}
+        bluez: BlueZScannerArgs = {"adapter": self.adapter.name}
         if self.mode == "passive":
             bluez["or_patterns"] = PASSIVE_OR_PATTERNS
-        else:
-            # DuplicateData: report every advertisement, not only changes (one reading per advert).
-            bluez["filters"] = {"DuplicateData": True}
-        return BleakScanner(self.callback, None, self.mode, bluez=bluez)
+            return BleakScanner(self.callback, None, "passive", bluez=bluez)
+        # DuplicateData: report every advertisement, not only changes (one reading per advert).
+        bluez["filters"] = {"DuplicateData": True}
+        return BleakScanner(self.callback, None, "active", bluez=bluez)
 
     async def start(self) -> None:
         self.scanner = self._new_scanner()
