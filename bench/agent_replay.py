@@ -21,11 +21,11 @@ from pathlib import Path
 
 import zenoh
 
-from ble_groundtruth import wire
-from ble_groundtruth.formats.mbd import format_row
-from ble_groundtruth.zenoh_config import SessionSpec, build_config
+from bgt_core import wire
+from bgt_core.formats.mbd import format_row
+from bgt_core.zenoh_config import SessionSpec, build_config
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "support"))
 from loopback import free_port  # noqa: E402 - the tests' port helper, on the path above
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")

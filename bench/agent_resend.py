@@ -19,12 +19,12 @@ from pathlib import Path
 
 import zenoh
 
-from ble_groundtruth import wire
-from ble_groundtruth.zenoh_config import SessionSpec, build_config
+from bgt_core import wire
+from bgt_core.zenoh_config import SessionSpec, build_config
 from sensor_agent.publisher import Publisher, stream_id
 from sensor_agent.spool import Spool
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "support"))
 from loopback import free_port  # noqa: E402 - the tests' port helper, on the path above
 
 MIB = 1024 * 1024

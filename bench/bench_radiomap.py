@@ -18,8 +18,8 @@ import numpy as np
 from annotator import radio_data
 from annotator import radiomap as rm
 from annotator.fingerprints import rssi_edges
-from ble_groundtruth.formats import hst, tables
-from ble_groundtruth.formats.occ import read_occ
+from bgt_core.formats import hst, tables
+from bgt_core.formats.occ import read_occ
 
 ROOT = Path(__file__).resolve().parents[1]
 DATASET = ROOT / "tests" / "data" / "dataset"

@@ -21,7 +21,7 @@ import threading
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "support"))
 from loopback import free_port  # noqa: E402 - the tests' port helper, on the path above
 
 AGENT, BOOT = "bench", "00000000000000be"
@@ -34,7 +34,7 @@ def sensor_mac(i: int) -> str:
 
 def payloads(batch: int, sensors: int, count: int) -> list[tuple[str, bytes]]:
     """count batches round-robin over the sensors, each with `batch` distinct readings."""
-    from ble_groundtruth import wire
+    from bgt_core import wire
 
     out = []
     for k in range(count):
@@ -50,10 +50,10 @@ def publisher(connect: str, seconds: float, batch: int, sensors: int, rate: floa
     """Child process: publish until `seconds` elapse, then print how many batches went out."""
     import zenoh
 
-    from ble_groundtruth.zenoh_config import SessionSpec, build_config
+    from bgt_core.zenoh_config import SessionSpec, build_config
 
     pool = payloads(batch, sensors, 4000)  # enough distinct keys/payloads; seq is re-encoded below
-    from ble_groundtruth import wire
+    from bgt_core import wire
 
     s = zenoh.open(build_config(SessionSpec(mode="client", connect=[connect])))
     pubs = {key: s.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
@@ -104,7 +104,7 @@ def run_publisher(ep: str, args) -> tuple[subprocess.Popen, float]:
 def bare(args) -> dict:
     import zenoh
 
-    from ble_groundtruth.zenoh_config import SessionSpec, build_config
+    from bgt_core.zenoh_config import SessionSpec, build_config
 
     ep = f"tcp/127.0.0.1:{free_port()}"
     s = zenoh.open(build_config(SessionSpec(mode="router", listen=[ep])))

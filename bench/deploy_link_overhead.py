@@ -20,10 +20,10 @@ from pathlib import Path
 
 import zenoh
 
-from ble_groundtruth import wire
-from ble_groundtruth.deploy import pki
-from ble_groundtruth.deploy.acl import build_acl
-from ble_groundtruth.zenoh_config import SessionSpec, TlsFiles, build_config
+from bgt_core import wire
+from bgt_core.zenoh_config import SessionSpec, TlsFiles, build_config
+from deploy import pki
+from deploy.acl import build_acl
 
 SITE = "default"
 

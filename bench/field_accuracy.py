@@ -55,8 +55,8 @@ from annotator.render import LoopTrajectory, default_cameras, render_experiment
 from annotator.render.errors import FileErrors
 from annotator.render.experiment import write_experiment_files
 from annotator.trajectory_io import read_trajectory
-from ble_groundtruth.formats.markers import read_marker_map
-from ble_groundtruth.sites import site_dir
+from bgt_core.formats.markers import read_marker_map
+from bgt_core.sites import site_dir
 
 T0 = 1_700_000_000.0
 START_OFFSET = 0.41

@@ -28,8 +28,8 @@ from annotator.priors import Priors
 from annotator.render import default_cameras
 from annotator.render.camera import RIG_EXTRINSICS
 from annotator.vision.geometry import MarkerRoom
-from ble_groundtruth.formats.markers import read_marker_map
-from ble_groundtruth.sites import site_dir
+from bgt_core.formats.markers import read_marker_map
+from bgt_core.sites import site_dir
 
 
 def make_problem(n_kf: int, seed: int) -> tuple[rf.Problem, dict, list[rf.CameraParams]]:

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 TESTS = Path(__file__).resolve().parent.parent / "tests"
-sys.path[:0] = [str(TESTS / "reliability"), str(TESTS)]  # harness.py, and loopback.py it uses
+sys.path[:0] = [str(TESTS / "reliability"), str(TESTS / "support")]  # harness.py, and loopback.py it uses
 
 from harness import (  # noqa: E402 - needs the path above
     Result,

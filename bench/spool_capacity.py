@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ble_groundtruth import wire
+from bgt_core import wire
 from sensor_agent.spool import DEFAULT_FSYNC_INTERVAL_S, Spool
 
 MIB = 1024 * 1024

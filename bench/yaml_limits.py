@@ -23,8 +23,8 @@ import textwrap
 import time
 from pathlib import Path
 
-from ble_groundtruth.safe_yaml import MAX_NODES
-from ble_groundtruth.sites import site_dir
+from bgt_core.safe_yaml import MAX_NODES
+from bgt_core.sites import site_dir
 
 BILLION_LAUGHS = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n' + "".join(
     f"{n}: &{n} [{','.join(['*' + p] * 9)}]\n" for p, n in zip("abcdefgh", "bcdefghi", strict=True))
@@ -45,7 +45,7 @@ sync: {mode: manual, video_start: {front: 1700000000.0}}
 
 CHILD = textwrap.dedent("""\
     import sys, time
-    from ble_groundtruth.safe_yaml import YamlError, load_file
+    from bgt_core.safe_yaml import YamlError, load_file
     t = time.monotonic()
     try:
         load_file(sys.argv[1])

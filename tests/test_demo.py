@@ -24,9 +24,9 @@ from annotator.demo import (
     score,
     split_sensors,
 )
-from ble_groundtruth.formats.devices import read_dev
-from ble_groundtruth.formats.mbd import iter_rows
-from ble_groundtruth.sites import site_dir
+from bgt_core.formats.devices import read_dev
+from bgt_core.formats.mbd import iter_rows
+from bgt_core.sites import site_dir
 
 
 def annotator_cmd() -> list[str]:

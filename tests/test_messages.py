@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from ble_groundtruth import wire
-from ble_groundtruth.atomic import FileOps, temp_path, write_atomic
-from ble_groundtruth.messages import (
+from bgt_core import wire
+from bgt_core.atomic import FileOps, temp_path, write_atomic
+from bgt_core.messages import (
     Ack,
     AgentStatus,
     ClockReply,

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from ble_groundtruth import wire
+from bgt_core import wire
 
 T = 1_581_249_601_408_682_300
 
@@ -186,7 +186,7 @@ def test_bad_timestamp_text() -> None:
 
 
 def test_import_is_stdlib_only() -> None:
-    code = ("import sys, ble_groundtruth.wire; "
+    code = ("import sys, bgt_core.wire; "
             "bad = [m for m in ('bleak', 'zenoh', 'yaml', 'numpy') if m in sys.modules]; "
             "print(','.join(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -7,8 +7,8 @@ import sys
 
 import zenoh
 
-from ble_groundtruth import wire
-from ble_groundtruth.zenoh_config import SessionSpec, build_config
+from bgt_core import wire
+from bgt_core.zenoh_config import SessionSpec, build_config
 
 AGENT = [sys.executable, "-c", "from sensor_agent.cli import main; main()"]
 

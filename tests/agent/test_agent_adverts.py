@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from ble_groundtruth.wire import Eddystone, IBeacon
+from bgt_core.wire import Eddystone, IBeacon
 from sensor_agent.scanning.adverts import (
     APPLE_COMPANY_ID,
     EDDYSTONE_UUID128,

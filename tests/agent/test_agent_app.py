@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from ble_groundtruth.wire import IBeacon, Reading
+from bgt_core.wire import IBeacon, Reading
 from sensor_agent.app import AdapterStats, allowed, new_boot_id
 from sensor_agent.config import AllowList
 

@@ -22,7 +22,7 @@ pytestmark = [
 dbus = pytest.importorskip("dbus")
 dbusmock = pytest.importorskip("dbusmock")
 
-from ble_groundtruth.wire import IBeacon, Reading  # noqa: E402
+from bgt_core.wire import IBeacon, Reading  # noqa: E402
 from sensor_agent.errors import BackendError  # noqa: E402
 from sensor_agent.scanning.bleak_backend import BleakBackend, list_adapters  # noqa: E402
 

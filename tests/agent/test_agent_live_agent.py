@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from agent_testing import AGENT, FakeCollector, agent_env
 
-from ble_groundtruth import wire
+from bgt_core import wire
 
 pytestmark = pytest.mark.slow
 

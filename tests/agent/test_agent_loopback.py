@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from agent_testing import AGENT, FakeCollector, agent_env
 
-from ble_groundtruth.formats.mbd import read_rows
+from bgt_core.formats.mbd import read_rows
 
 pytestmark = pytest.mark.slow
 

@@ -7,9 +7,9 @@ from collections.abc import Callable
 
 import zenoh
 
-from ble_groundtruth import wire
-from ble_groundtruth.wire import Reading
-from ble_groundtruth.zenoh_config import SessionSpec, build_config
+from bgt_core import wire
+from bgt_core.wire import Reading
+from bgt_core.zenoh_config import SessionSpec, build_config
 from sensor_agent.publisher import Publisher
 
 SENSOR = "b827eb4521b4"

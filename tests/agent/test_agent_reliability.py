@@ -16,10 +16,10 @@ import pytest
 import zenoh
 from agent_testing import FakeCollector
 
-from ble_groundtruth import wire
-from ble_groundtruth.atomic import FileOps
-from ble_groundtruth.wire import Reading
-from ble_groundtruth.zenoh_config import SessionSpec, build_config
+from bgt_core import wire
+from bgt_core.atomic import FileOps
+from bgt_core.wire import Reading
+from bgt_core.zenoh_config import SessionSpec, build_config
 from sensor_agent.app import Agent
 from sensor_agent.clockhealth import parse_chronyc_tracking
 from sensor_agent.config import AgentConfig, SpoolConfig

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from agent_testing import AGENT, FakeCollector, agent_env
 
-from ble_groundtruth import wire
+from bgt_core import wire
 from sensor_agent.spool import Spool
 
 pytestmark = pytest.mark.slow

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from ble_groundtruth.wire import Reading
+from bgt_core.wire import Reading
 from sensor_agent.errors import BackendError
 from sensor_agent.scanning.base import Clocks
 from sensor_agent.scanning.replay import ReplayBackend

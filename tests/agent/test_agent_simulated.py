@@ -8,7 +8,7 @@ import statistics
 
 import pytest
 
-from ble_groundtruth.motion import CoverEvent, MotionError, PathModel, cover_at
+from bgt_core.motion import CoverEvent, MotionError, PathModel, cover_at
 from sensor_agent.config import SimulatedConfig
 from sensor_agent.errors import BackendError
 from sensor_agent.scanning.base import Clocks

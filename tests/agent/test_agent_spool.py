@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from ble_groundtruth import wire
-from ble_groundtruth.atomic import FileOps
+from bgt_core import wire
+from bgt_core.atomic import FileOps
 from sensor_agent.spool import (
     ACK_FILE,
     SEGMENT_SUFFIX,

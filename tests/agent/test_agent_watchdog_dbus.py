@@ -22,7 +22,7 @@ pytestmark = [
 dbus = pytest.importorskip("dbus")
 dbusmock = pytest.importorskip("dbusmock")
 
-from ble_groundtruth.wire import Reading  # noqa: E402
+from bgt_core.wire import Reading  # noqa: E402
 from sensor_agent.scanning.bleak_backend import BleakBackend  # noqa: E402
 
 DEVICE_IFACE = "org.bluez.Device1"

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from ble_groundtruth.motion import MotionError, PathModel
+from bgt_core.motion import MotionError, PathModel
 from sensor_agent.config import load_config
 
 SQUARE = ((0.0, 0.0, 1.0), (4.0, 0.0, 1.0), (4.0, 4.0, 1.0), (0.0, 4.0, 1.0))

@@ -9,8 +9,8 @@ from scipy.spatial.transform import Rotation
 from annotator.experiment import CameraCalibration, RigCamera
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom
-from ble_groundtruth.formats.markers import read_marker_map
-from ble_groundtruth.sites import site_dir
+from bgt_core.formats.markers import read_marker_map
+from bgt_core.sites import site_dir
 
 FRONT_R = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=float)
 BACK_R = np.array([[0, 0, -1], [-1, 0, 0], [0, 1, 0]], dtype=float)

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from annotator import fingerprints as fp
 from annotator.cli import app
-from ble_groundtruth.formats.hst import read_hst
+from bgt_core.formats.hst import read_hst
 
 DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
 FPT = DATASET / "fpt"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from annotator.floor_paths import FloorGrid, PlanError, plan_route, site_occupancy
-from ble_groundtruth.formats.occ import Occupancy
+from bgt_core.formats.occ import Occupancy
 
 
 def walled_room() -> Occupancy:

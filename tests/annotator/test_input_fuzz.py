@@ -18,7 +18,7 @@ import pytest
 from typer.testing import CliRunner
 
 from annotator.cli import app
-from ble_groundtruth.sites import site_dir
+from bgt_core.sites import site_dir
 
 DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
 T0 = 1_700_000_000.0

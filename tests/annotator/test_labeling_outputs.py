@@ -23,10 +23,10 @@ from annotator.plots import (
     plot_trajectory_map,
 )
 from annotator.rssi_io import bundle_beacon, load_rssi
-from ble_groundtruth.formats.markers import read_marker_map
-from ble_groundtruth.formats.mbd import MbdError, format_row, iter_rows
-from ble_groundtruth.sites import site_dir
-from ble_groundtruth.wire import format_ts
+from bgt_core.formats.markers import read_marker_map
+from bgt_core.formats.mbd import MbdError, format_row, iter_rows
+from bgt_core.sites import site_dir
+from bgt_core.wire import format_ts
 
 BEACON = "e78f135624ce"
 SENSORS = ["b827eb4521b4", "000000000101", "000000000202"]

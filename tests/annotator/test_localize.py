@@ -13,7 +13,7 @@ import pytest
 
 from annotator.localize import RadioMapArrays, Readings, grid_hmm, knn
 from annotator.localize_io import radiomap_arrays
-from ble_groundtruth.formats.grd import RadioMapGrid
+from bgt_core.formats.grd import RadioMapGrid
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "dataset"
 EDGES = np.arange(-100.0, -19.0)

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from annotator import radio_data
 from annotator import radiomap as rm
 from annotator.cli import app
-from ble_groundtruth.formats import devices, grd, hst, occ
+from bgt_core.formats import devices, grd, hst, occ
 
 DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
 EDGES = np.arange(-100.0, -19.0)

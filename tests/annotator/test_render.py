@@ -17,8 +17,8 @@ from annotator.render import LoopTrajectory, default_cameras, render_experiment
 from annotator.render.camera import RIG_YAML, CameraModel, camera_pose
 from annotator.render.experiment import FrameRenderer
 from annotator.render.scene import MarkerScene
-from ble_groundtruth.formats.markers import read_marker_map
-from ble_groundtruth.sites import site_dir
+from bgt_core.formats.markers import read_marker_map
+from bgt_core.sites import site_dir
 
 T0 = 1_700_000_000.0
 FPS = 30.0

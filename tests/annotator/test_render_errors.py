@@ -20,8 +20,8 @@ from annotator.render.effects import flicker_gain
 from annotator.render.errors import FileErrors, perturb_markers
 from annotator.render.experiment import write_experiment_files
 from annotator.render.scene import MarkerScene
-from ble_groundtruth.formats.markers import read_marker_map
-from ble_groundtruth.sites import site_dir
+from bgt_core.formats.markers import read_marker_map
+from bgt_core.sites import site_dir
 
 T0 = 1_700_000_000.0
 SITE_MAP = read_marker_map(site_dir("tetam") / "marker_positions.dat")

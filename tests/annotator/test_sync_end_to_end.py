@@ -17,9 +17,9 @@ from annotator.cli import app
 from annotator.experiment import load_experiment
 from annotator.pipeline import RunSettings, run_experiment
 from annotator.render import LoopTrajectory, render_experiment
-from ble_groundtruth.formats.devices import read_dev
-from ble_groundtruth.formats.mbd import iter_rows
-from ble_groundtruth.sites import site_dir
+from bgt_core.formats.devices import read_dev
+from bgt_core.formats.mbd import iter_rows
+from bgt_core.sites import site_dir
 
 pytestmark = pytest.mark.slow
 

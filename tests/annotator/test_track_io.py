@@ -15,7 +15,7 @@ from annotator.errors import AnnotatorError, ConfigError
 from annotator.experiment import load_calibration, load_experiment
 from annotator.trajectory_io import Trajectory, read_trajectory, write_trajectory
 from annotator.video import iter_frames
-from ble_groundtruth.sites import site_dir
+from bgt_core.sites import site_dir
 
 K = np.array([[620.0, 0, 480.5], [0, 621.5, 268.25], [0, 0, 1]])
 DIST = np.array([[-0.08, 0.02, 0.0004, -0.0003, 0.0]])

@@ -9,8 +9,8 @@ from collections.abc import Callable
 
 import zenoh
 
-from ble_groundtruth import wire
-from ble_groundtruth.zenoh_config import SessionSpec, TlsFiles, build_config
+from bgt_core import wire
+from bgt_core.zenoh_config import SessionSpec, TlsFiles, build_config
 
 T0 = 1_700_000_000_123_456_789
 

@@ -15,7 +15,7 @@ import pytest
 import yaml
 from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
-from ble_groundtruth.formats.mbd import iter_rows
+from bgt_core.formats.mbd import iter_rows
 from collector.client import CollectorClient
 from collector.errors import CollectorError
 

@@ -15,7 +15,7 @@ import pytest
 import zenoh
 from collector_helpers import FakeAgent, expected_lines, make_batch, run_yaml_doc, wait_for
 
-from ble_groundtruth import wire
+from bgt_core import wire
 from collector.client import CollectorClient
 from collector.config import CollectorConfig, Limits
 from collector.errors import CollectorError
@@ -267,7 +267,7 @@ def test_1100_macs_under_a_low_descriptor_limit_honest_agents_complete_and_stop_
 
 
 def test_a_zenoh_session_refuses_messages_over_the_limit() -> None:
-    from ble_groundtruth.zenoh_config import MAX_MESSAGE_BYTES, SessionSpec, build_config
+    from bgt_core.zenoh_config import MAX_MESSAGE_BYTES, SessionSpec, build_config
 
     conf = build_config(SessionSpec(mode="client"))
     assert json.loads(conf.get_json("transport/link/rx/max_message_size")) == MAX_MESSAGE_BYTES

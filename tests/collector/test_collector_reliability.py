@@ -18,9 +18,9 @@ import pytest
 import yaml
 from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
-from ble_groundtruth import wire
-from ble_groundtruth.messages import Ack, ClockReply, ClockSample
-from ble_groundtruth.sdnotify import Notifier
+from bgt_core import wire
+from bgt_core.messages import Ack, ClockReply, ClockSample
+from bgt_core.sdnotify import Notifier
 from collector.client import CollectorClient
 from collector.config import CollectorConfig, load_config
 from collector.errors import CollectorError, CommandFailed, ConfigError

@@ -10,7 +10,7 @@ import pytest
 import yaml
 from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
-from ble_groundtruth import wire
+from bgt_core import wire
 from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import CollectorError, CommandFailed, Unreachable

@@ -10,13 +10,13 @@ from pathlib import Path
 import pytest
 from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
-from ble_groundtruth.deploy import pki
-from ble_groundtruth.deploy.acl import build_acl
-from ble_groundtruth.zenoh_config import TlsFiles
+from bgt_core.zenoh_config import TlsFiles
 from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import Unreachable
 from collector.service import Collector
+from deploy import pki
+from deploy.acl import build_acl
 from loopback import free_port
 
 
@@ -72,7 +72,7 @@ def test_an_agent_cannot_write_into_another_agents_file_or_metadata(tmp_path, si
     answers status queries claiming to be pi-02: pi-02's file and run.yaml entry stay its own."""
     from collector_helpers import run_yaml_doc
 
-    from ble_groundtruth import wire
+    from bgt_core import wire
 
     endpoint = f"tls/127.0.0.1:{free_port()}"
     acl = tmp_path / "acl.json5"
@@ -133,7 +133,7 @@ def test_agent_whose_id_is_not_its_certificate_cn_warns_naming_both(tmp_path, si
     import asyncio
     import logging
 
-    from ble_groundtruth.formats.mbd import format_row
+    from bgt_core.formats.mbd import format_row
     from sensor_agent.app import Agent
     from sensor_agent.config import AgentConfig, ReplayConfig
     from sensor_agent.errors import AckTimeout
@@ -169,7 +169,7 @@ def test_agent_whose_id_is_not_its_certificate_cn_warns_naming_both(tmp_path, si
 
 
 def test_certificate_cn_reader_agrees_with_cryptography(site_pki, tmp_path) -> None:
-    from ble_groundtruth.certname import CertificateError, certificate_cn
+    from bgt_core.certname import CertificateError, certificate_cn
 
     for name in ("ca", "collector", "operator", "pi-01", "pi-02"):
         assert certificate_cn(site_pki / f"{name}.crt") == pki.common_name(site_pki / f"{name}.crt")

@@ -10,9 +10,9 @@ import pytest
 import yaml
 from collector_helpers import make_batch
 
-from ble_groundtruth import wire
-from ble_groundtruth.formats.mbd import format_row, iter_rows
-from ble_groundtruth.messages import Ack
+from bgt_core import wire
+from bgt_core.formats.mbd import format_row, iter_rows
+from bgt_core.messages import Ack
 from collector.config import CollectorConfig, load_config
 from collector.errors import CollectorError, ConfigError
 from collector.ingest import RejectCounter, StreamTracker, decode, format_rows, reject_reason

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from deploy_helpers import AGENTS
 
-from ble_groundtruth.deploy import pki
+from deploy import pki
 
 
 @pytest.fixture(scope="session")

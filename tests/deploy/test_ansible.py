@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from ble_groundtruth.deploy import pki
-from ble_groundtruth.deploy.acl import build_acl
-from ble_groundtruth.deploy.inventory import load_inventory
+from deploy import pki
+from deploy.acl import build_acl
+from deploy.inventory import load_inventory
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"

@@ -13,11 +13,11 @@ import zenoh
 from deploy_helpers import ADMINS, free_port, wait_until
 from typer.testing import CliRunner
 
-from ble_groundtruth import wire
-from ble_groundtruth.deploy.acl import build_acl
-from ble_groundtruth.deploy.inventory import InventoryError, load_inventory
-from ble_groundtruth.zenoh_config import SessionSpec, TlsFiles, build_config
+from bgt_core import wire
+from bgt_core.zenoh_config import SessionSpec, TlsFiles, build_config
 from collector.fleet import app, query_fleet
+from deploy.acl import build_acl
+from deploy.inventory import InventoryError, load_inventory
 
 SITE = "default"
 OFFSETS_MS = {"a1": 250.0, "a2": -1200.0}

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from cryptography import x509
 
-from ble_groundtruth.deploy import pki
+from deploy import pki
 
 NOW = dt.datetime(2026, 11, 22, 3, 0, tzinfo=dt.UTC)
 

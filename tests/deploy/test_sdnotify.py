@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from ble_groundtruth.sdnotify import Notifier
+from bgt_core.sdnotify import Notifier
 
 
 @pytest.fixture

@@ -17,10 +17,10 @@ import zenoh
 from deploy_helpers import ADMINS, AGENTS, free_port, wait_until
 from zenoh import ext
 
-from ble_groundtruth import wire
-from ble_groundtruth.deploy import pki
-from ble_groundtruth.deploy.acl import build_acl
-from ble_groundtruth.zenoh_config import SessionSpec, TlsFiles, build_config, load_acl
+from bgt_core import wire
+from bgt_core.zenoh_config import SessionSpec, TlsFiles, build_config, load_acl
+from deploy import pki
+from deploy.acl import build_acl
 
 SITE = "default"
 MAC1, MAC2 = "aabbccddee01", "aabbccddee02"

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ble_groundtruth.formats import devices, grd, hst, markers, occ, tables
-from ble_groundtruth.formats.mbd import MbdError
+from bgt_core.formats import devices, grd, hst, markers, occ, tables
+from bgt_core.formats.mbd import MbdError
 
 DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
 GOOD_HIST = "[" + ", ".join(["0.0"] * 79 + ["1.0"]) + "]"
@@ -114,7 +114,7 @@ def test_track_writer_rejects_reflections(tmp_path: Path):
 
 def test_format_modules_import_without_pandas_or_numpy():
     code = ("import sys; sys.modules['pandas'] = None; sys.modules['numpy'] = None\n"
-            "from ble_groundtruth.formats import hst, grd, occ, tables, mbd, devices, markers\n"
+            "from bgt_core.formats import hst, grd, occ, tables, mbd, devices, markers\n"
             "print('ok')")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                           check=False)

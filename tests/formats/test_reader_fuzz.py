@@ -15,9 +15,9 @@ from hypothesis import strategies as st
 from annotator.errors import AnnotatorError
 from annotator.experiment import load_calibration
 from annotator.trajectory_io import read_trajectory
-from ble_groundtruth import safe_yaml
-from ble_groundtruth.formats import devices, grd, hst, markers, occ, tables
-from ble_groundtruth.formats.mbd import MbdError, iter_rows
+from bgt_core import safe_yaml
+from bgt_core.formats import devices, grd, hst, markers, occ, tables
+from bgt_core.formats.mbd import MbdError, iter_rows
 
 DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
 BINS = "[" + ", ".join(f"{float(v)}" for v in range(-100, -19)) + "]"

@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from ble_groundtruth.formats import devices, grd, hst, markers, occ, tables
-from ble_groundtruth.formats.mbd import iter_rows
+from bgt_core.formats import devices, grd, hst, markers, occ, tables
+from bgt_core.formats.mbd import iter_rows
 
 DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
 

@@ -1,4 +1,4 @@
-"""ble_groundtruth.safe_yaml: aliases, depth, size and node count are refused before anything is
+"""bgt_core.safe_yaml: aliases, depth, size and node count are refused before anything is
 built, with one line naming the file; memory stays bounded (measured in a child process)."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from ble_groundtruth import safe_yaml
-from ble_groundtruth.safe_yaml import MAX_DEPTH, MAX_NODES, YamlError, dump, load_file, loads
+from bgt_core import safe_yaml
+from bgt_core.safe_yaml import MAX_DEPTH, MAX_NODES, YamlError, dump, load_file, loads
 
 # 342 bytes; yaml.safe_load would expand it to 9^9 = 387 million strings (tens of GiB).
 BILLION_LAUGHS = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n' + "".join(
@@ -24,7 +24,7 @@ PEAK_RSS_MIB = 300
 
 CHILD = textwrap.dedent("""\
     import json, resource, sys, time
-    from ble_groundtruth.safe_yaml import YamlError, load_file
+    from bgt_core.safe_yaml import YamlError, load_file
     t = time.monotonic()
     try:
         doc = load_file(sys.argv[1])
@@ -154,10 +154,10 @@ def _yaml_readers():
     from annotator.commands.evaluate import load_waypoints
     from annotator.errors import ConfigError as AnnotatorConfigError
     from annotator.experiment import load_calibration, load_experiment, load_rig
-    from ble_groundtruth.deploy.inventory import InventoryError, load_inventory
-    from ble_groundtruth.formats.markers import MarkerMapError, read_marker_map
+    from bgt_core.formats.markers import MarkerMapError, read_marker_map
     from collector.config import ConfigError as CollectorConfigError
     from collector.config import load_config as collector_config
+    from deploy.inventory import InventoryError, load_inventory
     from sensor_agent.config import ConfigError as AgentConfigError
     from sensor_agent.config import load_config as agent_config
 

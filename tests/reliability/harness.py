@@ -28,8 +28,8 @@ from typing import Any
 
 import yaml
 
-from ble_groundtruth import wire
-from ble_groundtruth.formats.mbd import format_row, parse_line
+from bgt_core import wire
+from bgt_core.formats.mbd import format_row, parse_line
 from collector.errors import CollectorError
 from loopback import free_port  # noqa: F401 - also the bench's port helper
 
@@ -659,7 +659,7 @@ def fuzz(endpoint: str, *, agent_id: str, valid_sensors: Sequence[str], n_data: 
 
     import zenoh
 
-    from ble_groundtruth.zenoh_config import SessionSpec, build_config
+    from bgt_core.zenoh_config import SessionSpec, build_config
 
     rng = random.Random(seed)
     stats = FuzzStats()
@@ -902,7 +902,7 @@ def agent_status(endpoint: str, agent_id: str, site: str = SITE) -> dict[str, An
     """The agent's status reply ({} when it does not answer)."""
     import zenoh
 
-    from ble_groundtruth.zenoh_config import SessionSpec, build_config
+    from bgt_core.zenoh_config import SessionSpec, build_config
 
     session = zenoh.open(build_config(SessionSpec(mode="client", connect=[endpoint])))
     try:
@@ -979,7 +979,7 @@ def absurd_readings(root: Path, *, batches: int = 40) -> Result:
     `--replay-keep-time` of an old recording legitimately sends."""
     import zenoh
 
-    from ble_groundtruth.zenoh_config import SessionSpec, build_config
+    from bgt_core.zenoh_config import SessionSpec, build_config
 
     rig = Rig(root)
     agent, boot = "pi-02", "a5a5a5a5a5a5a5a5"

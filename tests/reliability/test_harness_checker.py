@@ -7,7 +7,7 @@ from pathlib import Path
 
 from harness import beacon_macs, make_replay, sensor_macs, spool_batches, tally
 
-from ble_groundtruth import wire
+from bgt_core import wire
 from sensor_agent.spool import Spool
 
 

@@ -1,0 +1,86 @@
+"""`annotator run`: track, synchronise with the RSSI log and label every reading, in one go."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
+
+from annotator.commands._common import LazyProgress, console, default_jobs, one_line_errors
+from annotator.errors import ConfigError
+
+
+def run(
+    experiment: Annotated[Path, typer.Argument(help="experiment.yaml (markers, rig, videos, rssi, sync).")],
+    out: Annotated[Path, typer.Option("--out", help="Folder for the results (created).")],
+    method: Annotated[str, typer.Option(help="Tracking method: 'rig' (joint multi-marker, smoothed) "
+                                             "or 'paper' (the published per-marker method).")] = "rig",
+    jobs: Annotated[int | None, typer.Option(
+        help="Worker processes for decoding, detection and the joint solves.", show_default="one per core")] = None,
+    max_gap: Annotated[float, typer.Option(
+        help="Leave a reading unlabelled when the poses around it are further apart than this, s.")] = 0.5,
+    beacon: Annotated[str | None, typer.Option(
+        help="MAC of the bundle's beacon (default: sync.beacon, else the most often heard one).")] = None,
+    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write the PNG plots.")] = True,
+    refine: Annotated[str | None, typer.Option(
+        help="none | map | all: self-calibration, as in `annotator track`; writes DIR/refined/ and "
+             "report.json's refinement section.", show_default="experiment.yaml's refine.mode, else all")] = None,
+) -> None:
+    """Write DIR/trajectory.csv, DIR/annotated/<sensor>.mbd + all_sensors.mbd (the dataset's trk
+    rows), DIR/annotated.parquet (plus quality columns), DIR/report.json and plots.
+
+    With `sync.mode: auto` each video's clock is found from the hands-cover event (video goes
+    dark, the beacon's RSSI drops); with `manual`, sync.video_start is used as given.
+    """
+    with one_line_errors():
+        from annotator.experiment import load_experiment
+        from annotator.pipeline import RunSettings, TrackSettings, run_experiment
+        from bgt_core.wire import normalize_mac
+
+        if refine is not None and refine not in ("none", "map", "all"):
+            raise ConfigError(f"--refine must be none, map or all, not {refine!r}")
+        if method not in ("rig", "paper"):
+            raise ConfigError(f"--method must be 'rig' or 'paper', not {method!r}")
+        jobs = default_jobs() if jobs is None else jobs
+        if max_gap <= 0 or jobs < 1:
+            raise ConfigError("--max-gap must be > 0 and --jobs >= 1")
+        mac = None
+        if beacon is not None:
+            try:
+                mac = normalize_mac(beacon)
+            except ValueError:
+                raise ConfigError(f"--beacon {beacon!r} is not a MAC address") from None
+        exp = load_experiment(experiment)
+        settings = RunSettings(track=TrackSettings(method=method, jobs=jobs,
+                                                         refine=refine or exp.priors.mode), max_gap=max_gap,
+                               beacon=mac, plots=plots)
+        # Lazy: the bars appear with the first frame, so an error in the RSSI files (read
+        # first) is printed alone.
+        with LazyProgress(TextColumn("{task.description:>12}"), BarColumn(),
+                          TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn(),
+                          console=console) as bar:
+            tasks: dict[str, int] = {}
+
+            def progress(name: str, done: int, total: int) -> None:
+                if name not in tasks:
+                    tasks[name] = bar.add_task(name, total=total)
+                bar.update(tasks[name], completed=done, total=total)
+
+            result = run_experiment(exp, out, settings, progress)
+        rep = result.report
+        for name, cam in rep["sync"]["cameras"].items():
+            sig = cam["video_start_sigma_s"]
+            sig_text = f" ± {sig * 1000:.1f} ms" if sig is not None and math.isfinite(sig) else ""
+            console.print(f"{name}: video_start {cam['video_start']:.4f}{sig_text} ({cam['method']})",
+                          highlight=False)
+        c = rep["counts"]
+        console.print(f"labelled {c['labelled']} of {c['readings_of_beacon']} readings of {rep['beacon']} "
+                      f"({rep['coverage']['labelled_of_tracked_span']:.1%} of the tracked span) -> {out}",
+                      highlight=False)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("run")(run)

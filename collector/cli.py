@@ -1,0 +1,280 @@
+"""`collector` command line: a thin typer app over collector.service (serve, record) and
+collector.client (start, stop, status, runs, live)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import threading
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from bgt_core.wire import WireError
+from collector.errors import CollectorError
+from collector.fleet import app as fleet_app
+
+app = typer.Typer(name="collector", no_args_is_help=True, pretty_exceptions_show_locals=False,
+                  help="Receives BLE RSSI batches from sensor agents over Zenoh and writes one "
+                       ".mbd file per sensor per capture run.")
+app.add_typer(fleet_app, name="fleet", help="The fleet in a deploy/ inventory: agents alive, versions, adapters, clocks.")
+console = Console()
+err_console = Console(stderr=True)
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+ConfigOpt = Annotated[Path | None, typer.Option("--config", help="collector.yaml; flags override it.")]
+ConnectOpt = Annotated[str, typer.Option("--connect", help="Endpoint of the running collector.")]
+SiteOpt = Annotated[str, typer.Option("--site", help="Site name (the first part of every key).")]
+RootCaOpt = Annotated[Path | None, typer.Option("--root-ca", help="Site CA certificate, for a tls/... collector.")]
+CertOpt = Annotated[Path | None, typer.Option("--cert", help="Operator certificate (PEM), for a tls/... collector.")]
+KeyOpt = Annotated[Path | None, typer.Option("--key", help="Operator private key (PEM), for a tls/... collector.")]
+InsecureOpt = Annotated[bool, typer.Option("--insecure", help="Allow plain TCP listening on a non-loopback address.")]
+
+
+def _fail(e: Exception) -> typer.Exit:
+    err_console.print(f"[red]{escape(str(e))}", highlight=False, soft_wrap=True)
+    return typer.Exit(1)
+
+
+@app.callback()
+def _root(verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log debug messages.")] = False) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("zenoh").setLevel(logging.WARNING)
+
+
+def _load(config: Path | None, data_dir: Path | None, listen: list[str] | None, site: str | None,
+          insecure: bool):
+    from collector.config import CollectorConfig, load_config
+
+    cfg = load_config(config) if config is not None else CollectorConfig()
+    return cfg.with_overrides(data_dir=data_dir, listen=listen, site=site, insecure=insecure)
+
+
+def _wait_for_signal(seconds: float | None = None) -> None:
+    """Block until SIGINT/SIGTERM (or `seconds`), so shutdown goes through drain/flush/close."""
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    done.wait(seconds)
+
+
+@app.command()
+def serve(
+    config: ConfigOpt = None,
+    data_dir: Annotated[Path | None, typer.Option("--data-dir", help="Where run directories go (default ./data).")] = None,
+    listen: Annotated[list[str] | None, typer.Option("--listen", help="Endpoint to listen on; repeatable (default tcp/127.0.0.1:7447).")] = None,
+    site: Annotated[str | None, typer.Option("--site", help="Site name (default: from the config, else 'default').")] = None,
+    insecure: InsecureOpt = False,
+    check: Annotated[bool, typer.Option("--check", help="Only validate the config (and its TLS and ACL files), print the resolved settings as JSON and exit.")] = False,
+) -> None:
+    """Run the collector: the Zenoh router agents connect to. Stops cleanly on Ctrl-C / SIGTERM.
+
+    A run left active by a killed collector is resumed on the same data directory."""
+    from collector.service import Collector
+
+    try:
+        cfg = _load(config, data_dir, listen, site, insecure)
+        if check:
+            from collector.config import check_files
+
+            check_files(cfg)
+            console.print_json(json.dumps(cfg.describe()))
+            return
+        collector = Collector(cfg).open()
+    except CollectorError as e:
+        raise _fail(e) from None
+    console.print(f"collector listening on {', '.join(cfg.listen)}, site {cfg.site!r}, data in {cfg.data_dir}")
+    if collector.resumed_run is not None:
+        err_console.print(f"[yellow]resumed run {collector.resumed_run} (the collector was not stopped cleanly)")
+    try:
+        _wait_for_signal()
+    finally:
+        collector.close()
+
+
+@app.command()
+def record(
+    name: Annotated[str, typer.Option("--name", help="Run name (part of the run id).")],
+    duration: Annotated[float | None, typer.Option("--duration", help="Seconds to record (default: until Ctrl-C).")] = None,
+    config: ConfigOpt = None,
+    data_dir: Annotated[Path | None, typer.Option("--data-dir", help="Where run directories go.")] = None,
+    listen: Annotated[list[str] | None, typer.Option("--listen", help="Endpoint to listen on; repeatable.")] = None,
+    site: Annotated[str | None, typer.Option("--site", help="Site name.")] = None,
+    insecure: InsecureOpt = False,
+) -> None:
+    """Serve, start a run, record until --duration or Ctrl-C, stop it, exit: all in the foreground."""
+    from collector.service import Collector
+
+    try:
+        cfg = _load(config, data_dir, listen, site, insecure)
+        collector = Collector(cfg).open()
+    except CollectorError as e:
+        raise _fail(e) from None
+    try:
+        started = collector.start_run(name)
+        console.print(f"recording run {started['run_id']} (Ctrl-C to stop)")
+        _wait_for_signal(duration)
+        stopped = collector.stop_run()  # a run is active: never None
+        if stopped is not None:
+            console.print(f"{stopped['readings']} readings in {stopped['run_dir']}")
+    except CollectorError as e:
+        raise _fail(e) from None
+    finally:
+        collector.close()
+
+
+def _client(connect: str, site: str, root_ca: Path | None, cert: Path | None, key: Path | None):
+    from bgt_core.zenoh_config import TlsFiles
+    from collector.client import CollectorClient
+    from collector.errors import ConfigError
+
+    files = {"--root-ca": root_ca, "--cert": cert, "--key": key}
+    given = [k for k, v in files.items() if v is not None]
+    if given and len(given) != 3:
+        raise ConfigError("--root-ca, --cert and --key go together (a tls/... collector needs all three)")
+    for flag, path in files.items():
+        if path is not None and not path.is_file():
+            raise ConfigError(f"{flag}: file not found: {path}")
+    tls = TlsFiles(str(root_ca), str(cert), str(key)) if given else None
+    return CollectorClient(connect, site, tls=tls)
+
+
+@app.command()
+def start(
+    name: Annotated[str | None, typer.Option("--name", help="Run name (part of the run id).")] = None,
+    max_offset_ms: Annotated[float, typer.Option("--max-offset-ms", help="Warn about agents whose clock is off by more than this (measured at start).")] = 50.0,
+    strict: Annotated[bool, typer.Option("--strict", help="Refuse to start (exit 1) if an agent's clock is off by more than --max-offset-ms.")] = False,
+    connect: ConnectOpt = DEFAULT_ENDPOINT,
+    site: SiteOpt = "default",
+    root_ca: RootCaOpt = None,
+    cert: CertOpt = None,
+    key: KeyOpt = None,
+) -> None:
+    """Start a capture run on a running collector; prints the run id. Agents' clocks are
+    checked first: one warning line per agent off by more than --max-offset-ms."""
+    try:
+        with _client(connect, site, root_ca, cert, key) as c:
+            reply = c.start_typed(name, max_offset_ms=max_offset_ms, strict=strict)
+    except (CollectorError, WireError) as e:
+        raise _fail(e) from None
+    for w in reply.clock_warnings:
+        err_console.print(f"[yellow]warning: {escape(w)}", highlight=False, soft_wrap=True)
+    console.print(reply.run_id, highlight=False)
+
+
+@app.command()
+def stop(connect: ConnectOpt = DEFAULT_ENDPOINT, site: SiteOpt = "default", root_ca: RootCaOpt = None,
+         cert: CertOpt = None, key: KeyOpt = None) -> None:
+    """Stop the current run after draining what is in flight; prints the run directory."""
+    try:
+        with _client(connect, site, root_ca, cert, key) as c:
+            reply = c.stop_typed()
+    except (CollectorError, WireError) as e:
+        raise _fail(e) from None
+    if reply.missing_batches:
+        err_console.print(f"[yellow]{reply.missing_batches} batches never arrived (see run.yaml)")
+    console.print(reply.run_dir, highlight=False, soft_wrap=True)
+
+
+@app.command()
+def status(
+    connect: ConnectOpt = DEFAULT_ENDPOINT,
+    site: SiteOpt = "default",
+    as_json: Annotated[bool, typer.Option("--json", help="Print the raw status reply as JSON.")] = False,
+    root_ca: RootCaOpt = None,
+    cert: CertOpt = None,
+    key: KeyOpt = None,
+) -> None:
+    """Agents alive, per-sensor reading rates and last-seen times, and the current run."""
+    from bgt_core.messages import CollectorStatus
+    from collector.live import render
+
+    try:
+        with _client(connect, site, root_ca, cert, key) as c:
+            reply = c.status()
+            view = None if as_json else render(CollectorStatus.from_dict(reply))
+    except (CollectorError, WireError) as e:
+        raise _fail(e) from None
+    if view is None:
+        console.print_json(json.dumps(reply))
+    else:
+        console.print(view)
+
+
+@app.command()
+def runs(
+    connect: ConnectOpt = DEFAULT_ENDPOINT,
+    site: SiteOpt = "default",
+    as_json: Annotated[bool, typer.Option("--json", help="Print the list as JSON.")] = False,
+    root_ca: RootCaOpt = None,
+    cert: CertOpt = None,
+    key: KeyOpt = None,
+) -> None:
+    """List the runs in the collector's data directory, oldest first."""
+    try:
+        with _client(connect, site, root_ca, cert, key) as c:
+            items = c.runs()
+    except CollectorError as e:
+        raise _fail(e) from None
+    if as_json:
+        console.print_json(json.dumps(items))
+        return
+    table = Table()
+    for col in ("run id", "name", "start", "stop", "readings"):
+        table.add_column(col, overflow="fold")
+    for r in items:
+        table.add_row(str(r["run_id"]), str(r.get("name") or ""), str(r.get("start") or ""),
+                      str(r.get("stop") or "[yellow]not stopped"), str(r.get("readings") or 0))
+    console.print(table)
+
+
+@app.command()
+def live(
+    connect: ConnectOpt = DEFAULT_ENDPOINT,
+    site: SiteOpt = "default",
+    interval: Annotated[float, typer.Option("--interval", help="Seconds between refreshes.")] = 0.5,
+    duration: Annotated[float | None, typer.Option("--duration", help="Quit after this many seconds.")] = None,
+    root_ca: RootCaOpt = None,
+    cert: CertOpt = None,
+    key: KeyOpt = None,
+) -> None:
+    """Live view: per sensor its reading rate, last RSSI and an RSSI sparkline (Ctrl-C quits)."""
+    from collector.live import run_live
+
+    try:
+        with _client(connect, site, root_ca, cert, key) as c:
+            run_live(c.status, interval_s=interval, duration_s=duration)
+    except (CollectorError, WireError) as e:
+        raise _fail(e) from None
+
+
+@app.command()
+def export(
+    run_dir: Annotated[Path, typer.Argument(help="A run directory (holds run.yaml and rssi/<agent>/).")],
+    out: Annotated[Path | None, typer.Option("--out", help="Where to write <sensor_mac>.mbd files (default RUN_DIR/merged).")] = None,
+) -> None:
+    """Write the published layout, one <sensor_mac>.mbd per sensor, merging the per-agent files
+    of a run in time order (a sensor heard by two agents gets both agents' rows)."""
+    from collector.store import export_merged
+
+    dest = out if out is not None else run_dir / "merged"
+    try:
+        counts = export_merged(run_dir, dest)
+    except CollectorError as e:
+        raise _fail(e) from None
+    console.print(f"{sum(counts.values())} readings of {len(counts)} sensor(s) in {dest}",
+                  highlight=False, soft_wrap=True)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

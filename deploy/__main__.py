@@ -1,0 +1,5 @@
+"""Entry point of ``python -m deploy``."""
+
+from deploy.cli import main
+
+main()
