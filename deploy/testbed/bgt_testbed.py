@@ -547,6 +547,11 @@ def prebuild_wheelhouse(inventory: Path) -> None:
     """The control namespace has no route to a package index: fetch the dependencies once on
     this machine's network; the playbook then refreshes the wheelhouse offline."""
     out = inventory.parent / "build" / "wheelhouse"
+    tools = inventory.parent / "build" / "build-tools"
+    if not (tools.is_dir() and any(tools.glob("setuptools-*.whl"))):
+        # What pip's isolated build of the project wheel installs (pyproject's build-system).
+        run([sys.executable, "-m", "pip", "download", "-q", "-d", str(tools),
+             "setuptools>=70.1", "wheel"], capture=True)
     if out.is_dir() and any(out.glob("*.whl")):
         return
     log.info("building the wheelhouse %s (package index of this machine)", out)
@@ -561,7 +566,10 @@ def deploy(extra: list[str], inventory: Path | None = None,
     prebuild_wheelhouse(inv)
     env = {**os.environ, "ANSIBLE_CONFIG": str(REPO / "deploy/ansible.cfg"),
            "ANSIBLE_NOCOLOR": "1", "ANSIBLE_FORCE_COLOR": "0",
-           "PATH": f"{Path(sys.executable).parent}:{os.environ.get('PATH', '')}"}
+           "PATH": f"{Path(sys.executable).parent}:{os.environ.get('PATH', '')}",
+           # The control namespace has no route to any package index: pip uses local files only.
+           "PIP_NO_INDEX": "1",
+           "PIP_FIND_LINKS": f"{inv.parent / 'build/build-tools'} {inv.parent / 'build/wheelhouse'}"}
     argv = in_control_ns([ansible_playbook(), "-i", str(inv), playbook, *extra])
     t0 = time.monotonic()
     res = subprocess.run(argv, cwd=REPO / "deploy", env=env, text=True, capture_output=True,
@@ -600,7 +608,10 @@ def main(argv: list[str] | None = None) -> int:
             log.info("this machine can boot the test bed (rootfs %s)", rootfs_path())
         elif a.cmd == "rootfs":
             path, took, built = build_rootfs(a.force)
-            log.info("%s %s", "built in %.0f s:" % took if built else "cached:", path)
+            if built:
+                log.info("built in %.0f s: %s", took, path)
+            else:
+                log.info("cached: %s", path)
         elif a.cmd == "up":
             log.info("%s", json.dumps(up()))
         elif a.cmd == "deploy":
@@ -617,7 +628,7 @@ def main(argv: list[str] | None = None) -> int:
         elif a.cmd == "_supervise":
             return supervise(a.host)
     except TestbedError as e:
-        log.error("%s", e)
+        log.error("%s", e)  # noqa: TRY400 - one line for the user, no traceback
         return 1
     return 0
 

@@ -7,6 +7,7 @@ Each command is idempotent and says on its last line ``changed`` or ``unchanged`
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 import json
 import logging
 import os
@@ -29,6 +30,8 @@ app = typer.Typer(
     help="Fleet deployment helpers (site PKI, Zenoh ACL, project wheel, wheelhouse).", no_args_is_help=True
 )
 err = Console(stderr=True)
+MANIFEST = "SHA256SUMS"  # in a wheelhouse: `sha256  file` per wheel
+REQUEST = "request.json"  # in a wheelhouse: the extras, platforms and Python it was made for
 
 InventoryOpt = Annotated[
     Path,
@@ -37,7 +40,8 @@ InventoryOpt = Annotated[
 
 
 def _fail(e: Exception) -> typer.Exit:
-    err.print(f"[red]{e}[/red]", highlight=False)
+    # soft_wrap: one line however narrow the (non-)terminal, so Ansible shows it whole.
+    err.print(f"[red]{e}[/red]", highlight=False, soft_wrap=True)
     return typer.Exit(1)
 
 
@@ -155,9 +159,23 @@ def wheel_cmd(
     typer.echo("changed" if changed else "unchanged")
 
 
+def _has_build_backend() -> bool:
+    """setuptools here can build our wheel by itself (>= 70.1 carries bdist_wheel)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        major, minor = (int(x) for x in version("setuptools").split(".")[:2])
+    except (PackageNotFoundError, ValueError):
+        return False
+    return (major, minor) >= (70, 1)
+
+
 def _build_project_wheel(src: Path, into: Path) -> Path:
     """pip wheel of the checkout alone (reproducible zip times); the built file."""
     cmd = [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(into), str(src)]
+    if _has_build_backend():
+        # No throw-away build environment (and no package index needed to make one).
+        cmd.insert(4, "--no-build-isolation")
     res = subprocess.run(
         cmd,
         capture_output=True,
@@ -205,6 +223,26 @@ def _collect_deps(
         raise RuntimeError(f"collecting the dependencies of {req} failed: {tail}")
 
 
+def _up_to_date(out: Path, proj: Path, request: str) -> bool:
+    """The wheelhouse was made for this request, holds this very project wheel, and every wheel
+    its manifest lists is there with the listed hash."""
+    try:
+        if (out / REQUEST).read_text(encoding="utf-8") != request:
+            return False
+        if not (out / proj.name).exists() or not _same_wheel(out / proj.name, proj):
+            return False
+        listed = {}
+        for line in (out / MANIFEST).read_text(encoding="utf-8").splitlines():
+            digest, name = line.split("  ", 1)
+            listed[name] = digest
+    except (OSError, ValueError, zipfile.BadZipFile):
+        return False
+    present = {f.name for f in out.glob("*.whl")}
+    if present != set(listed):
+        return False
+    return all(hashlib.sha256((out / n).read_bytes()).hexdigest() == d for n, d in listed.items())
+
+
 @app.command("wheelhouse")
 def wheelhouse_cmd(
     src: Annotated[Path, typer.Option(help="Project checkout (with pyproject.toml).")],
@@ -237,6 +275,14 @@ def wheelhouse_cmd(
             proj = _build_project_wheel(src, t / "proj")
             (t / "house").mkdir()
             req = f"{proj}[{','.join(wanted)}]" if wanted else str(proj)
+            # Same project wheel (so the same requirements), same request, complete manifest:
+            # nothing to fetch, and a re-run of the playbook costs one build.
+            request = json.dumps([wanted, platform or [], python_version]) + "\n"
+            if _up_to_date(out, proj, request):
+                typer.echo(proj.name)
+                typer.echo(str(out))
+                typer.echo("unchanged")
+                return
             # A wheelhouse that already holds every dependency is refreshed without any index
             # (a control machine on the fleet's own network); otherwise pip asks its index.
             try:
@@ -258,6 +304,16 @@ def wheelhouse_cmd(
                 if not (dest.exists() and _same_file(dest, f)):
                     shutil.copyfile(f, dest)
                     changed = True
+        # The manifest lets the playbook skip copying an unchanged wheelhouse file by file.
+        sums = "".join(
+            f"{hashlib.sha256(f.read_bytes()).hexdigest()}  {f.name}\n"
+            for f in sorted(out.glob("*.whl"))
+        )
+        manifest = out / MANIFEST
+        if not manifest.exists() or manifest.read_text(encoding="utf-8") != sums:
+            manifest.write_text(sums, encoding="utf-8")
+            changed = True
+        (out / REQUEST).write_text(request, encoding="utf-8")
     except (RuntimeError, OSError) as e:
         raise _fail(e) from None
     typer.echo(proj.name)
