@@ -365,6 +365,10 @@ def _write_inventory() -> Path:
     return inv
 
 
+# Supervisors this process started (reaped when stopped).
+_SUPERVISORS: dict[int, subprocess.Popen[bytes]] = {}
+
+
 def pidfile(h: Host) -> Path:
     return hostdir(h) / "supervisor.pid"
 
@@ -436,11 +440,12 @@ def wait_ssh(h: Host, timeout: float = 180.0) -> None:
 def start_host(h: Host) -> None:
     if _running(h):
         return
-    proc = subprocess.Popen(
-        [sys.executable, str(Path(__file__).resolve()), "_supervise", h.name],
-        stdin=subprocess.DEVNULL, stdout=open(hostdir(h) / "supervisor.log", "ab"),  # noqa: SIM115
-        stderr=subprocess.STDOUT, start_new_session=True,
-        env={**os.environ, "BGT_TESTBED_STATE": str(STATE)})
+    with open(hostdir(h) / "supervisor.log", "ab") as out:
+        proc = subprocess.Popen(
+            [sys.executable, str(Path(__file__).resolve()), "_supervise", h.name],
+            stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+            start_new_session=True, env={**os.environ, "BGT_TESTBED_STATE": str(STATE)})
+    _SUPERVISORS[proc.pid] = proc
     _write(pidfile(h), f"{proc.pid}\n")
 
 
@@ -449,8 +454,13 @@ def stop_host(h: Host, timeout: float = 90.0) -> None:
     if pid is None:
         return
     os.kill(pid, signal.SIGTERM)
+    proc = _SUPERVISORS.pop(pid, None)
     end = time.monotonic() + timeout
     while _alive(pid) and time.monotonic() < end:
+        if proc is not None:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(0.3)
+            continue
         with contextlib.suppress(ChildProcessError):
             os.waitpid(pid, os.WNOHANG)
         time.sleep(0.3)
@@ -458,6 +468,8 @@ def stop_host(h: Host, timeout: float = 90.0) -> None:
         log.warning("%s did not power off in %.0f s; killing its process group", h.name, timeout)
         with contextlib.suppress(ProcessLookupError):
             os.killpg(pid, signal.SIGKILL)
+        if proc is not None:
+            proc.wait(10)
     pidfile(h).unlink(missing_ok=True)
 
 
