@@ -190,7 +190,11 @@ def test_fleet_status_lists_both_agents_with_clock_offsets(fleet: Fleet) -> None
         return res.stdout if res.returncode == 0 and ok else None
 
     out = wait_for(listed, 60, "both agents alive with offsets in `collector fleet status`", 3)
-    assert "bgt-collector" in out  # each agent's chrony reference is the collector
+    # Each agent's chrony reference is the collector (shown by name or by address).
+    ref = "".join(f"{int(x):02X}" for x in COLLECTOR.address.split("."))
+    rows = [line for line in out.splitlines() if re.search(r"\bagent[12]\b", line)]
+    for row in rows:
+        assert re.search(rf"{ref} \((bgt-collector|{re.escape(COLLECTOR.address)})\)", row), row
 
 
 # --- capture through the deployed fleet --------------------------------------------------------
