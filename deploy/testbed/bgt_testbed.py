@@ -28,6 +28,7 @@ import json
 import logging
 import os
 import re
+import shlex
 import shutil
 import signal
 import subprocess
@@ -523,7 +524,8 @@ def in_control_ns(argv: list[str]) -> list[str]:
 
 def ssh(h: Host, argv: list[str], *, check: bool = True, timeout: float = 120,
         input_text: str | None = None) -> subprocess.CompletedProcess[str]:
-    cmd = in_control_ns(["ssh", *_ssh_args(), f"root@{h.address}", "--", *argv])
+    # ssh hands the remote shell one string: quote, so that argv arrives as it is here.
+    cmd = in_control_ns(["ssh", *_ssh_args(), f"root@{h.address}", "--", shlex.join(argv)])
     res = subprocess.run(cmd, text=True, capture_output=True, timeout=timeout, check=False,
                          input=input_text)
     if check and res.returncode != 0:

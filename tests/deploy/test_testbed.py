@@ -11,6 +11,7 @@ with -s.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 import re
@@ -298,8 +299,14 @@ def test_capture_across_an_agent_reboot_loses_and_repeats_nothing(fleet: Fleet) 
         for h in AGENTS:
             on(h, "systemctl", "start", "sensor-agent.service", timeout=90)
         time.sleep(max(0.0, 25 - (time.monotonic() - t0)))
-        tb.ssh(rebooted, ["systemctl", "reboot"], check=False, timeout=30)
-        time.sleep(3)
+        with contextlib.suppress(subprocess.TimeoutExpired):  # sshd may go before we return
+            tb.ssh(rebooted, ["systemctl", "reboot", "--no-block"], check=False, timeout=30)
+        wait_for(
+            lambda: tb.ssh(rebooted, ["true"], check=False, timeout=30).returncode != 0,
+            90,
+            f"{rebooted.name} to go down",
+            step=0.5,
+        )
         tb.wait_ssh(rebooted, timeout=180)
         wait_for(
             lambda: show(rebooted, "sensor-agent.service", "ActiveState")["ActiveState"]
