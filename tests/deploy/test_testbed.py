@@ -124,6 +124,21 @@ def wait_for(pred, timeout: float, what: str, step: float = 1.0):
         time.sleep(step)
 
 
+def start_unit(h, unit: str, timeout: float = 90) -> None:
+    """Start a unit and wait until it is active (a failed first start is retried by systemd
+    after RestartSec); on timeout the error carries the unit's journal."""
+    on(h, "systemctl", "start", "--no-block", unit)
+    try:
+        wait_for(
+            lambda: show(h, unit, "ActiveState")["ActiveState"] == "active",
+            timeout,
+            f"{unit} on {h.name} to be active",
+        )
+    except AssertionError as e:
+        log = on(h, "journalctl", "-u", unit, "-n", "40", "--no-pager", check=False)
+        raise AssertionError(f"{e}\n{log}") from None
+
+
 def test_first_playbook_run_succeeds(fleet: Fleet) -> None:
     r = fleet.first
     assert r.returncode == 0, r.output[-4000:]
@@ -297,7 +312,7 @@ def test_capture_across_an_agent_reboot_loses_and_repeats_nothing(fleet: Fleet) 
     t0 = time.monotonic()
     with SpoolWatch() as watch:
         for h in AGENTS:
-            on(h, "systemctl", "start", "sensor-agent.service", timeout=90)
+            start_unit(h, "sensor-agent.service")
         time.sleep(max(0.0, 25 - (time.monotonic() - t0)))
         with contextlib.suppress(subprocess.TimeoutExpired):  # sshd may go before we return
             tb.ssh(rebooted, ["systemctl", "reboot", "--no-block"], check=False, timeout=30)
@@ -331,6 +346,9 @@ def test_capture_across_an_agent_reboot_loses_and_repeats_nothing(fleet: Fleet) 
         counts[h.agent_id] = {"spooled": len(spooled), "lost": lost, "duplicated": dup,
                               "boots": len(boots)}  # fmt: skip
     print(f"\nFIGURES capture: {counts}, run rows {sum(in_run.values())}")
+    for h in AGENTS:  # a start that systemd had to retry: show why, for the record
+        if show(h, "sensor-agent.service", "NRestarts")["NRestarts"] != "0":
+            print(on(h, "journalctl", "-u", "sensor-agent", "-n", "60", "--no-pager", check=False))
     assert counts[rebooted.agent_id]["boots"] >= 2, "the agent did not restart in the capture"
     for agent_id, c in counts.items():
         assert c["spooled"] > 300, (agent_id, c)
@@ -340,7 +358,7 @@ def test_capture_across_an_agent_reboot_loses_and_repeats_nothing(fleet: Fleet) 
     all_spooled = set().union(*(watch.rows(h.agent_id)[0] for h in AGENTS))
     assert set(in_run) <= all_spooled
     for h in AGENTS:  # back to normal for the next tests
-        on(h, "systemctl", "start", "sensor-agent.service", timeout=90)
+        start_unit(h, "sensor-agent.service")
 
 
 def test_second_run_changes_nothing(fleet: Fleet) -> None:
