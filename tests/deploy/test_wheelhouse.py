@@ -77,8 +77,10 @@ def test_agent_installs_from_the_wheelhouse_without_an_index(
     out, name = house
     venv.create(tmp_path / "v", with_pip=True)
     py = tmp_path / "v" / "bin" / "python"
-    # No pip configuration (this machine's may name extra wheel folders): the wheelhouse only.
-    env = {**os.environ, "PIP_CONFIG_FILE": os.devnull}
+    # No pip configuration (this machine's may name extra wheel folders): the wheelhouse only;
+    # no PYTHONPATH (a checkout on it would look like an installed project to pip).
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    env["PIP_CONFIG_FILE"] = os.devnull
     res = subprocess.run(
         [str(py), "-m", "pip", "install", "-q", "--no-index", "--find-links", str(out),
          f"{out / name}[agent]"],
@@ -87,7 +89,7 @@ def test_agent_installs_from_the_wheelhouse_without_an_index(
     assert res.returncode == 0, res.stderr[-2000:]
     res = subprocess.run(
         [str(tmp_path / "v" / "bin" / "sensor-agent"), "--help"],
-        capture_output=True, text=True, timeout=60, check=False,
+        capture_output=True, text=True, timeout=60, check=False, env=env,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr
     assert "run" in res.stdout
