@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -26,13 +25,10 @@ from ble_groundtruth import wire
 from ble_groundtruth.formats.mbd import format_row
 from ble_groundtruth.zenoh_config import SessionSpec, build_config
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from loopback import free_port  # noqa: E402 - the tests' port helper, on the path above
+
 CLK_TCK = os.sysconf("SC_CLK_TCK")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def write_recording(path: Path, rate: float, seconds: float, sensors: int = 4) -> int:

@@ -11,7 +11,7 @@ catch-up time per hour of outage, and what the default spool holds.
 from __future__ import annotations
 
 import argparse
-import socket
+import sys
 import tempfile
 import threading
 import time
@@ -24,15 +24,12 @@ from ble_groundtruth.zenoh_config import SessionSpec, build_config
 from sensor_agent.publisher import Publisher, stream_id
 from sensor_agent.spool import Spool
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from loopback import free_port  # noqa: E402 - the tests' port helper, on the path above
+
 MIB = 1024 * 1024
 BOOT = "3f9c2a7be1d04c55"
 T0 = 1_790_000_000 * 10**9
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def main() -> None:

@@ -14,13 +14,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import subprocess
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from loopback import free_port  # noqa: E402 - the tests' port helper, on the path above
 
 AGENT, BOOT = "bench", "00000000000000be"
 T0 = 1_700_000_000 * 10**9
@@ -86,12 +88,6 @@ def publisher(connect: str, seconds: float, batch: int, sensors: int, rate: floa
     s.close()
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 def run_publisher(ep: str, args) -> tuple[subprocess.Popen, float]:
     p = subprocess.Popen([sys.executable, __file__, "--role", "publisher", "--connect", ep,
                           "--seconds", str(args.seconds), "--batch", str(args.batch),
@@ -135,7 +131,7 @@ def bare(args) -> dict:
 
 def collector(args) -> dict:
     from collector.config import CollectorConfig
-    from collector.server import Collector
+    from collector.service import Collector
 
     ep = f"tcp/127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory() as tmp:
@@ -165,7 +161,7 @@ def collector(args) -> dict:
         t_done = time.monotonic()
         stopped = c.stop_run()
         c.close()
-        lines = sum(sum(1 for _ in f.open("rb")) for f in Path(run["run_dir"]).glob("rssi/*.mbd"))
+        lines = sum(sum(1 for _ in f.open("rb")) for f in Path(run["run_dir"]).glob("rssi/*/*.mbd"))
         dt = t_done - t0
         return {"published": pub["readings"], "written": stopped["readings"], "lines_in_files": lines,
                 "lost": pub["readings"] - lines, "seconds": round(dt, 2), "rate": round(lines / dt),

@@ -23,7 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "reliability"))
+TESTS = Path(__file__).resolve().parent.parent / "tests"
+sys.path[:0] = [str(TESTS / "reliability"), str(TESTS)]  # harness.py, and loopback.py it uses
 
 from harness import (  # noqa: E402 - needs the path above
     Result,

@@ -24,6 +24,9 @@ COMMAND_MODULES = (
     "markers",
     "fingerprints",
     "radiomap",
+    "score",
+    "localize",
+    "tum",
     "demo",
 )
 
@@ -45,3 +48,7 @@ def _root(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug
 
 def main() -> None:
     app()
+
+
+if __name__ == "__main__":
+    main()

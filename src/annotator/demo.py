@@ -23,10 +23,10 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
-import yaml
 from scipy.spatial.transform import Rotation
 
 from annotator.errors import AnnotatorError
+from ble_groundtruth import safe_yaml
 from ble_groundtruth.formats.devices import read_dev
 from ble_groundtruth.formats.mbd import iter_rows
 from ble_groundtruth.motion import CoverEvent, PathModel
@@ -77,18 +77,32 @@ class DemoSettings:
 
 # --- the scenario ---------------------------------------------------------------------------------
 
+# The demo loop goes round the desk block south of the central corridor, on the site's occupancy
+# grid (annotator.floor_paths): start in the middle of the bottom side, then these corners.
+DEMO_START = (8.8, 4.5)
+DEMO_CORNERS = ((11.7, 4.5), (11.7, 9.0), (6.0, 9.0), (6.0, 4.5))
+DEMO_MARGIN_M = 0.4  # the planned route keeps this far from desks and walls
+
+
 def demo_path(speed_mps: float = 0.4) -> PathModel:
-    """A rounded rectangle between the tetam pillars (where the marker map is well seen): true
-    circular corners of radius CORNER_RADIUS_M walked at constant speed, so neither the position
-    nor the heading ever changes direction in an instant. Time 0 is in the middle of the
-    bottom side."""
-    x0, x1, y0, y1 = 7.7, 11.8, 7.0, 10.9
-    xm, ym = (x0 + x1) / 2, (y0 + y1) / 2
+    """A rounded loop planned on the tetam occupancy grid, round a desk block and never through
+    furniture: true circular corners of radius CORNER_RADIUS_M walked at constant speed, so
+    neither the position nor the heading ever changes direction in an instant. Time 0 is in the
+    middle of the bottom side."""
+    from annotator.floor_paths import FloorGrid, plan_route, site_occupancy
+
+    route = plan_route(FloorGrid.from_occupancy(site_occupancy()), [DEMO_START, *DEMO_CORNERS],
+                       margin=DEMO_MARGIN_M)
     # Mid-side points carry the height swing; the corners are rounded by the path model itself.
-    plan = ((xm, y0), (x1, y0), (x1, ym), (x1, y1), (xm, y1), (x0, y1), (x0, ym), (x0, y0))
+    plan = [tuple(route[0])]
+    for i in range(1, len(route)):
+        plan.append(tuple(route[i]))
+        if i < len(route) - 1:
+            plan.append(tuple((route[i] + route[i + 1]) / 2))
     n = len(plan)
     # Height: one slow swing between about 1.35 and 1.75 m per lap.
-    wps = tuple((x, y, round(1.55 + 0.2 * math.sin(2 * math.pi * i / n), 4)) for i, (x, y) in enumerate(plan))
+    wps = tuple((round(float(x), 4), round(float(y), 4), round(1.55 + 0.2 * math.sin(2 * math.pi * i / n), 4))
+                for i, (x, y) in enumerate(plan))
     return PathModel(wps, speed_mps, 0.0, corner_radius=CORNER_RADIUS_M)
 
 
@@ -263,9 +277,9 @@ class Capture:
 
 
 def summarize_run(run_dir: Path) -> list[SensorFile]:
-    """Per .mbd file of a run: rows and first/last timestamp."""
+    """Per .mbd file of a run (rssi/<agent>/<sensor>.mbd): rows and first/last timestamp."""
     out = []
-    for p in sorted((run_dir / "rssi").glob("*.mbd")):
+    for p in sorted((run_dir / "rssi").glob("*/*.mbd")):
         n, first, last = 0, None, None
         for row in iter_rows(p):
             n += 1
@@ -310,7 +324,7 @@ def capture(settings: DemoSettings, path: PathModel, progress: Progress | None =
         for i, (agent_id, sensors) in enumerate(zip(AGENTS, split_sensors(), strict=True)):
             cfg = agent_config(agent_id, endpoint, sensors, path, t0, events, settings.seed * 10 + i)
             cfg_path = cfg_dir / f"{agent_id}.yaml"
-            cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
+            cfg_path.write_text(safe_yaml.dump(cfg, sort_keys=False), encoding="utf-8")
             kids.spawn(agent_id, [*agent, "run", "--config", str(cfg_path)])
         note(f"agents {', '.join(AGENTS)} started; path time 0 (t0) = {t0:.0f}")
 
@@ -371,7 +385,7 @@ def render(settings: DemoSettings, path: PathModel, t0: float, run_dir: Path,
         "sync": {"mode": "auto"},
     }
     header = "# Written by `annotator demo`: the simulated capture's run and the rendered videos.\n"
-    result.experiment.write_text(header + yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+    result.experiment.write_text(header + safe_yaml.dump(doc, sort_keys=False), encoding="utf-8")
     return result.experiment
 
 

@@ -6,6 +6,7 @@ Every path inside a YAML file is relative to that file; every problem is one Con
 from __future__ import annotations
 
 import logging
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +38,10 @@ class CameraCalibration:
     source: str = ""
     model: str = "radtan"
     readout_s: float = 0.0
+    exposure_s: float | None = None  # optional: exposure time, for the motion-blur measure
+    # Detected marker corners sit this far (px) outward (+) or inward (-) of the true corner along
+    # the square's diagonal; estimated by the self-calibration (annotator.refine), 0 otherwise.
+    corner_bias_px: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,8 +85,10 @@ class Experiment:
 def _yaml_loader() -> type:
     import yaml
 
-    class _Loader(yaml.SafeLoader):
-        """SafeLoader that also understands OpenCV's !!opencv-matrix tag."""
+    from ble_groundtruth.safe_yaml import SafeLoader
+
+    class _Loader(SafeLoader):
+        """The bounded safe loader, also understanding OpenCV's !!opencv-matrix tag."""
 
     def _matrix(loader: yaml.SafeLoader, node: yaml.Node) -> dict[str, Any]:
         return dict(loader.construct_mapping(node, deep=True))
@@ -96,27 +103,38 @@ _DIRECTIVE = re.compile(r"^%YAML[: ]\s*\d+\.\d+\s*$", re.MULTILINE)
 
 
 def load_yaml(path: Path, what: str) -> Any:
-    """Parse a YAML file (OpenCV FileStorage flavour included); one-line ConfigError on failure."""
-    import yaml
+    """Parse a YAML file (OpenCV FileStorage flavour included) with the bounded loader of
+    ble_groundtruth.safe_yaml (no aliases, limited size and depth); one-line ConfigError on failure."""
+    from ble_groundtruth.safe_yaml import YamlError, load_file
 
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(f"cannot read {what} {path}: {e.strerror}") from None
-    text = _DIRECTIVE.sub("", text, count=1)
-    try:
-        return yaml.load(text, Loader=_yaml_loader())  # noqa: S506 - SafeLoader subclass
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f":{mark.line + 1}" if mark is not None else ""
-        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise ConfigError(f"{path}{where}: not valid YAML ({problem})") from None
+        return load_file(path, loader=_yaml_loader(),
+                         preprocess=lambda text: _DIRECTIVE.sub("", text, count=1))
+    except YamlError as e:
+        raise ConfigError(f"{what}: {e}") from None
 
 
 def _mapping(obj: Any, source: str, what: str) -> dict[str, Any]:
     if not isinstance(obj, dict):
         raise ConfigError(f"{source}: {what} must be a mapping")
     return obj
+
+
+def _number(value: Any, where: str, lo: float, hi: float, expected: str = "") -> float:
+    """A number in [lo, hi], as float. Strings are read as numbers too: YAML 1.1 reads 1.5e9
+    (no sign in the exponent) as a string. Booleans, NaN and infinities are refused."""
+    if isinstance(value, bool) or not isinstance(value, int | float | str):
+        raise ConfigError(f"{where}: must be a number, not {value!r:.40}")
+    try:
+        x = float(value)
+    except OverflowError:
+        x = math.inf
+    except ValueError:
+        raise ConfigError(f"{where}: must be a number, not {value!r:.40}") from None
+    if not (math.isfinite(x) and lo <= x <= hi):
+        expected = expected or f"a finite number in {lo:g}..{hi:g}"
+        raise ConfigError(f"{where}: must be {expected}, not {value!r:.40}")
+    return x
 
 
 def _matrix(value: Any, source: str, key: str, shape: tuple[int, ...] | None = None) -> np.ndarray:
@@ -146,6 +164,10 @@ LENS_MODELS = {"plumb_bob": "radtan", "rational_polynomial": "radtan", "radtan":
                "fisheye": "fisheye", "equidistant": "fisheye"}
 # Optional calibration key: rolling-shutter readout, first row to last, seconds.
 READOUT_KEY = "rolling_shutter_readout_s"
+# Optional calibration key: exposure time, seconds (the motion-blur measure; default half a frame).
+EXPOSURE_KEY = "exposure_s"
+# Optional calibration key written by the refinement: the detector's corner bias, px.
+CORNER_BIAS_KEY = "marker_corner_bias_px"
 
 def parse_calibration(obj: Any, source: str) -> CameraCalibration:
     """OpenCV FileStorage calibration or ROS camera_info, already parsed from YAML."""
@@ -164,24 +186,35 @@ def parse_calibration(obj: Any, source: str) -> CameraCalibration:
                           f"not {dist.size}")
     if model == "radtan" and dist.size not in (0, 4, 5, 8, 12, 14):
         raise ConfigError(f"{source}: distortion_coefficients: {dist.size} values; OpenCV takes 4, 5, 8, 12 or 14")
-    readout = d.get(READOUT_KEY, 0.0)
-    try:
-        readout = float(readout)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{source}: {READOUT_KEY} must be a number (seconds)") from None
+    readout = _number(d.get(READOUT_KEY, 0.0), f"{source}: {READOUT_KEY} (seconds)", -1e3, 1e3)
     if not 0.0 <= readout < 1.0:
         raise ConfigError(f"{source}: {READOUT_KEY} must be between 0 and 1 s, not {readout}")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
         raise ConfigError(f"{source}: camera_matrix: need fx, fy > 0 and K[2][2] = 1")
     try:
         width, height = int(d["image_width"]), int(d["image_height"])
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ConfigError(f"{source}: image_width / image_height must be integers") from None
-    if width <= 0 or height <= 0:
-        raise ConfigError(f"{source}: image_width / image_height must be positive")
+    if not (0 < width <= 100_000 and 0 < height <= 100_000):
+        raise ConfigError(f"{source}: image_width / image_height must be in 1..100000 pixels")
     if dist.size == 0:
         dist = np.zeros(5)
-    return CameraCalibration(K, dist, width, height, source, model, readout)
+    exposure = d.get(EXPOSURE_KEY)
+    if exposure is not None:
+        try:
+            exposure = float(exposure)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{source}: {EXPOSURE_KEY} must be a number (seconds)") from None
+        if not 0.0 <= exposure < 1.0:
+            raise ConfigError(f"{source}: {EXPOSURE_KEY} must be between 0 and 1 s, not {exposure}")
+    try:
+        bias = float(d.get(CORNER_BIAS_KEY, 0.0))
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: {CORNER_BIAS_KEY} must be a number (pixels)") from None
+    if not abs(bias) < 5:
+        raise ConfigError(f"{source}: {CORNER_BIAS_KEY} must be within +-5 px, not {bias}")
+    return CameraCalibration(K, dist, width, height, source, model, readout, exposure_s=exposure,
+                             corner_bias_px=bias)
 
 
 def load_calibration(path: str | Path) -> CameraCalibration:
@@ -242,14 +275,59 @@ def _markers(value: Any, base: Path, source: str) -> MarkerSetup:
     dictionary = str(d["dictionary"])
     if not dictionary.startswith("DICT_") or not hasattr(cv2.aruco, dictionary):
         raise ConfigError(f"{source}: markers.dictionary: unknown ArUco dictionary {dictionary!r}")
-    try:
-        length = float(d["length"])
-    except (TypeError, ValueError):
-        raise ConfigError(f"{source}: markers.length must be a number (metres)") from None
+    length = _number(d["length"], f"{source}: markers.length (metres)", -1e3, 1e3)
     if not length > 0:
         raise ConfigError(f"{source}: markers.length must be positive (metres)")
     # MarkerMapError is a known error too; the CLI prints it as one line.
     return MarkerSetup(read_marker_map(base / str(d["file"])), dictionary, length)
+
+
+# The `sync:` section: every key it may hold, and the defaults of the optional numbers.
+SYNC_KEYS = ("mode", "video_start", "beacon", "min_cover_s", "max_cover_s", "max_start_error")
+SYNC_DEFAULTS = {"min_cover_s": 0.3, "max_cover_s": 10.0, "max_start_error": 60.0}
+# A video's start is Unix seconds between 1970 and 2100.
+UNIX_S_MAX = 4_102_444_800.0
+
+
+def parse_sync(obj: Any, source: str, cameras: list[str]) -> tuple[str, dict[str, float] | None, dict[str, Any]]:
+    """The `sync:` section -> (mode, video_start per camera or None, the section with its values
+    checked and normalised: numbers as floats, the beacon as a 12-hex MAC). Unknown keys, values
+    that are not numbers, NaN, infinities and times outside 1970..2100 are one ConfigError line."""
+    from ble_groundtruth.wire import WireError, normalize_mac
+
+    sync = dict(_mapping(obj, source, "sync"))
+    unknown = sorted(set(map(str, sync)) - set(SYNC_KEYS))
+    if unknown:
+        raise ConfigError(f"{source}: sync: unknown key {unknown[0][:40]!r} (allowed: {', '.join(SYNC_KEYS)})")
+    mode = sync.get("mode", "manual")
+    if mode not in ("manual", "auto"):
+        raise ConfigError(f"{source}: sync.mode must be 'manual' or 'auto', not {mode!r:.40}")
+    sync["mode"] = mode
+    video_start: dict[str, float] | None = None
+    if sync.get("video_start") is not None:
+        starts = _mapping(sync["video_start"], source, "sync.video_start")
+        video_start = {str(k): _number(v, f"{source}: sync.video_start.{str(k)[:40]}", 0.0, UNIX_S_MAX,
+                                        "Unix seconds in 1970..2100")
+                       for k, v in starts.items()}
+        missing = sorted(set(cameras) - set(video_start))
+        if missing:
+            raise ConfigError(f"{source}: sync.video_start: no start time for {', '.join(missing)}")
+        sync["video_start"] = video_start
+    elif mode == "manual":
+        raise ConfigError(f"{source}: sync.mode is manual but sync.video_start is missing")
+    for key in ("min_cover_s", "max_cover_s", "max_start_error"):
+        if key in sync:
+            sync[key] = _number(sync[key], f"{source}: sync.{key}", 1e-3, 86_400.0)
+    lo = sync.get("min_cover_s", SYNC_DEFAULTS["min_cover_s"])
+    hi = sync.get("max_cover_s", SYNC_DEFAULTS["max_cover_s"])
+    if not lo < hi:
+        raise ConfigError(f"{source}: sync.min_cover_s ({lo:g}) must be less than sync.max_cover_s ({hi:g})")
+    if sync.get("beacon") is not None:
+        try:
+            sync["beacon"] = normalize_mac(sync["beacon"])
+        except WireError:
+            raise ConfigError(f"{source}: sync.beacon: not a MAC address: {sync['beacon']!r:.40}") from None
+    return str(mode), video_start, sync
 
 
 def parse_experiment(obj: Any, path: Path) -> Experiment:
@@ -276,24 +354,9 @@ def parse_experiment(obj: Any, path: Path) -> Experiment:
             raise ConfigError(f"{source}: videos.{name}: no such file {vp}")
     rssi = base / str(d["rssi"]) if d.get("rssi") is not None else None
 
-    sync = _mapping(d.get("sync", {"mode": "manual"}), source, "sync")
-    mode = str(sync.get("mode", "manual"))
-    if mode not in ("manual", "auto"):
-        raise ConfigError(f"{source}: sync.mode must be 'manual' or 'auto', not {mode!r}")
-    video_start: dict[str, float] | None = None
-    if "video_start" in sync:
-        starts = _mapping(sync["video_start"], source, "sync.video_start")
-        try:
-            video_start = {str(k): float(v) for k, v in starts.items()}
-        except (TypeError, ValueError):
-            raise ConfigError(f"{source}: sync.video_start: values must be Unix seconds") from None
-        missing = sorted(set(videos) - set(video_start))
-        if missing:
-            raise ConfigError(f"{source}: sync.video_start: no start time for {', '.join(missing)}")
-    elif mode == "manual":
-        raise ConfigError(f"{source}: sync.mode is manual but sync.video_start is missing")
+    mode, video_start, sync = parse_sync(d.get("sync", {"mode": "manual"}), source, list(videos))
     priors = parse_priors(d.get("refine"), source)
-    return Experiment(path, markers, rig, videos, rssi, mode, video_start, dict(sync), priors)
+    return Experiment(path, markers, rig, videos, rssi, mode, video_start, sync, priors)
 
 
 def load_experiment(path: str | Path) -> Experiment:

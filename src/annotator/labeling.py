@@ -70,13 +70,17 @@ class Labels:
 
 
 def label_readings(poses: Poses, t_ns: np.ndarray, *, max_gap: float = 0.5,
-                   exclude: Sequence[tuple[float, float]] = ()) -> Labels:
+                   exclude: Sequence[tuple[float, float]] = (),
+                   time_sigma: float | np.ndarray | None = None) -> Labels:
     """Pose of the bundle at each reading time ``t_ns`` (int64 Unix ns).
 
     A reading is labelled when it lies inside [first pose, last pose] and the two poses around it
     are at most ``max_gap`` seconds apart. Position: linear interpolation; rotation: Slerp.
     Readings inside an ``exclude`` interval (Unix seconds; the sync cover events, when hands
     over the beacon distort the RSSI) are never labelled, whatever the poses.
+    ``time_sigma`` (s, scalar or per reading): 1-sigma uncertainty of the readings' times against
+    the video clock (the sync); a reading's sigma then adds speed x time_sigma in quadrature, the
+    speed being that of the two poses around it.
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     m = t_ns.size
@@ -135,6 +139,11 @@ def label_readings(poses: Poses, t_ns: np.ndarray, *, max_gap: float = 0.5,
     if poses.sigma is not None:
         S = np.asarray(poses.sigma, dtype=float)[idx]
         out_sig[good] = S[g_lo] + (S[g_hi] - S[g_lo]) * w
+        if time_sigma is not None:
+            ts = np.broadcast_to(np.nan_to_num(np.asarray(time_sigma, dtype=float), nan=0.0), (m,))[good]
+            speed = np.divide(np.linalg.norm(P[g_hi] - P[g_lo], axis=1), span, out=np.zeros_like(span),
+                              where=span > 0)
+            out_sig[good] = np.hypot(out_sig[good], speed * ts)
     if poses.markers is not None:
         M = np.asarray(poses.markers)[idx]
         nearest = np.where(w <= 0.5, g_lo, g_hi)

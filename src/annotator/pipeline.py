@@ -3,7 +3,9 @@
 Per video (in parallel processes with jobs > 1): decode by PTS -> detect markers -> per-frame
 bundle pose from that camera. Then, for method ``rig``: choose between mirror solutions of
 single-marker frames -> smooth (pass 1) -> joint two-camera solves of near-simultaneous frames,
-motion-compensated with the pass-1 trajectory -> smooth again. Method ``paper``: per-marker poses
+motion-compensated with the pass-1 trajectory -> smooth again -> (refine != none) self-calibration
+over keyframes (annotator.refine) -> joint solves with the refined map, rig and lenses (rolling
+shutter from the previous pass's motion) -> smooth again. Method ``paper``: per-marker poses
 -> batches -> selection -> random-walk Kalman filter.
 With jobs > 1 one process pool serves the whole run: the videos, then the joint solves and the
 rotation half of each smoothing pass.
@@ -28,8 +30,23 @@ from scipy.spatial.transform import Rotation
 
 from annotator.errors import NoDataError
 from annotator.experiment import Experiment, MarkerSetup, RigCamera
+from annotator.priors import ParameterCovariance
+from annotator.refine import (
+    Refinement,
+    RefineSettings,
+    blur_weight,
+    motion_at,
+    predicted_smear_px,
+    refine_capture,
+)
 from annotator.smoothing import SmootherSettings, smooth_positions, smooth_rotations, supported
 from annotator.trajectory_io import Trajectory
+from annotator.uncertainty import (
+    UncertaintySettings,
+    row_uncertainty,
+    sync_time_sigma,
+    total_sigma,
+)
 from annotator.video import iter_frames, video_info
 from annotator.vision.detection import Detections, DetectorSettings, MarkerDetector
 from annotator.vision.geometry import MarkerRoom
@@ -57,6 +74,11 @@ class TrackSettings:
     paper: PaperSettings = field(default_factory=PaperSettings)
     joint: bool = True  # rig: joint two-camera solve of near-simultaneous frames
     max_frames: int | None = None  # per video; for quick looks and benchmarks
+    uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)  # what sigma_m holds
+    # rig: self-calibration after the first pass (annotator.refine): none | map | all
+    refine: str = "all"
+    # Assumed exposure for the motion-blur measure (predicted smear, px, of each frame's markers).
+    exposure_s: float = 0.008
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,7 +100,8 @@ def process_video(path: Path, camera: RigCamera, markers: MarkerSetup, t_start: 
     """Decode, detect and solve every frame of one camera's video."""
     info = video_info(path)
     room = MarkerRoom.from_map(markers.markers, markers.length)
-    det_settings = dataclasses.replace(settings.detector, dictionary=markers.dictionary)
+    det_settings = dataclasses.replace(settings.detector, dictionary=markers.dictionary,
+                                       keep_unknown=settings.detector.keep_unknown or settings.refine != "none")
     detector = MarkerDetector(det_settings, room, camera.calibration)
     cal = camera.calibration
     ts, dets, poses, mposes = [], [], [], []
@@ -285,7 +308,8 @@ def _solve_all(problems: list[tuple[list[CameraObservation], tuple[np.ndarray, n
 
 def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: MarkerRoom, settings: TrackSettings,
                        t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
-                       pool: ProcessPoolExecutor | None = None) -> list[tuple[float, BundlePose]]:
+                       pool: ProcessPoolExecutor | None = None,
+                       resolve_singles: bool = False) -> list[tuple[float, BundlePose]]:
     """Joint solves pairing each frame of the first camera with the other cameras' nearest frames.
 
     The other camera saw the room at a slightly different time; its extrinsics are moved by the
@@ -306,7 +330,7 @@ def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: Marker
         pairs.append(cams)
     # Pass-1 poses at every time involved, interpolated in one go.
     need = np.array([float(cf.t[j]) for cams in pairs for cf, j in cams])
-    R_at, p_at, ok_at = interp_poses(need, t_grid, pos, R)
+    R_at, p_at, om_at, v_at, ok_at = motion_at(need, t_grid, pos, R)
     lookup = {float(tt): n for n, tt in enumerate(need)}
     tasks: list[tuple[float, list[CameraObservation], tuple[np.ndarray, np.ndarray], list[tuple[int, int]]]] = []
     for k, t in enumerate(base.t):
@@ -330,27 +354,74 @@ def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: Marker
                 t_d = at_t[0].T @ (there[1] - at_t[1])
                 R_bc, t_bc = R_d @ R_bc, R_d @ t_bc + t_d
                 joined.append((frames.index(cf), j))
-            obs.append(observe(cf.detections[j], room, cam.calibration, R_bc, t_bc))
+            n1 = lookup[float(cf.t[j])]
+            # Rolling shutter: each corner at its row's time, the bundle moving as in the first pass.
+            motion = (R_at[n1], p_at[n1], om_at[n1], v_at[n1])
+            obs.append(observe(cf.detections[j], room, cam.calibration, R_bc, t_bc, motion))
         if sum(len(o.ids) for o in obs) == 0:
             continue
         tasks.append((float(t), obs, at_t, joined))
     solved = _solve_all([(obs, at_t) for _, obs, at_t, _ in tasks], room, settings.solver, pool, settings.jobs)
-    for (t, _, _, joined), pose in zip(tasks, solved, strict=True):
+    for (t, obs, at_t, joined), pose in zip(tasks, solved, strict=True):
         if pose is not None:
-            out.append((t, pose))
+            out.append((t, _blurred(pose, obs, at_t, lookup[t], om_at, v_at, settings.exposure_s)))
             for ci, j in joined:
                 used_other[ci].add(j)
+    single = _single_solver(exp, room, settings, resolve_singles)
     # Frames of the other cameras not paired with any base frame keep their own solves.
     for ci, cf in enumerate(frames[1:], 1):
-        out += [(float(cf.t[j]), p) for j, p in enumerate(cf.poses) if p is not None and j not in used_other[ci]]
+        out += [(float(cf.t[j]), p) for j in range(len(cf.t)) if j not in used_other[ci]
+                and (p := single(cf, j)) is not None]
     # Base frames whose joint solve failed keep their single-camera solve.
     done = {t for t, _ in out}
-    out += [(float(t), p) for t, p in zip(base.t, base.poses, strict=True) if p is not None and float(t) not in done]
+    out += [(float(t), p) for j, t in enumerate(base.t) if float(t) not in done and (p := single(base, j)) is not None]
     return out
 
 
+def _single_solver(exp: Experiment, room: MarkerRoom, settings: TrackSettings,
+                   resolve: bool) -> Callable[[CameraFrames, int], BundlePose | None]:
+    """A frame's single-camera pose: the first pass's, or (resolve) solved again with ``exp``'s
+    parameters (after refinement the first pass's poses carry the old map, rig and lenses)."""
+    def single(cf: CameraFrames, j: int) -> BundlePose | None:
+        if not resolve or (cf.poses[j] is None and not len(cf.detections[j].ids)):
+            return cf.poses[j]
+        cam = exp.rig.cameras[cf.camera]
+        obs = observe(cf.detections[j], room, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera)
+        # A frame the first pass could not solve may see markers the refinement mapped.
+        if cf.poses[j] is None:
+            return solve_bundle_pose([obs], room, settings.solver)
+        prior = (cf.poses[j].R_wb, cf.poses[j].t_wb)
+        return solve_bundle_pose([obs], room, settings.solver, prior, prior_first=True)
+    return single
+
+
+def _blurred(pose: BundlePose, obs: list[CameraObservation], at_t: tuple[np.ndarray, np.ndarray], n: int,
+             om_at: np.ndarray, v_at: np.ndarray, exposure_s: float) -> BundlePose:
+    """The pose with its covariance widened by the frame's predicted motion blur (the smear of its
+    markers during the exposure, from the first pass's velocity)."""
+    o = obs[0]
+    if not len(o.ids) or exposure_s <= 0:
+        return pose
+    smear = predicted_smear_px(o.world, at_t[0], at_t[1], om_at[n], v_at[n], o.R_bc, o.t_bc, o.focal, exposure_s)
+    w = blur_weight(smear)
+    return pose if w >= 0.999 else dataclasses.replace(pose, cov=pose.cov / w)
+
+
+@dataclass(frozen=True, eq=False)
+class TrackResult:
+    """A tracking run: the trajectory, and what the self-calibration did (None without it)."""
+
+    trajectory: Trajectory
+    refinement: Refinement | None = None
+    # Uncertainty of the map, rig and lenses the final pass used (refined, or the priors'):
+    # what the uncertainty propagation consumes.
+    params: ParameterCovariance | None = None
+
+
 def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings, t_out: np.ndarray,
-               pool: ProcessPoolExecutor | None = None) -> Trajectory:
+               pool: ProcessPoolExecutor | None = None, params: ParameterCovariance | None = None) -> TrackResult:
+    """``params``: covariance of map, rig and intrinsics for sigma_m; None -> the refinement's, else the
+    experiment's priors."""
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
     s = settings.smoother
     singles = [(float(t), p) for cf in frames for t, p in zip(cf.t, cf.poses, strict=True) if p is not None]
@@ -362,13 +433,50 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
         joint = resolve_ambiguities(joint_measurements(frames, exp, room, settings, t_out, pos, R, pool), s.max_gap_s)
         meas = _stack(joint)
         pos, R, sig = smooth(meas, t_out, s, pool)
+    refinement = None
+    given = exp
+    rounds = 2 if settings.refine != "none" else 0
+    while rounds:
+        rounds -= 1
+        initial = None if refinement is None else _mapped_poses(refinement)
+        again = refine_capture(frames, given, t_out, pos, R,
+                               RefineSettings(mode=settings.refine, exposure_s=settings.exposure_s), initial)
+        if again is None:
+            break
+        refinement = again
+        # Track again with the refined map, rig and lenses; the last pass gives the motion.
+        exp = refinement.experiment
+        room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
+        joint = resolve_ambiguities(joint_measurements(frames, exp, room, settings, t_out, pos, R, pool,
+                                                       resolve_singles=True), s.max_gap_s)
+        meas = _stack(joint)
+        pos, R, sig = smooth(meas, t_out, s, pool)
+        if not refinement.mapped:
+            break  # a second round only helps when markers were mapped from a trajectory with gaps
+    posterior = params if params is not None else (refinement.covariance if refinement is not None else None)
+    if posterior is not None:
+        params = posterior
+    else:
+        cams = {n: c.calibration.camera_matrix for n, c in exp.rig.cameras.items()}
+        params = ParameterCovariance.from_priors(exp.priors, [int(i) for i in room.ids], cams)
     # Quality columns from the measurement at each output time (0 markers where there was none).
     idx = np.searchsorted(meas.t, t_out)
     idx = np.clip(idx, 0, max(len(meas.t) - 1, 0))
     hit = (len(meas.t) > 0) & (np.abs(meas.t[idx] - t_out) < 1e-6) if len(meas.t) else np.zeros(len(t_out), bool)
     n_markers = np.where(hit, meas.n_markers[idx] if len(meas.t) else 0, 0)
     rms = np.where(hit, meas.rms_px[idx] if len(meas.t) else np.nan, np.nan)
-    return Trajectory(t_out, pos, R, {"markers": n_markers.astype(float), "rms_px": rms, "sigma_m": sig})
+    # The priors (posterior None) are checked against the residuals; a posterior is not shrunk.
+    u = row_uncertainty(frames, exp, t_out, pos, R, posterior, settings.uncertainty)
+    traj = Trajectory(t_out, pos, R, {"markers": n_markers.astype(float), "rms_px": rms,
+                                      **total_sigma(sig, u, settings.uncertainty)})
+    return TrackResult(traj, refinement, params)
+
+
+def _mapped_poses(refinement: Refinement) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """(R_world_marker, centre) of the markers a refinement mapped from the video."""
+    markers = refinement.experiment.markers.markers
+    return {mid: (Rotation.from_euler("xyz", markers[mid].euler_xyz).as_matrix(), np.asarray(markers[mid].position))
+            for mid in refinement.mapped}
 
 
 def _track_paper(frames: list[CameraFrames], settings: TrackSettings) -> Trajectory:
@@ -385,14 +493,21 @@ def _track_paper(frames: list[CameraFrames], settings: TrackSettings) -> Traject
     return Trajectory(tb, pos, rot, {"markers": used.astype(float)})
 
 
-def track_experiment(exp: Experiment, settings: TrackSettings | None = None,
-                     progress: Progress | None = None) -> Trajectory:
-    """Trajectory of the bundle (R_world_bundle, beacon position) over the experiment's videos."""
+def track(exp: Experiment, settings: TrackSettings | None = None, progress: Progress | None = None) -> TrackResult:
+    """Track the bundle over the experiment's videos (with the self-calibration's record)."""
     settings = settings or TrackSettings()
     if settings.method not in ("rig", "paper"):
         raise ValueError(f"unknown method {settings.method!r}")
+    if settings.refine not in ("none", "map", "all"):
+        raise ValueError(f"unknown refine mode {settings.refine!r}")
     with _worker_pool(settings) as pool:
-        return frames_to_trajectory(_all_videos(exp, settings, progress, pool), exp, settings, pool)
+        return frames_to_result(_all_videos(exp, settings, progress, pool), exp, settings, pool)
+
+
+def track_experiment(exp: Experiment, settings: TrackSettings | None = None,
+                     progress: Progress | None = None) -> Trajectory:
+    """Trajectory of the bundle (R_world_bundle, beacon position) over the experiment's videos."""
+    return track(exp, settings, progress).trajectory
 
 
 # --- `annotator run`: track -> sync -> label -> outputs ---------------------------------------
@@ -416,17 +531,28 @@ class RunResult:
     labels: Any  # annotator.labeling.Labels, one per reading of `rssi`
     rssi: Any  # annotator.rssi_io.RssiTable: the bundle beacon's readings
     report: dict[str, Any]
+    refinement: Refinement | None = None  # what the self-calibration did (None: --refine none, paper)
+    params: ParameterCovariance | None = None  # uncertainty of the map, rig and lenses tracked with
 
 
 def frames_to_trajectory(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings,
-                         pool: ProcessPoolExecutor | None = None) -> Trajectory:
-    """Stage 2 of tracking on frames whose times are already wall-clock (joint solves in ``pool``)."""
+                         pool: ProcessPoolExecutor | None = None,
+                         params: ParameterCovariance | None = None) -> Trajectory:
+    """Stage 2 of tracking on frames whose times are already wall-clock (joint solves in ``pool``);
+    ``params`` as in ``_track_rig``."""
+    return frames_to_result(frames, exp, settings, pool, params).trajectory
+
+
+def frames_to_result(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings,
+                     pool: ProcessPoolExecutor | None = None,
+                     params: ParameterCovariance | None = None) -> TrackResult:
+    """`frames_to_trajectory` with the self-calibration's record."""
     if not any(len(cf.t) for cf in frames):
         raise NoDataError(f"{exp.path}: the videos hold no frames")
     if settings.method == "paper":
-        return _track_paper(frames, settings)
+        return TrackResult(_track_paper(frames, settings))
     t_out = np.unique(np.concatenate([cf.t for cf in frames]))
-    return _track_rig(frames, exp, settings, t_out, pool)
+    return _track_rig(frames, exp, settings, t_out, pool, params)
 
 
 def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings | None = None,
@@ -488,13 +614,15 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
         with _worker_pool(track) as pool:
             frames = _all_videos(exp, track, progress, pool)
     with _worker_pool(track) as pool:
-        traj = frames_to_trajectory(frames, exp, track, pool)
+        result = frames_to_result(frames, exp, track, pool)
+    traj = result.trajectory
 
     poses = Poses(traj.t, traj.position, traj.rotation, sigma=traj.quality.get("sigma_m"),
                   markers=traj.quality.get("markers"))
     # Readings while hands covered the beacon carry the hands' attenuation: never labelled.
     labels = label_readings(poses, table.t_ns, max_gap=settings.max_gap,
-                            exclude=cover_intervals(sync.rssi_events))
+                            exclude=cover_intervals(sync.rssi_events),
+                            time_sigma=sync_time_sigma(sync.clocks, table.t_seconds()))
     report = build_report(experiment=exp.path, sync=sync, beacon=beacon, readings_total=len(everything),
                           table=table, labels=labels, traj_t=traj.t, traj_valid=traj.valid,
                           max_gap=settings.max_gap, method=track.method)
@@ -512,6 +640,12 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
             span=(float(valid_t[0]), float(valid_t[-1])) if valid_t.size else None,
             markers=exp.markers.markers)
         report["plots"] = {k: p.name for k, p in plots.items()}
+    if result.refinement is not None:
+        from annotator.refine import write_refined
+
+        report["refinement"] = {**result.refinement.report,
+                                "files": {k: f"refined/{v}" for k, v in write_refined(out / "refined",
+                                                                                     result.refinement).items()}}
     write_report(out / "report.json", report)
     log.info("run: %d of %d readings labelled into %s", int(labels.labelled.sum()), len(table), out)
-    return RunResult(traj, sync, labels, table, report)
+    return RunResult(traj, sync, labels, table, report, result.refinement, result.params)

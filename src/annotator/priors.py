@@ -10,8 +10,8 @@ Perturbation conventions (shared by refinement and propagation):
   its 6x6 covariance orders (d_rot, d_pos);
 - rig camera: R_bundle_camera = exp([d_rot]x) @ R0 (bundle frame), t_bundle_camera + d_t; 6x6 over
   (d_rot, d_t);
-- intrinsics: 4x4 over (fx, fy, cx, cy) in pixels (distortion and readout uncertainty are folded
-  into these by the producer where it has them).
+- intrinsics: 4x4 over (fx, fy, cx, cy) in pixels; distortion (over the coefficients) and readout
+  (1x1, s^2) are optional: filled by the refinement, empty when only the priors are known.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ class Priors:
     """1-sigma uncertainties of the inputs the user measured (defaults: a tape-measured room)."""
 
     mode: str = "all"  # none | map | all: what refinement may change (CLI --refine overrides)
-    survey_sigma_m: float = 0.01  # marker centre, per axis
+    survey_sigma_m: float = 0.015  # marker centre, per axis
     survey_sigma_deg: float = 1.0  # marker orientation, per axis
     markers: dict[int, MarkerPrior] = field(default_factory=dict)  # per-marker overrides
     rig_sigma_m: float = 0.003  # camera position in the bundle, per axis
@@ -50,6 +50,7 @@ class Priors:
     principal_sigma_px: float = 2.0  # cx, cy
     distortion_sigma: float = 0.05  # each distortion coefficient
     readout_sigma_s: float = 0.02  # rolling-shutter readout time (prior mean: the calibration's)
+    aspect_sigma_rel: float = 0.001  # fx / fy (pixel aspect: a property of the sensor, well known)
 
     def marker(self, marker_id: int) -> MarkerPrior:
         return self.markers.get(marker_id, MarkerPrior(self.survey_sigma_m, self.survey_sigma_deg))
@@ -59,7 +60,7 @@ def _positive(d: dict[str, Any], key: str, default: float, where: str) -> float:
     value = d.get(key, default)
     try:
         x = float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ConfigError(f"{where}.{key}: must be a number, not {value!r}") from None
     if not (math.isfinite(x) and x > 0):
         raise ConfigError(f"{where}.{key}: must be a positive finite number, not {value!r}")
@@ -75,7 +76,8 @@ def parse_priors(obj: Any, source: str) -> Priors:
         raise ConfigError(f"{where}: must be a mapping")
     d = Priors()
     known_keys = {"mode", "survey_sigma_m", "survey_sigma_deg", "markers", "rig_sigma_m", "rig_sigma_deg",
-                  "focal_sigma_rel", "principal_sigma_px", "distortion_sigma", "readout_sigma_s"}
+                  "focal_sigma_rel", "principal_sigma_px", "distortion_sigma", "readout_sigma_s",
+                  "aspect_sigma_rel"}
     unknown = sorted(set(map(str, obj)) - known_keys)
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known_keys))})")
@@ -91,7 +93,7 @@ def parse_priors(obj: Any, source: str) -> Priors:
     for key, spec in raw.items():
         try:
             mid = int(key)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise ConfigError(f"{where}.markers: {key!r} is not a marker id") from None
         if spec == "unknown":
             markers[mid] = MarkerPrior(math.inf, math.inf, known=False)
@@ -108,6 +110,7 @@ def parse_priors(obj: Any, source: str) -> Priors:
         principal_sigma_px=_positive(obj, "principal_sigma_px", d.principal_sigma_px, where),
         distortion_sigma=_positive(obj, "distortion_sigma", d.distortion_sigma, where),
         readout_sigma_s=_positive(obj, "readout_sigma_s", d.readout_sigma_s, where),
+        aspect_sigma_rel=_positive(obj, "aspect_sigma_rel", d.aspect_sigma_rel, where),
     )
 
 
@@ -118,6 +121,10 @@ class ParameterCovariance:
     markers: dict[int, np.ndarray]  # id -> (6, 6)
     rig: dict[str, np.ndarray]  # camera -> (6, 6)
     intrinsics: dict[str, np.ndarray]  # camera -> (4, 4) over fx, fy, cx, cy
+    # After refinement (empty without): camera -> (n, n) over the lens' distortion coefficients in
+    # the calibration's order, and camera -> (1, 1) over the rolling-shutter readout (s^2).
+    distortion: dict[str, np.ndarray] = field(default_factory=dict)
+    readout: dict[str, np.ndarray] = field(default_factory=dict)
 
     @classmethod
     def from_priors(cls, priors: Priors, marker_ids: list[int], cameras: dict[str, np.ndarray]) -> ParameterCovariance:

@@ -1,6 +1,7 @@
 """Loading the RSSI side of an experiment: a collector run dir or a folder of ``*.mbd`` files.
 
-A run dir holds ``rssi/*.mbd`` (one file per sensor) and ``run.yaml``; a plain folder holds the
+A run dir holds ``rssi/<agent>/<sensor>.mbd`` (one file per agent and sensor; older runs
+``rssi/<sensor>.mbd``) and ``run.yaml``; a plain folder holds the
 ``.mbd`` files directly; a single ``.mbd`` file works too. Timestamps stay exact int64 ns.
 """
 
@@ -15,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from annotator.errors import ConfigError, NoDataError
+from ble_groundtruth.formats._textio import iter_lines
 from ble_groundtruth.formats.mbd import MbdError, MbdRow, parse_line
 
 log = logging.getLogger(__name__)
@@ -57,6 +59,8 @@ def rssi_files(path: str | Path) -> tuple[list[Path], Path | None]:
     run_yaml = path / "run.yaml"
     folder = path / "rssi" if (path / "rssi").is_dir() else path
     files = sorted(folder.glob("*.mbd"))
+    if folder.name == "rssi" and not files:  # a collector run: one folder per agent
+        files = sorted(folder.glob("*/*.mbd"))
     per_sensor = [f for f in files if not _is_merged(f)]
     # A merged all_sensors file beside per-sensor files repeats their rows.
     files = per_sensor or files
@@ -69,8 +73,7 @@ def _file_rows(path: Path) -> list[MbdRow]:
     """Rows of one .mbd file. A last line cut short (no newline: the writer was killed mid-line)
     is skipped with a warning; any other malformed line is an MbdError naming file and line."""
     rows: list[MbdRow] = []
-    with path.open(encoding="utf-8") as f:
-        lines = f.readlines()
+    lines = [line for _, line in iter_lines(path, MbdError)]  # MbdError for bytes not UTF-8
     for lineno, line in enumerate(lines, 1):
         if not line.strip():
             continue
@@ -100,12 +103,12 @@ def load_rssi(path: str | Path) -> RssiTable:
     order = np.argsort(t_ns, kind="stable")
     info = None
     if run_yaml is not None:
-        import yaml
+        from ble_groundtruth.safe_yaml import YamlError, load_file
 
         try:
-            info = yaml.safe_load(run_yaml.read_text(encoding="utf-8"))
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{run_yaml}: not valid YAML ({e})") from None
+            info = load_file(run_yaml)
+        except YamlError as e:
+            raise ConfigError(f"run info: {e}") from None
         if not isinstance(info, dict):
             info = None
     table = RssiTable(t_ns[order], np.asarray(sensor)[order], np.asarray(beacon)[order],

@@ -57,6 +57,7 @@ class ClockMap:
     # How much later the RSSI saw the release (and earlier the cover) than the video, s: the two
     # signals fade differently while the hands close. Fitted when a cover/release pair exists.
     edge_bias: float = math.nan
+    start_drift_cov: float = 0.0  # covariance of video_start and drift from the fit (s * 1)
 
     def to_rssi(self, pts: np.ndarray | float) -> np.ndarray:
         return self.video_start + np.asarray(pts, dtype=float) * (1.0 + self.drift)
@@ -65,10 +66,13 @@ class ClockMap:
         return (np.asarray(t_rssi, dtype=float) - self.video_start) / (1.0 + self.drift)
 
     def sigma_at(self, pts: np.ndarray | float) -> np.ndarray:
-        """1-sigma uncertainty of the mapped time at ``pts`` (start and drift assumed independent)."""
+        """1-sigma uncertainty of the mapped time at ``pts`` (with the fit's start-drift covariance:
+        both are fitted from the same edges, so the mapped time is best known between them)."""
         pts = np.asarray(pts, dtype=float)
         ds = self.drift_sigma if math.isfinite(self.drift_sigma) else 0.0
-        return np.sqrt(self.video_start_sigma**2 + (pts * ds) ** 2)
+        cov = self.start_drift_cov if ds > 0 else 0.0
+        var = self.video_start_sigma**2 + 2.0 * pts * cov + (pts * ds) ** 2
+        return np.sqrt(np.maximum(var, 0.0))
 
 
 def manual_clock_map(video_start: float) -> ClockMap:
@@ -249,20 +253,27 @@ def _normalised_levels(rssi: np.ndarray, sensor_codes: np.ndarray, use: np.ndarr
 
 
 def _changepoint(t: np.ndarray, z: np.ndarray, lo: float, hi: float, grid: np.ndarray,
-                 into_covered: bool) -> tuple[float, float, float]:
+                 into_covered: bool, same_advert_s: float = 0.0) -> tuple[float, float, float]:
     """Posterior mean, sigma and log-likelihood ratio of one change point on ``grid``.
 
     Model on [lo, hi): a Poisson stream of readings whose rate and mean (normalised) level change
-    once. Profile log-likelihood of the split time, flat prior. Taking the posterior mean (not the
+    once. Profile log-likelihood of the split time, flat prior. Readings closer than
+    ``same_advert_s`` are one advertisement (heard by several sensors): one event, their mean level. Taking the posterior mean (not the
     maximum) matters when readings vanish entirely: the last reading then comes on average one
     inter-reading gap before the true edge.
     """
-    k = np.searchsorted(t, grid)  # readings before each candidate split
     k0 = np.searchsorted(t, lo)
     k1 = np.searchsorted(t, hi)
     tt, zz = t[k0:k1], z[k0:k1]
+    if same_advert_s > 0 and tt.size > 1:
+        # One advertisement heard by several sensors is one event of the beacon's stream, not
+        # several: counted per sensor, the rate model would claim a precision it does not have.
+        new = np.concatenate([[True], np.diff(tt) > same_advert_s])
+        g = np.cumsum(new) - 1
+        cnt = np.bincount(g).astype(float)
+        tt, zz = np.bincount(g, tt) / cnt, np.bincount(g, zz) / cnt
     n = tt.size
-    k = np.clip(k - k0, 0, n)
+    k = np.searchsorted(tt, grid)  # adverts before each candidate split
     c1 = np.concatenate([[0.0], np.cumsum(zz)])
     c2 = np.concatenate([[0.0], np.cumsum(zz * zz)])
     n1, n2 = k.astype(float), (n - k).astype(float)
@@ -303,7 +314,7 @@ def detect_rssi_events(t: np.ndarray, rssi: np.ndarray, sensor: np.ndarray, *, n
                        max_duration: float = 10.0, rate_drop: float = 0.5, level_drop_db: float = 6.0,
                        min_llr: float = 20.0, min_edge_llr: float = 6.0, search_s: float = 1.0,
                        context_s: float = 3.0,
-                       grid_s: float = 0.005) -> list[CoverEvent]:
+                       grid_s: float = 0.005, same_advert_s: float = 0.002) -> list[CoverEvent]:
     """Covered intervals in the pooled readings of every sensor (one beacon), in the RSSI clock.
 
     ``t`` in seconds (any origin), ``rssi`` in dBm, ``sensor`` any per-reading sensor id. A
@@ -373,12 +384,14 @@ def detect_rssi_events(t: np.ndarray, rssi: np.ndarray, sensor: np.ndarray, *, n
             if not at_start:
                 grid = np.arange(max(c_cov - search_s, lo + grid_s), inner_c, grid_s)
                 if grid.size:
-                    cover, cs, llr_c = _changepoint(t, z, lo, inner_c, grid, into_covered=True)
+                    cover, cs, llr_c = _changepoint(t, z, lo, inner_c, grid, into_covered=True,
+                                                                 same_advert_s=same_advert_s)
             if not at_end:
                 inner_r = cover + half if math.isfinite(cover) else mid
                 grid = np.arange(inner_r + grid_s, min(c_rel + search_s, hi), grid_s)
                 if grid.size:
-                    release, rs, llr_r = _changepoint(t, z, inner_r, hi, grid, into_covered=False)
+                    release, rs, llr_r = _changepoint(t, z, inner_r, hi, grid, into_covered=False,
+                                                                   same_advert_s=same_advert_s)
             if at_start or not math.isfinite(release):
                 break
             inner_c = release - half
@@ -531,7 +544,8 @@ def fit_clock_map(video_events: list[CoverEvent], rssi_events: list[CoverEvent],
                   video_start_sigma=float(math.sqrt(cov[0, 0])),
                   drift_sigma=float(math.sqrt(cov[k, k])) if drift else math.nan, method=method,
                   n_edges=int(xa.size), residual_rms=float(np.sqrt(np.mean(resid**2))),
-                  edge_bias=float(coef[1]) if has_pair else math.nan)
+                  edge_bias=float(coef[1]) if has_pair else math.nan,
+                  start_drift_cov=float(cov[0, k]) if drift else 0.0)
     log.info("%s: video_start %.4f +- %.4f s, drift %.2e, from %d edges", name, cm.video_start,
              cm.video_start_sigma, cm.drift, cm.n_edges)
     return cm

@@ -55,37 +55,65 @@ def write_trajectory(path: str | Path, traj: Trajectory) -> None:
     tmp.replace(path)
 
 
+# Times must be Unix seconds in 1970..2100; positions within ±100 km (a room, with margin).
+T_MAX_S = 4_102_444_800.0
+POSITION_MAX_M = 1e5
+
+
 def read_trajectory(path: str | Path) -> Trajectory:
+    """Read a trajectory.csv; every problem is one AnnotatorError line naming the file and line.
+
+    ``t`` must be finite, sorted and in 1970..2100; pose columns may be NaN (a gap) but never
+    infinite, and positions lie within ±100 km."""
+    from ble_groundtruth.formats._textio import read_text
+
     path = Path(path)
+    text = read_text(path, AnnotatorError, "trajectory")
     try:
-        with path.open(encoding="utf-8", newline="") as f:
-            rows = list(csv.reader(f))
-    except OSError as e:
-        raise AnnotatorError(f"cannot read trajectory {path}: {e.strerror}") from None
+        rows = list(csv.reader(text.splitlines()))
+    except csv.Error as e:
+        raise AnnotatorError(f"{path}: not CSV ({e})") from None
     if not rows:
         raise AnnotatorError(f"{path}: empty file, expected a header '{','.join(POSE_COLUMNS)}'")
     header = [h.strip() for h in rows[0]]
     missing = [c for c in POSE_COLUMNS if c not in header]
     if missing:
         raise AnnotatorError(f"{path}: header lacks column(s) {', '.join(missing)}")
-    try:
-        data = np.array([[float(c) for c in r] for r in rows[1:] if r], dtype=float).reshape(-1, len(header))
-    except ValueError as e:
-        line = next(i for i, r in enumerate(rows[1:], 2) if r and not _all_float(r, len(header)))
-        raise AnnotatorError(f"{path}:{line}: not {len(header)} numbers ({e})") from None
+    if len(set(header)) != len(header):
+        raise AnnotatorError(f"{path}: header names a column twice")
+    values: list[list[float]] = []
+    for lineno, r in enumerate(rows[1:], 2):
+        if not r:
+            continue
+        if len(r) != len(header):
+            raise AnnotatorError(f"{path}:{lineno}: not {len(header)} numbers ({len(r)} fields)")
+        try:
+            values.append([float(c) for c in r])
+        except ValueError:
+            raise AnnotatorError(f"{path}:{lineno}: not {len(header)} numbers") from None
+    data = np.array(values, dtype=float).reshape(-1, len(header))
     col = {h: data[:, i] for i, h in enumerate(header)}
-    if len(data) > 1 and np.any(np.diff(col["t"]) < 0):
-        raise AnnotatorError(f"{path}: column t is not sorted")
+    _check_columns(path, col)
     rot = np.stack([col[c] for c in POSE_COLUMNS[4:]], 1).reshape(-1, 3, 3)
     quality = {h: col[h] for h in header if h not in POSE_COLUMNS}
     return Trajectory(col["t"], np.stack([col["x"], col["y"], col["z"]], 1), rot, quality)
 
 
-def _all_float(row: list[str], n: int) -> bool:
-    if len(row) != n:
-        return False
-    try:
-        [float(c) for c in row]
-    except ValueError:
-        return False
-    return True
+def _check_columns(path: Path, col: dict[str, np.ndarray]) -> None:
+    def line(mask: np.ndarray) -> int:  # first offending row -> its line number (header = 1)
+        return int(np.argmax(mask)) + 2
+
+    t = col["t"]
+    bad = ~np.isfinite(t) | (t < 0) | (t >= T_MAX_S)
+    if bad.any():
+        raise AnnotatorError(f"{path}:{line(bad)}: t must be Unix seconds in 1970..2100, "
+                             f"not {t[bad][0]:g}")
+    if len(t) > 1 and np.any(np.diff(t) < 0):
+        raise AnnotatorError(f"{path}:{line(np.r_[False, np.diff(t) < 0])}: column t is not sorted")
+    for name in POSE_COLUMNS[1:]:
+        v = col[name]
+        limit = POSITION_MAX_M if name in ("x", "y", "z") else 1.0 + 1e-6
+        bad = np.isinf(v) | (np.abs(np.nan_to_num(v)) > limit)
+        if bad.any():
+            raise AnnotatorError(f"{path}:{line(bad)}: {name} = {v[bad][0]:g} is out of range "
+                                 f"(|{name}| <= {limit:g}; NaN marks a gap)")

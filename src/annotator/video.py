@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -11,6 +12,10 @@ import cv2
 import numpy as np
 
 from annotator.errors import AnnotatorError
+
+# FFmpeg's own messages ("moov atom not found") would precede our one-line error about a file
+# that is not a video; keep them quiet unless the user asks (OpenCV reads this at the first open).
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
 
 
 @dataclass(frozen=True, slots=True)

@@ -20,7 +20,7 @@ import json
 import re
 import struct
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeGuard
 
 SCHEMA_VERSION = 1
 MAGIC = b"BGTB"
@@ -29,9 +29,10 @@ MAX_READINGS = 100_000
 MAX_META_BYTES = 4096
 MAX_JSON_BYTES = 1024 * 1024
 
-_HEAD = struct.Struct("<4sHHI")
-_READING = struct.Struct("<qq6sb")
-_U32 = struct.Struct("<I")
+# The batch byte layout (see the module docstring); the collector's fast decoder reads these too.
+BATCH_HEAD = struct.Struct("<4sHHI")  # magic, schema version, meta length, reading count
+BATCH_READING = struct.Struct("<qq6sb")  # t_ns, mono_ns, beacon MAC, RSSI
+BATCH_EXTRAS_LEN = struct.Struct("<I")
 
 _MAC_RE = re.compile(r"^[0-9a-f]{12}$")
 _ID_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
@@ -71,7 +72,7 @@ class InvalidField(WireError):
 # MAC addresses and identifiers
 
 
-def normalize_mac(mac: str) -> str:
+def normalize_mac(mac: object) -> str:
     """'AA:BB:CC:DD:EE:FF' / 'aabbccddeeff' / 'aa-bb-…' -> 'aabbccddeeff'."""
     if not isinstance(mac, str):
         raise InvalidField(f"MAC address must be a string, got {type(mac).__name__}")
@@ -87,7 +88,7 @@ def colon_mac(mac: str) -> str:
     return ":".join(flat[i : i + 2] for i in range(0, 12, 2)).upper()
 
 
-def check_id(value: str, what: str = "id") -> str:
+def check_id(value: object, what: str = "id") -> str:
     if not isinstance(value, str) or not _ID_RE.match(value):
         raise InvalidField(f"{what} must be 1-64 characters of [A-Za-z0-9_.-], got {value!r}")
     return value
@@ -146,6 +147,13 @@ def parse_data_key(key: str) -> tuple[str, str, str]:
 # Records
 
 
+def _int_in(d: dict[str, Any], name: str, lo: int, hi: int) -> int:
+    v = d.get(name)
+    if not _is_int(v) or not lo <= v <= hi:
+        raise InvalidField(f"ibeacon {name} must be an integer in [{lo}, {hi}], got {v!r}")
+    return v
+
+
 @dataclass(frozen=True, slots=True)
 class IBeacon:
     uuid: str  # 32 lowercase hex digits
@@ -163,11 +171,8 @@ class IBeacon:
         uuid = d.get("uuid")
         if not isinstance(uuid, str) or not _UUID_RE.match(uuid):
             raise InvalidField(f"ibeacon uuid must be 32 hex digits, got {uuid!r}")
-        major, minor, tx = d.get("major"), d.get("minor"), d.get("tx_power")
-        for name, v, lo, hi in (("major", major, 0, 65535), ("minor", minor, 0, 65535), ("tx_power", tx, -128, 127)):
-            if not _is_int(v) or not lo <= v <= hi:
-                raise InvalidField(f"ibeacon {name} must be an integer in [{lo}, {hi}], got {v!r}")
-        return IBeacon(uuid, major, minor, tx)
+        major, minor = _int_in(d, "major", 0, 65535), _int_in(d, "minor", 0, 65535)
+        return IBeacon(uuid, major, minor, _int_in(d, "tx_power", -128, 127))
 
 
 @dataclass(frozen=True, slots=True)
@@ -223,7 +228,7 @@ class Batch:
         return (self.agent_id, self.boot_id, self.sensor)
 
 
-def _is_int(v: Any) -> bool:
+def _is_int(v: object) -> TypeGuard[int]:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
@@ -244,9 +249,9 @@ def to_wire(batch: Batch) -> bytes:
     n = len(batch.readings)
     if n > MAX_READINGS:
         raise Oversized(f"{n} readings in one batch (max {MAX_READINGS})")
-    parts = [_HEAD.pack(MAGIC, SCHEMA_VERSION, len(meta_b), n), meta_b]
+    parts = [BATCH_HEAD.pack(MAGIC, SCHEMA_VERSION, len(meta_b), n), meta_b]
     extras: dict[str, Any] = {}
-    pack = _READING.pack
+    pack = BATCH_READING.pack
     for i, r in enumerate(batch.readings):
         parts.append(pack(r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi))
         if r.ibeacon is not None or r.eddystone is not None:
@@ -258,21 +263,36 @@ def to_wire(batch: Batch) -> bytes:
             extras[str(i)] = e
     if extras:
         ex_b = json.dumps(extras, separators=(",", ":")).encode()
-        parts += [_U32.pack(len(ex_b)), ex_b]
+        parts += [BATCH_EXTRAS_LEN.pack(len(ex_b)), ex_b]
     out = b"".join(parts)
     if len(out) > MAX_PAYLOAD_BYTES:
         raise Oversized(f"batch of {len(out)} bytes (max {MAX_PAYLOAD_BYTES})")
     return out
 
 
-def from_wire(data: bytes | bytearray | memoryview) -> Batch:
-    """Decode and validate one batch; raises a WireError subclass for anything malformed."""
+def check_reading(t_ns: int, rssi: int, mono_ns: int = 0) -> str | None:
+    """Why one reading is implausible (timestamp, RSSI, monotonic time), or None if it is fine."""
+    if not T_NS_MIN <= t_ns <= T_NS_MAX:
+        return f"timestamp {t_ns} ns is not a plausible Unix time"
+    if not RSSI_MIN <= rssi <= RSSI_MAX:
+        return f"RSSI {rssi} dBm out of range"
+    if mono_ns < 0:
+        return "negative monotonic time"
+    return None
+
+
+def from_wire(data: bytes | bytearray | memoryview, *,
+              skipped: list[tuple[int, str]] | None = None) -> Batch:
+    """Decode and validate one batch; raises a WireError subclass for anything malformed.
+
+    With ``skipped`` (a list), an implausible reading does not fail the batch: it is left out
+    and ``(index, reason)`` appended, so one absurd value cannot cost the other readings."""
     data = bytes(data)
     if len(data) > MAX_PAYLOAD_BYTES:
         raise Oversized(f"payload of {len(data)} bytes (max {MAX_PAYLOAD_BYTES})")
-    if len(data) < _HEAD.size:
+    if len(data) < BATCH_HEAD.size:
         raise Truncated("payload shorter than the batch header")
-    magic, version, meta_len, n = _HEAD.unpack_from(data, 0)
+    magic, version, meta_len, n = BATCH_HEAD.unpack_from(data, 0)
     if magic != MAGIC:
         raise BadMagic("payload is not a reading batch (bad magic)")
     if version != SCHEMA_VERSION:
@@ -281,8 +301,8 @@ def from_wire(data: bytes | bytearray | memoryview) -> Batch:
         raise Oversized("batch metadata too large")
     if n > MAX_READINGS:
         raise Oversized(f"{n} readings in one batch (max {MAX_READINGS})")
-    off = _HEAD.size
-    end_readings = off + meta_len + n * _READING.size
+    off = BATCH_HEAD.size
+    end_readings = off + meta_len + n * BATCH_READING.size
     if len(data) < end_readings:
         raise Truncated("payload shorter than its header says")
     meta = _json_object(data[off : off + meta_len], "batch metadata")
@@ -302,22 +322,22 @@ def from_wire(data: bytes | bytearray | memoryview) -> Batch:
     extras: dict[str, Any] = {}
     rest = data[end_readings:]
     if rest:
-        if len(rest) < _U32.size:
+        if len(rest) < BATCH_EXTRAS_LEN.size:
             raise Truncated("trailing bytes after the readings")
-        (ex_len,) = _U32.unpack_from(rest, 0)
-        if len(rest) != _U32.size + ex_len:
+        (ex_len,) = BATCH_EXTRAS_LEN.unpack_from(rest, 0)
+        if len(rest) != BATCH_EXTRAS_LEN.size + ex_len:
             raise Truncated("extras length does not match the payload")
-        extras = _json_object(rest[_U32.size :], "reading extras")
+        extras = _json_object(rest[BATCH_EXTRAS_LEN.size :], "reading extras")
 
     readings = []
     off += meta_len
-    for i, (t_ns, mono_ns, mac, rssi) in enumerate(_READING.iter_unpack(data[off:end_readings])):
-        if not T_NS_MIN <= t_ns <= T_NS_MAX:
-            raise InvalidField(f"reading {i}: timestamp {t_ns} ns is not a plausible Unix time")
-        if not RSSI_MIN <= rssi <= RSSI_MAX:
-            raise InvalidField(f"reading {i}: RSSI {rssi} dBm out of range")
-        if mono_ns < 0:
-            raise InvalidField(f"reading {i}: negative monotonic time")
+    for i, (t_ns, mono_ns, mac, rssi) in enumerate(BATCH_READING.iter_unpack(data[off:end_readings])):
+        why = check_reading(t_ns, rssi, mono_ns)
+        if why is not None:
+            if skipped is None:
+                raise InvalidField(f"reading {i}: {why}")
+            skipped.append((i, why))
+            continue
         ib = ed = None
         e = extras.get(str(i)) if extras else None
         if e is not None:

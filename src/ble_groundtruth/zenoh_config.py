@@ -8,11 +8,24 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+# Largest message a session accepts: a maximum batch (wire.MAX_PAYLOAD_BYTES, 4 MiB) plus room
+# for its key and Zenoh's headers. Larger messages are refused while they arrive, before Zenoh
+# reassembles them (its default would let 1 GiB through).
+MAX_MESSAGE_BYTES = 4 * 1024 * 1024 + 64 * 1024
+_RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+
+
+def zenoh_reason(err: BaseException) -> str:
+    """Zenoh's error text on one line, without the Rust source locations it appends
+    ('... at /path/x.rs:61.') and the brackets around its error chain; '' if it has none."""
+    text = _RUST_LOCATION.sub("", " ".join(str(err).split()))
+    return text.replace("[", "").replace("]", "").strip()
 
 
 @dataclass(frozen=True, slots=True)
@@ -32,6 +45,7 @@ class SessionSpec:
     tls: TlsFiles | None = None
     extra: dict[str, object] = field(default_factory=dict)  # raw zenoh keys, for tests/ACLs
     acl: str | None = None  # JSON5 text of zenoh's `access_control` section (see load_acl)
+    max_message_bytes: int = MAX_MESSAGE_BYTES
 
 
 def build_config(spec: SessionSpec):  # -> zenoh.Config
@@ -41,6 +55,7 @@ def build_config(spec: SessionSpec):  # -> zenoh.Config
     conf.insert_json5("mode", json.dumps(spec.mode))
     # Multicast scouting would make sessions find strangers on the LAN; endpoints are explicit.
     conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("transport/link/rx/max_message_size", str(int(spec.max_message_bytes)))
     # Advanced publishers/subscribers need sample timestamps.
     conf.insert_json5("timestamping/enabled", "true")
     if spec.mode == "router" or spec.listen:
@@ -83,8 +98,8 @@ def load_acl(path: str | Path) -> str:
     try:
         zenoh.Config().insert_json5("access_control", text)
     except zenoh.ZError as e:
-        first = str(e).splitlines()[0] if str(e) else "invalid"
-        raise AclFileError(f"{p}: not a valid zenoh access_control section: {first}") from e
+        reason = zenoh_reason(e) or "invalid"
+        raise AclFileError(f"{p}: not a valid zenoh access_control section: {reason}") from e
     return text
 
 

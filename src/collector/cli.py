@@ -1,4 +1,4 @@
-"""`collector` command line: a thin typer app over collector.server (serve, record) and
+"""`collector` command line: a thin typer app over collector.service (serve, record) and
 collector.client (start, stop, status, runs, live)."""
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from ble_groundtruth.wire import WireError
 from collector.errors import CollectorError
 from collector.fleet import app as fleet_app
 
@@ -75,7 +76,7 @@ def serve(
     """Run the collector: the Zenoh router agents connect to. Stops cleanly on Ctrl-C / SIGTERM.
 
     A run left active by a killed collector is resumed on the same data directory."""
-    from collector.server import Collector
+    from collector.service import Collector
 
     try:
         cfg = _load(config, data_dir, listen, site, insecure)
@@ -108,7 +109,7 @@ def record(
     insecure: InsecureOpt = False,
 ) -> None:
     """Serve, start a run, record until --duration or Ctrl-C, stop it, exit: all in the foreground."""
-    from collector.server import Collector
+    from collector.service import Collector
 
     try:
         cfg = _load(config, data_dir, listen, site, insecure)
@@ -119,8 +120,9 @@ def record(
         started = collector.start_run(name)
         console.print(f"recording run {started['run_id']} (Ctrl-C to stop)")
         _wait_for_signal(duration)
-        stopped = collector.stop_run()
-        console.print(f"{stopped['readings']} readings in {stopped['run_dir']}")
+        stopped = collector.stop_run()  # a run is active: never None
+        if stopped is not None:
+            console.print(f"{stopped['readings']} readings in {stopped['run_dir']}")
     except CollectorError as e:
         raise _fail(e) from None
     finally:
@@ -158,12 +160,12 @@ def start(
     checked first: one warning line per agent off by more than --max-offset-ms."""
     try:
         with _client(connect, site, root_ca, cert, key) as c:
-            reply = c.start(name, max_offset_ms=max_offset_ms, strict=strict)
-    except CollectorError as e:
+            reply = c.start_typed(name, max_offset_ms=max_offset_ms, strict=strict)
+    except (CollectorError, WireError) as e:
         raise _fail(e) from None
-    for w in reply.get("clock_warnings", []):
+    for w in reply.clock_warnings:
         err_console.print(f"[yellow]warning: {escape(w)}", highlight=False, soft_wrap=True)
-    console.print(reply["run_id"], highlight=False)
+    console.print(reply.run_id, highlight=False)
 
 
 @app.command()
@@ -172,12 +174,12 @@ def stop(connect: ConnectOpt = DEFAULT_ENDPOINT, site: SiteOpt = "default", root
     """Stop the current run after draining what is in flight; prints the run directory."""
     try:
         with _client(connect, site, root_ca, cert, key) as c:
-            reply = c.stop()
-    except CollectorError as e:
+            reply = c.stop_typed()
+    except (CollectorError, WireError) as e:
         raise _fail(e) from None
-    if reply.get("missing_batches"):
-        err_console.print(f"[yellow]{reply['missing_batches']} batches never arrived (see run.yaml)")
-    console.print(reply["run_dir"], highlight=False, soft_wrap=True)
+    if reply.missing_batches:
+        err_console.print(f"[yellow]{reply.missing_batches} batches never arrived (see run.yaml)")
+    console.print(reply.run_dir, highlight=False, soft_wrap=True)
 
 
 @app.command()
@@ -190,17 +192,19 @@ def status(
     key: KeyOpt = None,
 ) -> None:
     """Agents alive, per-sensor reading rates and last-seen times, and the current run."""
+    from ble_groundtruth.messages import CollectorStatus
     from collector.live import render
 
     try:
         with _client(connect, site, root_ca, cert, key) as c:
             reply = c.status()
-    except CollectorError as e:
+            view = None if as_json else render(CollectorStatus.from_dict(reply))
+    except (CollectorError, WireError) as e:
         raise _fail(e) from None
-    if as_json:
+    if view is None:
         console.print_json(json.dumps(reply))
     else:
-        console.print(render(reply))
+        console.print(view)
 
 
 @app.command()
@@ -246,8 +250,26 @@ def live(
     try:
         with _client(connect, site, root_ca, cert, key) as c:
             run_live(c.status, interval_s=interval, duration_s=duration)
+    except (CollectorError, WireError) as e:
+        raise _fail(e) from None
+
+
+@app.command()
+def export(
+    run_dir: Annotated[Path, typer.Argument(help="A run directory (holds run.yaml and rssi/<agent>/).")],
+    out: Annotated[Path | None, typer.Option("--out", help="Where to write <sensor_mac>.mbd files (default RUN_DIR/merged).")] = None,
+) -> None:
+    """Write the published layout, one <sensor_mac>.mbd per sensor, merging the per-agent files
+    of a run in time order (a sensor heard by two agents gets both agents' rows)."""
+    from collector.store import export_merged
+
+    dest = out if out is not None else run_dir / "merged"
+    try:
+        counts = export_merged(run_dir, dest)
     except CollectorError as e:
         raise _fail(e) from None
+    console.print(f"{sum(counts.values())} readings of {len(counts)} sensor(s) in {dest}",
+                  highlight=False, soft_wrap=True)
 
 
 def main() -> None:

@@ -18,7 +18,27 @@ from ble_groundtruth.zenoh_config import (
 )
 from collector.errors import ConfigError
 
-KEYS = ("site", "data_dir", "listen", "tls", "insecure", "acl", "fsync_interval_s", "clock_interval_s")
+KEYS = ("site", "data_dir", "listen", "tls", "insecure", "acl", "fsync_interval_s", "clock_interval_s",
+        "limits")
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """What one agent (misconfigured, buggy or hostile) can make the collector hold.
+
+    streams_per_agent / streams_total: (agent, sensor) streams accepted; batches of further
+    streams are refused (not written, not acknowledged), counted and reported. open_files: .mbd
+    files open at once (least recently used closed first; also kept under half the descriptor
+    limit). queue_mb: received batches waiting for the writer, in MiB of decoded rows.
+    """
+
+    streams_per_agent: int = 64
+    streams_total: int = 1024
+    open_files: int = 256
+    queue_mb: float = 64.0
+
+    RANGES = {"streams_per_agent": (1, 100_000), "streams_total": (1, 1_000_000),
+              "open_files": (1, 65_536), "queue_mb": (1, 65_536)}
 
 
 @dataclass(frozen=True, slots=True)
@@ -31,6 +51,7 @@ class CollectorConfig:
     acl: Path | None = None  # zenoh access-control JSON5 file
     fsync_interval_s: float = 1.0
     clock_interval_s: float = 120.0  # agent clock checks during a run (also at start and stop)
+    limits: Limits = Limits()
 
     def session_spec(self, acl_text: str | None = None) -> SessionSpec:
         return SessionSpec(mode="router", listen=self.listen, tls=self.tls, acl=acl_text)
@@ -56,7 +77,8 @@ class CollectorConfig:
                 "tls": None if self.tls is None else {"root_ca": self.tls.root_ca,
                                                       "cert": self.tls.cert, "key": self.tls.key},
                 "insecure": self.insecure, "acl": None if self.acl is None else str(self.acl),
-                "fsync_interval_s": self.fsync_interval_s, "clock_interval_s": self.clock_interval_s}
+                "fsync_interval_s": self.fsync_interval_s, "clock_interval_s": self.clock_interval_s,
+                "limits": {k: getattr(self.limits, k) for k in Limits.RANGES}}
 
     def validate(self, where: str) -> None:
         """Checks that involve several fields; raises ConfigError naming `where`."""
@@ -82,16 +104,14 @@ def _check_endpoint(ep: Any, where: str, field: str) -> None:
 
 def load_config(path: str | Path) -> CollectorConfig:
     """Read and validate a collector.yaml; every problem is one ConfigError line naming the field."""
-    import yaml
+    from ble_groundtruth.safe_yaml import YamlError, decode_utf8, loads, read_bytes_limited
 
     path = Path(path)
     name = path.name
     try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{name}: not valid YAML: {str(e).splitlines()[0]}") from None
+        raw = loads(decode_utf8(read_bytes_limited(path), name), name)
+    except YamlError as e:
+        raise ConfigError(str(e)) from None
     return parse_config(raw or {}, base=path.parent, name=name)
 
 
@@ -146,9 +166,29 @@ def parse_config(raw: Any, *, base: Path, name: str = "collector.yaml") -> Colle
         if isinstance(v, bool) or not isinstance(v, int | float) or not 1 <= v <= 86400:
             raise ConfigError(f"{name}: clock_interval_s must be a number of seconds in [1, 86400], got {v!r}")
         kw["clock_interval_s"] = float(v)
+    if raw.get("limits") is not None:
+        kw["limits"] = _limits(raw["limits"], name)
     cfg = replace(cfg, **kw)
     cfg.validate(name)
     return cfg
+
+
+def _limits(raw: Any, name: str) -> Limits:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{name}: limits must be a mapping ({', '.join(Limits.RANGES)})")
+    unknown = sorted(set(raw) - set(Limits.RANGES))
+    if unknown:
+        raise ConfigError(f"{name}: unknown key limits.{unknown[0]} (known: {', '.join(Limits.RANGES)})")
+    kw: dict[str, Any] = {}
+    for k, v in raw.items():
+        lo, hi = Limits.RANGES[k]
+        whole = k != "queue_mb"
+        ok = not isinstance(v, bool) and isinstance(v, int if whole else int | float) and lo <= v <= hi
+        if not ok:
+            raise ConfigError(f"{name}: limits.{k} must be {'an integer' if whole else 'a number'} "
+                              f"in [{lo}, {hi}], got {v!r}")
+        kw[k] = v if whole else float(v)
+    return replace(Limits(), **kw)
 
 
 def _str(v: Any, name: str, field: str) -> str:
@@ -160,14 +200,14 @@ def _str(v: Any, name: str, field: str) -> str:
 def check_files(cfg: CollectorConfig) -> None:
     """What `serve --check` adds to parsing: the TLS files are PEM of the right kind, the ACL file
     is accepted by zenoh, and the whole Zenoh configuration builds. One ConfigError line otherwise."""
-    from ble_groundtruth.zenoh_config import AclFileError, build_config, load_acl
+    from ble_groundtruth.zenoh_config import AclFileError, build_config, load_acl, zenoh_reason
 
     acl_text = None
     if cfg.acl is not None:
         try:
             acl_text = load_acl(cfg.acl)
         except AclFileError as e:
-            raise ConfigError(" ".join(str(e).split())) from None
+            raise ConfigError(zenoh_reason(e)) from None
     if cfg.tls is not None:
         from cryptography import x509
         from cryptography.hazmat.primitives.serialization import load_pem_private_key
@@ -186,4 +226,4 @@ def check_files(cfg: CollectorConfig) -> None:
     try:
         build_config(cfg.session_spec(acl_text))
     except Exception as e:  # noqa: BLE001 - zenoh reports config problems as ZError or ValueError
-        raise ConfigError(f"zenoh rejects the configuration: {' '.join(str(e).split())}") from None
+        raise ConfigError(f"zenoh rejects the configuration: {zenoh_reason(e)}") from None

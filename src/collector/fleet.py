@@ -1,6 +1,7 @@
 """`collector fleet`: the deployed fleet as the inventory describes it, checked live over Zenoh.
 
-Asks every agent of the inventory for its status (``wire.agent_status_key``) and looks at the
+Asks every agent of the inventory for its status (``wire.agent_status_key``) and its clock
+(``wire.agent_clock_key``, the same four-timestamp exchange the collector makes) and looks at the
 liveliness tokens; shows alive/version/adapters and the agent's clock offset from this host.
 """
 
@@ -19,7 +20,14 @@ from rich.table import Table
 
 from ble_groundtruth import wire
 from ble_groundtruth.deploy.inventory import InventoryError, load_inventory
-from ble_groundtruth.zenoh_config import SessionSpec, TlsFiles, build_config
+from ble_groundtruth.messages import (
+    AdapterStatus,
+    AgentStatus,
+    ClockReply,
+    ClockRequest,
+    ClockSample,
+)
+from ble_groundtruth.zenoh_config import SessionSpec, TlsFiles, build_config, zenoh_reason
 
 app = typer.Typer(
     name="fleet", no_args_is_help=True, help="The deployed fleet (reads deploy/'s inventory)."
@@ -44,43 +52,57 @@ class AgentState:
     answered: bool  # its status queryable replied
     version: str | None = None
     hostname: str | None = None
-    adapters: tuple[dict[str, Any], ...] = ()
-    offset_ms: float | None = None  # agent clock minus ours, corrected for half the round trip
+    adapters: tuple[AdapterStatus, ...] = ()
+    offset_ms: float | None = None  # agent clock minus ours (four-timestamp exchange)
     rtt_ms: float | None = None
     ntp_source: str | None = None  # the agent's chrony reference (should be the collector)
     ntp_offset_ms: float | None = None  # chrony's own estimate of the agent's clock error
     error: str | None = None
 
 
+def _clock_of(session, site: str, agent_id: str, clock: Callable[[], int], timeout: float
+              ) -> ClockSample | None:
+    """The four-timestamp clock exchange with one agent (as the collector does it); None if it
+    did not answer."""
+    t1 = clock()
+    payload = wire.to_json(ClockRequest(t1).to_dict())
+    for r in session.get(wire.agent_clock_key(site, agent_id), payload=payload, timeout=timeout):
+        t4 = clock()
+        if r.ok is None:
+            return None
+        reply = ClockReply.from_dict(wire.from_json(r.ok.payload.to_bytes(), "clock reply"))
+        return ClockSample.measure(reply, t1, t4, "")
+    return None
+
+
 def _status_of(
     session, site: str, agent_id: str, clock: Callable[[], int], timeout: float
 ) -> dict[str, Any]:
-    """One status query; returns the fields of AgentState it learnt."""
-    t0 = clock()
+    """One status query and one clock exchange; returns the fields of AgentState it learnt."""
     replies = list(session.get(wire.agent_status_key(site, agent_id), timeout=timeout))
-    t1 = clock()
     for r in replies:
         if r.ok is None:
             continue
         try:
-            st = wire.from_json(r.ok.payload.to_bytes(), "agent status")
-            now_ns = int(st["now_ns"])
-        except (wire.WireError, KeyError, TypeError, ValueError) as e:
+            st = AgentStatus.from_dict(wire.from_json(r.ok.payload.to_bytes(), "agent status"))
+        except wire.WireError as e:
             return {"answered": True, "error": f"bad status reply: {e}"}
-        # The agent read its clock somewhere between t0 and t1; the midpoint is the best guess,
-        # so the remaining error is at most half the round trip.
-        offset_ns = now_ns - (t0 + t1) // 2
-        chrony = st.get("chrony") if isinstance(st.get("chrony"), dict) else {}
+        try:
+            smp = _clock_of(session, site, agent_id, clock, timeout)
+        except wire.WireError as e:
+            return {"answered": True, "error": f"bad clock reply: {e}"}
+        chrony = st.chrony or {}
         ntp_off = chrony.get("system_time_offset_s")
+        ref = chrony.get("ref_id")
         return {
-            "ntp_source": chrony.get("ref_id"),
+            "ntp_source": ref if isinstance(ref, str) else None,
             "ntp_offset_ms": ntp_off * 1e3 if isinstance(ntp_off, int | float) else None,
             "answered": True,
-            "version": str(st.get("version")),
-            "hostname": st.get("hostname"),
-            "adapters": tuple(a for a in st.get("adapters", []) if isinstance(a, dict)),
-            "offset_ms": offset_ns / 1e6,
-            "rtt_ms": (t1 - t0) / 1e6,
+            "version": st.version,
+            "hostname": st.hostname,
+            "adapters": st.adapters,
+            "offset_ms": None if smp is None else smp.offset_ms,
+            "rtt_ms": None if smp is None else smp.rtt_ms,
         }
     return {"answered": False}
 
@@ -104,12 +126,11 @@ def query_fleet(
     return out
 
 
-def _adapters_text(adapters: Sequence[dict[str, Any]]) -> str:
+def _adapters_text(adapters: Sequence[AdapterStatus]) -> str:
     parts = []
     for a in adapters:
-        rate = a.get("adverts_per_s")
-        rate_s = f" {rate:.0f}/s" if isinstance(rate, int | float) else ""
-        parts.append(f"{a.get('name', '?')} {a.get('mode', '')}{rate_s}".strip())
+        rate_s = "" if a.adverts_per_s is None else f" {a.adverts_per_s:.0f}/s"
+        parts.append(f"{a.name or '?'} {a.mode or ''}{rate_s}".strip())
     return ", ".join(parts) or "-"
 
 
@@ -202,7 +223,7 @@ def status(
         session = zenoh.open(build_config(SessionSpec(mode="client", connect=[endpoint], tls=tls)))
     except zenoh.ZError as e:
         err_console.print(
-            f"[red]cannot reach the collector at {escape(endpoint)}: {escape(str(e).splitlines()[0])}[/red]"
+            f"[red]cannot reach the collector at {escape(endpoint)}: {escape(zenoh_reason(e))}[/red]"
         )
         raise typer.Exit(1) from None
     try:

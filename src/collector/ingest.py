@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import logging
-import struct
 import threading
 from collections import Counter
 from collections.abc import Callable
@@ -13,11 +12,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ble_groundtruth import wire
+from ble_groundtruth.messages import Ack
 
 log = logging.getLogger(__name__)
 
-_HEAD = struct.Struct("<4sHHI")
-_READING = struct.Struct("<qq6sb")
 
 
 @dataclass(frozen=True, slots=True)
@@ -34,6 +32,8 @@ class RawBatch:
     seq: int
     rows: list[tuple[int, int, bytes, int]]
     floor: int = -1  # the agent never (re)sends seqs below this; -1 = not said (older agent)
+    skipped: int = 0  # implausible readings left out (RSSI, timestamp, monotonic time)
+    skip_reason: str = ""  # why the first of them was left out
 
     @property
     def stream(self) -> tuple[str, str, str]:
@@ -52,24 +52,26 @@ def decode(payload: bytes) -> RawBatch:
         fast = None
     if fast is not None:
         return fast
-    b = wire.from_wire(payload)
+    skipped: list[tuple[int, str]] = []
+    b = wire.from_wire(payload, skipped=skipped)
     return RawBatch(b.agent_id, b.boot_id, b.sensor, b.seq,
                     [(r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi) for r in b.readings],
-                    getattr(b, "floor", -1))
+                    getattr(b, "floor", -1), len(skipped),
+                    f"reading {skipped[0][0]}: {skipped[0][1]}" if skipped else "")
 
 
 def _decode_fast(data: bytes) -> RawBatch | None:
-    if len(data) > wire.MAX_PAYLOAD_BYTES or len(data) < _HEAD.size:
+    if len(data) > wire.MAX_PAYLOAD_BYTES or len(data) < wire.BATCH_HEAD.size:
         return None
-    magic, version, meta_len, n = _HEAD.unpack_from(data, 0)
+    magic, version, meta_len, n = wire.BATCH_HEAD.unpack_from(data, 0)
     if magic != wire.MAGIC or version != wire.SCHEMA_VERSION or meta_len > wire.MAX_META_BYTES \
             or n > wire.MAX_READINGS:
         return None
-    start = _HEAD.size + meta_len
-    end = start + n * _READING.size
+    start = wire.BATCH_HEAD.size + meta_len
+    end = start + n * wire.BATCH_READING.size
     if len(data) != end:  # trailing extras (or a bad length): let the full decoder judge
         return None
-    meta = json.loads(data[_HEAD.size:start].decode("utf-8"))
+    meta = json.loads(data[wire.BATCH_HEAD.size:start].decode("utf-8"))
     if not isinstance(meta, dict):
         return None
     agent = wire.check_id(meta.get("agent"), "agent id")
@@ -86,13 +88,13 @@ def _decode_fast(data: bytes) -> RawBatch | None:
     floor = meta.get("floor", -1)
     if type(floor) is not int or not -1 <= floor < 2**63:
         return None
-    rows = list(_READING.iter_unpack(data[start:end]))
+    rows = list(wire.BATCH_READING.iter_unpack(data[start:end]))
     if rows:
         ts = [r[0] for r in rows]
         rs = [r[3] for r in rows]
         if min(ts) < wire.T_NS_MIN or max(ts) > wire.T_NS_MAX or min(rs) < wire.RSSI_MIN \
                 or max(rs) > wire.RSSI_MAX or min(r[1] for r in rows) < 0:
-            return None
+            return None  # the canonical decoder skips the implausible readings one by one
     return RawBatch(agent, boot, sensor, seq, rows, floor)
 
 
@@ -104,7 +106,7 @@ def format_rows(sensor: str, rows: list[tuple[int, int, bytes, int]]) -> str:
     so the string always has more than nine digits).
     """
     middles: dict[bytes, str] = {}
-    parts = []
+    parts: list[str] = []
     add = parts.append
     for t, _mono, mac, rssi in rows:
         mid = middles.get(mac)
@@ -130,10 +132,10 @@ class RejectCounter:
         self._last_log: dict[str, float] = {}
         self._suppressed: Counter[str] = Counter()
 
-    def reject(self, reason: str, key: str, message: str) -> None:
+    def reject(self, reason: str, key: str, message: str, count: int = 1) -> None:
         now = self._mono()
         with self._lock:
-            self.counts[reason] += 1
+            self.counts[reason] += count
             last = self._last_log.get(reason)
             if last is not None and now - last < self._interval:
                 self._suppressed[reason] += 1
@@ -200,25 +202,73 @@ class StreamState:
                            implicit_floor=int(d["implicit_floor"]))
 
 
+SEQ_LIMIT = 2**40  # seqs at or above are refused: 348 years of 100 batches/s
+MAX_AHEAD = 4096  # seqs held above a stream's gap; beyond it the oldest gap is given up (lost)
+MAX_BOOTS = 16  # boots kept per (agent, sensor); older settled ones are retired into totals
+
+
+@dataclass(slots=True)
+class StreamTotals:
+    """One (agent, sensor) stream over all its boots, for run.yaml."""
+
+    gaps: int = 0
+    missing: int = 0
+    lost: int = 0
+    boots: list[str] = field(default_factory=list)
+
+
 class StreamTracker:
     """Decides whether a batch is new, and keeps the contiguous watermark the acks carry.
 
     Floors (contract 1): seqs below a stream's announced floor will never come again, so the
     watermark moves over the missing ones and counts them as lost; it never moves past a missing
     seq at or above the floor, so nothing the agent may still re-send is acknowledged unseen.
+
+    Memory is bounded: at most ``max_boots`` boots per (agent, sensor) are tracked (the oldest
+    settled one is retired into per-stream totals), and at most ``max_ahead`` seqs wait above a
+    gap (past that the gap is given up and counted lost).
     """
 
     MAX_ACK_BOOTS = 16  # boots per agent that keep getting (re)acked; older ones were long settled
 
-    def __init__(self) -> None:
+    def __init__(self, max_boots: int = MAX_BOOTS, max_ahead: int = MAX_AHEAD) -> None:
         self.streams: dict[tuple[str, str, str], StreamState] = {}
         self.duplicates = 0
+        self.max_boots = max(1, max_boots)
+        self.max_ahead = max(1, max_ahead)
+        self.given_up = 0  # seqs counted lost because too many seqs waited above a gap
+        self.lost_base: dict[str, int] = {}  # 'agent/boot/sensor' -> lost before the run started
+        # (agent, sensor) -> [gaps, lost] of retired boots, counted since the run started
+        self.retired: dict[tuple[str, str], list[int]] = {}
+        self._boots: dict[tuple[str, str], list[str]] = {}
+
+    def _new_stream(self, stream: tuple[str, str, str]) -> None:
+        agent, boot, sensor = stream
+        boots = self._boots.setdefault((agent, sensor), [])
+        while len(boots) >= self.max_boots:
+            settled = [b for b in boots if self._settled((agent, b, sensor))]
+            self._retire((agent, settled[0] if settled else boots[0], sensor))
+        boots.append(boot)
+
+    def _settled(self, stream: tuple[str, str, str]) -> bool:
+        st = self.streams[stream]
+        return not st.ahead and st.max_seq <= st.done_upto == st.acked_upto
+
+    def _retire(self, stream: tuple[str, str, str]) -> None:
+        agent, boot, sensor = stream
+        st = self.streams.pop(stream)
+        self._boots[(agent, sensor)].remove(boot)
+        r = self.retired.setdefault((agent, sensor), [0, 0])
+        r[0] += st.gaps
+        r[1] += (st.lost_total() - self.lost_base.pop("/".join(stream), 0)
+                 + max(0, st.max_seq - st.done_upto - len(st.ahead)))
 
     def accept(self, stream: tuple[str, str, str], seq: int, floor: int = -1) -> bool:
         """True for a batch not seen before (call once per received batch, then handle it)."""
         floor = min(floor, seq)  # a floor above its own batch would be a broken agent; never skip it
         st = self.streams.get(stream)
         if st is None:
+            self._new_stream(stream)
             if floor >= 0:
                 st = StreamState(done_upto=-1, acked_upto=-1, first_seq=seq)
             else:
@@ -234,7 +284,7 @@ class StreamTracker:
             st.floor = floor
             self._apply_floor(st, floor)
         if seq < st.implicit_floor:
-            if seq in st.before_first:
+            if seq in st.before_first or len(st.before_first) >= self.max_ahead:
                 self.duplicates += 1
                 return False
             st.before_first.add(seq)
@@ -250,7 +300,21 @@ class StreamTracker:
             self._advance(st)
         else:
             st.ahead.add(seq)
+            if len(st.ahead) > self.max_ahead:
+                self._give_up_gap(stream, st)
         return True
+
+    def _give_up_gap(self, stream: tuple[str, str, str], st: StreamState) -> None:
+        """Too many seqs wait above a gap: count the gap's seqs lost and move on."""
+        low = min(st.ahead)
+        skipped = low - 1 - st.done_upto
+        st.lost += skipped
+        self.given_up += skipped
+        st.done_upto = low - 1
+        self._advance(st)
+        log.warning("stream %s/%s/%s: more than %d batches waited above a gap; gave up on %d "
+                    "missing batch(es) below seq %d (counted lost)", *stream, self.max_ahead,
+                    skipped, low)
 
     @staticmethod
     def _apply_floor(st: StreamState, floor: int) -> None:
@@ -276,6 +340,26 @@ class StreamTracker:
     def open_gaps(self) -> int:
         return sum(self.missing(s) for s in self.streams)
 
+    def stream_totals(self, lost_base: dict[str, int] | None = None) -> dict[tuple[str, str], StreamTotals]:
+        """Per (agent, sensor): gaps, missing and lost batches since the run started, and boots."""
+        base = self.lost_base if lost_base is None else lost_base
+        out: dict[tuple[str, str], StreamTotals] = {}
+        for (a, s), (gaps, lost) in self.retired.items():
+            out[(a, s)] = StreamTotals(gaps, 0, lost)
+        for (a, b, s), st in self.streams.items():
+            t = out.setdefault((a, s), StreamTotals())
+            t.gaps += st.gaps
+            t.missing += self.missing((a, b, s))
+            t.lost += st.lost_total() - base.get(f"{a}/{b}/{s}", 0)
+            t.boots.append(b)
+        return out
+
+    def reset_run_totals(self) -> dict[str, int]:
+        """At the start of a run: what was lost so far becomes the base, retired totals restart."""
+        self.lost_base = {"/".join(k): st.lost_total() for k, st in self.streams.items()}
+        self.retired = {}
+        return self.lost_base
+
     def mark_durable(self) -> set[str]:
         """Everything handled so far is now durable; returns the agents whose watermark moved."""
         moved = set()
@@ -285,7 +369,7 @@ class StreamTracker:
                 moved.add(agent)
         return moved
 
-    def ack_messages(self, agent_id: str) -> list[dict[str, Any]]:
+    def ack_messages(self, agent_id: str) -> list[Ack]:
         """One ack JSON per boot of this agent (contract 2), most recent boots only, oldest first."""
         per_boot: dict[str, dict[str, int]] = {}
         for (a, b, s), st in self.streams.items():
@@ -294,23 +378,30 @@ class StreamTracker:
                 if st.acked_upto >= 0:
                     streams[s] = st.acked_upto
         boots = list(per_boot.items())[-self.MAX_ACK_BOOTS:]
-        return [{"boot": b, "streams": s} for b, s in boots]
+        return [Ack(b, s) for b, s in boots]
 
-    def ack_message(self, agent_id: str) -> dict | None:
+    def ack_message(self, agent_id: str) -> Ack | None:
         """The ack JSON for an agent's most recent boot (dicts keep insertion order)."""
         msgs = self.ack_messages(agent_id)
         return msgs[-1] if msgs else None
 
     def to_state(self) -> dict[str, Any]:
         """Only what is durable: acked_upto is what the persisted files cover."""
-        return {"duplicates": self.duplicates,
+        return {"duplicates": self.duplicates, "given_up": self.given_up,
+                "retired": [[a, s, g, lo] for (a, s), (g, lo) in self.retired.items()],
                 "streams": [{"agent": a, "boot": b, "sensor": s, **st.to_dict()}
                             for (a, b, s), st in self.streams.items()]}
 
     @staticmethod
-    def from_state(d: dict[str, Any]) -> StreamTracker:
+    def from_state(d: dict[str, Any], lost_base: dict[str, int] | None = None) -> StreamTracker:
         t = StreamTracker()
         t.duplicates = int(d.get("duplicates", 0))
+        t.given_up = int(d.get("given_up", 0))
+        t.lost_base = dict(lost_base or {})
+        for a, s, g, lo in d.get("retired", []):
+            t.retired[(str(a), str(s))] = [int(g), int(lo)]
         for e in d.get("streams", []):
-            t.streams[(e["agent"], e["boot"], e["sensor"])] = StreamState.from_dict(e)
+            key = (e["agent"], e["boot"], e["sensor"])
+            t.streams[key] = StreamState.from_dict(e)
+            t._boots.setdefault((key[0], key[2]), []).append(key[1])
         return t

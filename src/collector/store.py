@@ -1,6 +1,11 @@
-"""Run directories on disk: run ids, run.yaml, state.json (crash recovery), and the per-sensor
+"""Run directories on disk: run ids, run.yaml, state.json (crash recovery), and the per-stream
 .mbd appenders with buffered writes, periodic fsync and rollback of failed writes.
-Only the collector's writer thread touches a RunWriter."""
+
+A run keeps one file per (agent, sensor MAC) stream, ``rssi/<agent>/<sensor_mac>.mbd``: the agent
+is the one named by the Zenoh key it published on (which the ACL checks), so no agent can add
+rows to another's file. Files are opened lazily and at most ``open_files`` stay open (least
+recently used first out, fsynced as they close). ``export_merged`` writes the published
+one-file-per-sensor layout. Only the collector's writer thread touches a RunWriter."""
 
 from __future__ import annotations
 
@@ -9,12 +14,14 @@ import json
 import logging
 import os
 import re
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from ble_groundtruth.atomic import write_atomic
 from collector.errors import CollectorError
 
 log = logging.getLogger(__name__)
@@ -22,7 +29,8 @@ log = logging.getLogger(__name__)
 _NAME_RE = re.compile(r"[^A-Za-z0-9_.-]+")
 FLUSH_BYTES = 1 << 20  # a sensor's buffer is written out once it holds this much text
 STATE_FILE = "state.json"
-STATE_VERSION = 1
+STATE_VERSION = 2  # 2: files keyed by agent/sensor (rssi/<agent>/<sensor>.mbd)
+OPEN_FILES = 256  # .mbd files kept open at once (see RunWriter); more are closed and reopened
 FileWrite = Callable[[int, bytes], int]  # os.write's shape
 
 
@@ -44,37 +52,15 @@ def make_run_id(t_ns: int, name: str | None) -> str:
 
 def write_yaml_atomic(path: Path, data: dict[str, Any]) -> None:
     """Replace a YAML file in one rename, so a crash never leaves half a run.yaml."""
-    import yaml
+    from ble_groundtruth.safe_yaml import dump
 
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with tmp.open("w", encoding="utf-8") as f:
-        yaml.safe_dump(data, f, sort_keys=False)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    # no anchors: safe_yaml refuses them on reading
+    write_atomic(path, dump(data, sort_keys=False) or "")
 
 
 def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
     """Temp file, fsync, rename, directory fsync: after a crash either the old or the new file."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    try:
-        with tmp.open("w", encoding="utf-8") as f:
-            json.dump(data, f, separators=(",", ":"))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)  # a half-written temp file must not eat the space we lack
-        raise
-    _fsync_dir(path.parent)
+    write_atomic(path, json.dumps(data, separators=(",", ":")))
 
 
 def is_disk_full(err: OSError) -> bool:
@@ -82,22 +68,46 @@ def is_disk_full(err: OSError) -> bool:
 
 
 class SensorAppender:
-    """One sensor's .mbd file: text is buffered in memory and written in large chunks.
+    """One stream's .mbd file: text is buffered in memory and written in large chunks.
 
     ``size`` is the length of the file made only of whole lines. A write that fails part-way
     (disk full) is cut back to ``size`` and its text stays buffered for the next attempt, so the
     file never holds a torn line while the collector is alive.
+
+    The file descriptor is opened on the first write and may be given back with ``release()``
+    (which fsyncs first), so a run with many streams needs only a bounded number of descriptors.
     """
 
-    def __init__(self, path: Path, size: int | None = None, write: FileWrite = os.write) -> None:
+    def __init__(self, path: Path, size: int | None = None, write: FileWrite = os.write,
+                 opener: Callable[[SensorAppender], int] | None = None) -> None:
         self.path = path
         self._write = write  # os.write; tests inject a failing one (disk full)
-        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
-        self.size = os.fstat(self._fd).st_size if size is None else size
+        self._opener = opener  # the RunWriter's LRU bookkeeping; None = open directly
+        self._fd: int | None = None
+        if size is None:
+            try:
+                size = path.stat().st_size
+            except FileNotFoundError:
+                size = 0
+        self.size = size
         self._buf: list[str] = []
         self.buffered = 0
         self._failing = False
+        self._unsynced = False  # written since the last fsync
         self.rows = 0
+
+    def open_fd(self) -> int:
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
+        return self._fd
+
+    @property
+    def is_open(self) -> bool:
+        return self._fd is not None
+
+    def _fileno(self) -> int:
+        if self._fd is not None:
+            return self._fd
+        return self._opener(self) if self._opener is not None else self.open_fd()
 
     def append(self, text: str, nrows: int) -> None:
         self._buf.append(text)
@@ -114,14 +124,15 @@ class SensorAppender:
             return
         data = "".join(self._buf).encode("ascii")
         self._buf = [data.decode("ascii")]
+        fd = self._fileno()
         done = 0
         try:
             while done < len(data):
-                done += self._write(self._fd, data[done:])
+                done += self._write(fd, data[done:])
         except OSError:
             if done:
                 try:  # roll back to the last whole line; the text is still in the buffer
-                    os.ftruncate(self._fd, self.size)
+                    os.ftruncate(fd, self.size)
                 except OSError as e:
                     log.error("cannot cut %s back to %d bytes after a failed write: %s",  # noqa: TRY400
                               self.path, self.size, e)
@@ -130,23 +141,49 @@ class SensorAppender:
         self._buf.clear()
         self.buffered = 0
         self._failing = False
+        self._unsynced = True
 
     def fsync(self) -> None:
         self.flush()
-        os.fsync(self._fd)
+        if self._unsynced and self._fd is not None:
+            os.fsync(self._fd)
+        self._unsynced = False
 
-    def close(self) -> None:
+    def release(self) -> None:
+        """Write, fsync and close the file; the next write opens it again."""
+        if self._fd is None:
+            return
         try:
             self.fsync()
         finally:
             os.close(self._fd)
+            self._fd = None
+
+    def close(self) -> None:
+        if self._fd is None and self._buf:
+            self._fileno()
+        self.release()
 
 
 @dataclass(slots=True)
 class SensorStats:
-    agent_id: str
     readings: int = 0
     batches: int = 0
+
+
+StreamKey = tuple[str, str]  # (agent id, sensor MAC)
+
+
+def stream_name(key: StreamKey) -> str:
+    """'agent/sensor': the stream's file under rssi/ without the suffix, and its state key."""
+    return f"{key[0]}/{key[1]}"
+
+
+def parse_stream_name(name: str) -> StreamKey:
+    agent, sep, sensor = str(name).partition("/")
+    if not sep or not agent or not sensor or "/" in sensor:
+        raise ValueError(f"not an agent/sensor stream name: {name!r}")
+    return agent, sensor
 
 
 def repair_file(path: Path, size: int | None) -> int:
@@ -176,8 +213,8 @@ def repair_file(path: Path, size: int | None) -> int:
         if removed:
             f.seek(keep)
             tail = f.read()
-            rec = path.parent.parent / "recovered"
-            rec.mkdir(exist_ok=True)
+            rec = path.parent.parent.parent / "recovered" / path.parent.name
+            rec.mkdir(parents=True, exist_ok=True)
             with (rec / f"{path.name}.tail").open("ab") as t:
                 t.write(tail)
             f.truncate(keep)
@@ -187,18 +224,22 @@ def repair_file(path: Path, size: int | None) -> int:
 
 
 class RunWriter:
-    """An open run: its directory, appenders per sensor, and what run.yaml will say about it."""
+    """An open run: its directory, one appender per (agent, sensor) stream, and what run.yaml
+    will say about it. At most ``open_files`` files are open at once (an LRU)."""
 
     def __init__(self, data_dir: Path, run_id: str, name: str, start_ns: int, meta: dict[str, Any],
-                 *, resume: dict[str, Any] | None = None, write: FileWrite = os.write) -> None:
+                 *, resume: dict[str, Any] | None = None, write: FileWrite = os.write,
+                 open_files: int = OPEN_FILES) -> None:
         self.run_id = run_id
         self._write = write
         self.name = name
         self.dir = Path(data_dir) / run_id
         self.start_ns = start_ns
         self.meta = meta  # software version, site, ...
-        self.appenders: dict[str, SensorAppender] = {}
-        self.sensors: dict[str, SensorStats] = {}
+        self.appenders: dict[StreamKey, SensorAppender] = {}
+        self.sensors: dict[StreamKey, SensorStats] = {}
+        self._open: OrderedDict[StreamKey, SensorAppender] = OrderedDict()  # LRU, newest last
+        self.open_files = max(1, open_files)
         self.readings = 0
         self.disk_full = False
         if resume is None:
@@ -212,32 +253,66 @@ class RunWriter:
         else:
             self._resume(resume)
 
+    def path(self, key: StreamKey) -> Path:
+        return self.dir / "rssi" / key[0] / f"{key[1]}.mbd"
+
     def _resume(self, state: dict[str, Any]) -> None:
         """Reopen the files of a run a killed collector left, cut to what its state covers."""
-        files = {str(k): int(v) for k, v in state.get("files", {}).items()}
+        files = {parse_stream_name(k): int(v) for k, v in state.get("files", {}).items()}
         rssi = self.dir / "rssi"
         rssi.mkdir(parents=True, exist_ok=True)
-        for path in sorted(rssi.glob("*.mbd")):
-            sensor = path.stem
-            removed = repair_file(path, files.get(sensor, 0))
+        for path in sorted(rssi.glob("*/*.mbd")):
+            key = (path.parent.name, path.stem)
+            removed = repair_file(path, files.get(key, 0))
             if removed:
                 log.warning("run %s: cut %d bytes past the last recorded state from %s "
-                            "(kept in recovered/; agents re-send them)", self.run_id, removed, path.name)
-        for sensor, st in state.get("sensors", {}).items():
-            self.sensors[sensor] = SensorStats(st["agent"], int(st["readings"]), int(st["batches"]))
-            path = rssi / f"{sensor}.mbd"
-            if path.exists():
-                self.appenders[sensor] = SensorAppender(path, write=self._write)
+                            "(kept in recovered/; agents re-send them)", self.run_id, removed,
+                            stream_name(key) + ".mbd")
+        for name, st in state.get("sensors", {}).items():
+            key = parse_stream_name(name)
+            self.sensors[key] = SensorStats(int(st["readings"]), int(st["batches"]))
+            if self.path(key).exists():
+                self.appenders[key] = self._appender(key)
         self.readings = int(state.get("readings", 0))
 
+    def _appender(self, key: StreamKey) -> SensorAppender:
+        def opener(app: SensorAppender) -> int:
+            return self._open_lru(key, app)
+
+        return SensorAppender(self.path(key), write=self._write, opener=opener)
+
+    def _open_lru(self, key: StreamKey, app: SensorAppender) -> int:
+        """Open a stream's file, first closing the least recently used ones over the budget."""
+        while len(self._open) >= self.open_files:
+            _k, old = self._open.popitem(last=False)
+            old.release()
+        try:
+            app.path.parent.mkdir(exist_ok=True)
+            fd = app.open_fd()
+        except OSError as e:
+            if e.errno not in (errno.EMFILE, errno.ENFILE) or not self._open:
+                raise
+            # Out of descriptors after all (Zenoh uses some too): give back half and retry once.
+            for _ in range(max(1, len(self._open) // 2)):
+                self._open.popitem(last=False)[1].release()
+            fd = app.open_fd()
+        self._open[key] = app
+        return fd
+
+    @property
+    def open_count(self) -> int:
+        return len(self._open)
+
     def append(self, agent_id: str, sensor: str, text: str, nrows: int) -> None:
-        app = self.appenders.get(sensor)
+        key = (agent_id, sensor)
+        app = self.appenders.get(key)
         if app is None:
-            app = self.appenders[sensor] = SensorAppender(self.dir / "rssi" / f"{sensor}.mbd",
-                                                         write=self._write)
-        st = self.sensors.get(sensor)
+            app = self.appenders[key] = self._appender(key)
+        elif key in self._open:
+            self._open.move_to_end(key)
+        st = self.sensors.get(key)
         if st is None:
-            st = self.sensors[sensor] = SensorStats(agent_id)
+            st = self.sensors[key] = SensorStats()
         app.append(text, nrows)
         st.readings += nrows
         st.batches += 1
@@ -250,23 +325,38 @@ class RunWriter:
 
     def flush(self) -> None:
         for a in self.appenders.values():
-            a.flush()
+            if a.buffered:
+                a.flush()
 
     def fsync(self) -> None:
         for a in self.appenders.values():
             a.fsync()
 
     def close(self) -> None:
+        err: OSError | None = None
         for a in self.appenders.values():
-            a.close()
+            try:
+                a.close()
+            except OSError as e:
+                err = err or e
+        self._open.clear()
+        if err is not None:
+            raise err
+
+    def shared_sensors(self) -> dict[str, list[str]]:
+        """Sensor MACs that more than one agent published in this run: mac -> agents."""
+        by_mac: dict[str, list[str]] = {}
+        for agent, mac in self.sensors:
+            by_mac.setdefault(mac, []).append(agent)
+        return {m: sorted(a) for m, a in sorted(by_mac.items()) if len(a) > 1}
 
     def state(self, extra: dict[str, Any]) -> dict[str, Any]:
         """The crash-recovery record; call right after fsync() so the sizes are durable."""
         return {"version": STATE_VERSION, "active": True, "run_id": self.run_id, "name": self.name,
                 "start_ns": self.start_ns, "meta": self.meta, "readings": self.readings,
-                "files": {s: a.size for s, a in self.appenders.items()},
-                "sensors": {s: {"agent": st.agent_id, "readings": st.readings, "batches": st.batches}
-                            for s, st in self.sensors.items()},
+                "files": {stream_name(k): a.size for k, a in self.appenders.items()},
+                "sensors": {stream_name(k): {"readings": st.readings, "batches": st.batches}
+                            for k, st in self.sensors.items()},
                 **extra}
 
     def write_state(self, state: dict[str, Any]) -> None:
@@ -291,7 +381,7 @@ class RunWriter:
 def find_active_state(data_dir: Path) -> list[tuple[Path, dict[str, Any]]]:
     """Run directories whose state.json says the run is still active (the collector was killed),
     newest first. Unreadable state files are reported and skipped."""
-    out = []
+    out: list[tuple[Path, dict[str, Any]]] = []
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         return out
@@ -301,8 +391,8 @@ def find_active_state(data_dir: Path) -> list[tuple[Path, dict[str, Any]]]:
         except (OSError, ValueError) as e:
             log.warning("ignoring unreadable %s: %s", p, e)
             continue
-        if not isinstance(doc, dict) or doc.get("version") != STATE_VERSION:
-            log.warning("ignoring %s: not a state file of version %d", p, STATE_VERSION)
+        if not isinstance(doc, dict) or not isinstance(doc.get("version"), int):
+            log.warning("ignoring %s: not a collector state file", p)
             continue
         if doc.get("active"):
             out.append((p.parent, doc))
@@ -311,19 +401,63 @@ def find_active_state(data_dir: Path) -> list[tuple[Path, dict[str, Any]]]:
 
 def list_runs(data_dir: Path) -> list[dict[str, Any]]:
     """Every run under data_dir (oldest first) with id, name, start, stop and reading count."""
-    import yaml
+    from ble_groundtruth.safe_yaml import YamlError, load_file
 
-    out = []
+    out: list[dict[str, Any]] = []
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         return out
     for p in sorted(data_dir.glob("*/run.yaml")):
         try:
-            doc = yaml.safe_load(p.read_text(encoding="utf-8")) or {}
-        except (OSError, yaml.YAMLError) as e:
+            doc = load_file(p) or {}
+        except YamlError as e:
             log.warning("skipping unreadable %s: %s", p, e)
+            continue
+        if not isinstance(doc, dict):
+            log.warning("skipping %s: not a mapping", p)
             continue
         out.append({"run_id": doc.get("id", p.parent.name), "name": doc.get("name"),
                     "start": doc.get("start"), "stop": doc.get("stop"),
                     "readings": doc.get("readings")})
     return out
+
+
+def export_merged(run_dir: Path, out_dir: Path) -> dict[str, int]:
+    """Write the published layout, one ``<sensor_mac>.mbd`` per sensor, from a run's per-agent
+    files: rows of the same MAC from several agents are merged in time order (stable). Returns
+    sensor -> rows. Rows are copied as they are (same text, same format)."""
+    from ble_groundtruth.wire import parse_ts
+
+    run_dir, out_dir = Path(run_dir), Path(out_dir)
+    rssi = run_dir / "rssi"
+    if not rssi.is_dir():
+        raise CollectorError(f"{run_dir}: not a run directory (no rssi/ folder)")
+    by_mac: dict[str, list[Path]] = {}
+    for p in sorted(rssi.glob("*/*.mbd")):
+        by_mac.setdefault(p.stem, []).append(p)
+    if not by_mac:
+        raise CollectorError(f"{rssi}: no rssi/<agent>/<sensor>.mbd files")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise CollectorError(f"cannot create {out_dir}: {e.strerror or e}") from None
+    counts: dict[str, int] = {}
+    for mac, paths in by_mac.items():
+        rows: list[tuple[int, str]] = []
+        for p in paths:
+            try:
+                text = p.read_text(encoding="ascii")
+            except (OSError, UnicodeDecodeError) as e:
+                raise CollectorError(f"{p}: cannot read: {e}") from None
+            for lineno, line in enumerate(text.splitlines(), 1):
+                if not line.strip():
+                    continue
+                try:
+                    rows.append((parse_ts(line.split(",", 1)[0]), line))
+                except ValueError as e:
+                    raise CollectorError(f"{p}:{lineno}: bad timestamp: {e}") from None
+        rows.sort(key=lambda r: r[0])
+        dest = out_dir / f"{mac}.mbd"
+        write_atomic(dest, "".join(line + "\n" for _t, line in rows))
+        counts[mac] = len(rows)
+    return counts

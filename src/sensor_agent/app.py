@@ -19,9 +19,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from ble_groundtruth import __version__
+from ble_groundtruth.messages import AdapterStatus, AgentStatus
 from ble_groundtruth.sdnotify import Notifier
-from ble_groundtruth.wire import Reading
-from ble_groundtruth.zenoh_config import SessionSpec, build_config
+from ble_groundtruth.wire import Reading, check_reading
+from ble_groundtruth.zenoh_config import SessionSpec, build_config, zenoh_reason
 from sensor_agent.clockhealth import read_chrony
 from sensor_agent.config import AgentConfig, AllowList
 from sensor_agent.errors import AckTimeout, AgentError, BackendError
@@ -35,6 +36,9 @@ ACK_POLL_S = 0.02
 HOUSEKEEPING_S = 0.5  # spool fsync and re-send checks run this often
 CHRONY_REFRESH_S = 60.0
 CONNECT_RETRY_MAX_S = 5.0
+NO_ACK_WARN_S = 30.0  # connected, batches waiting, no acknowledgement for this long: say why
+NO_ACK_REPEAT_S = 300.0
+BAD_READING_LOG_S = 60.0  # at most one warning line about skipped readings per adapter per minute
 
 
 def new_boot_id() -> str:
@@ -72,10 +76,12 @@ def allowed(allow: AllowList, reading: Reading) -> bool:
 class AdapterStats:
     """Counters for one adapter, updated from the event loop, read by the status queryable."""
 
-    __slots__ = ("readings_total", "last_mono_ns", "_buckets")
+    __slots__ = ("readings_total", "last_mono_ns", "_buckets", "bad_readings", "bad_logged_ns")
 
     def __init__(self) -> None:
         self.readings_total = 0
+        self.bad_readings = 0  # implausible readings skipped (RSSI, timestamp)
+        self.bad_logged_ns: int | None = None
         self.last_mono_ns: int | None = None
         self._buckets: deque[list[int]] = deque(maxlen=RATE_WINDOW_S + 1)  # [second, count]
 
@@ -115,6 +121,7 @@ class Agent:
         self.stats: dict[str, AdapterStats] = {}
         self.started_ns = 0
         self.readings = 0
+        self.bad_readings = 0
         self._stop = asyncio.Event()
         self._publisher: Any = None
         self._spool: Spool | None = None
@@ -122,6 +129,10 @@ class Agent:
         self._chrony: dict[str, Any] | None = None
         self.notifier = notifier or Notifier()
         self.resend_s = resend_s
+        self.no_ack_warn_s = NO_ACK_WARN_S
+        self._ack_wait_since: int | None = None
+        self._ack_warned: int | None = None
+        self.cert_cn = _cert_cn(cfg)
 
     def stop(self) -> None:
         """Ask ``run()`` to stop (safe to call from a signal handler on the loop)."""
@@ -135,25 +146,37 @@ class Agent:
         st = self.stats.get(adapter_mac)
         if st is None:
             st = self.stats[adapter_mac] = AdapterStats()
+        why = check_reading(reading.t_ns, reading.rssi, reading.mono_ns)
+        if why is not None:  # skipped one by one, counted and reported; the rest go on
+            self._bad_reading(adapter_mac, st, reading, why)
+            return
         st.record(reading.mono_ns or self.clocks.mono_ns())
         self.readings += 1
         self._publisher.add(adapter_mac, reading)
 
+    def _bad_reading(self, adapter_mac: str, st: AdapterStats, reading: Reading, why: str) -> None:
+        st.bad_readings += 1
+        self.bad_readings += 1
+        now = self.clocks.mono_ns()
+        if st.bad_logged_ns is None or now - st.bad_logged_ns >= BAD_READING_LOG_S * 1e9:
+            st.bad_logged_ns = now
+            log.warning("adapter %s: skipped an implausible reading of beacon %s (%s); %d "
+                        "skipped so far", adapter_mac, reading.beacon, why, st.bad_readings)
+
     def status(self) -> dict[str, Any]:
         """The status queryable's reply (see the agent/collector contract)."""
         now_mono = self.clocks.mono_ns()
-        adapters = []
-        for info in self.backend.adapters:
-            st = self.stats.get(info.mac)
-            a = _adapter_status(info, st, now_mono, self.backend.restarts(info.mac))
-            a["power_cycles"] = self.backend.power_cycles(info.mac)
-            adapters.append(a)
+        adapters = tuple(
+            _adapter_status(info, self.stats.get(info.mac), now_mono,
+                            self.backend.restarts(info.mac), self.backend.power_cycles(info.mac))
+            for info in self.backend.adapters)
         pub = self._publisher
-        return {"agent_id": self.cfg.agent_id, "boot_id": self.boot_id, "version": __version__,
-                "backend": self.cfg.backend, "hostname": socket.gethostname(),
-                "started_ns": self.started_ns, "now_ns": self.clocks.wall_ns(),
-                "adapters": adapters, "spool": self.spool_status(),
-                "resent": 0 if pub is None else pub.resent, "chrony": self._chrony}
+        return AgentStatus(
+            agent_id=self.cfg.agent_id, boot_id=self.boot_id, version=__version__,
+            backend=self.cfg.backend, hostname=socket.gethostname(), started_ns=self.started_ns,
+            now_ns=self.clocks.wall_ns(), adapters=adapters, spool=self.spool_status(),
+            resent=0 if pub is None else pub.resent, chrony=self._chrony,
+            bad_readings=self.bad_readings).to_dict()
 
     def spool_status(self) -> dict[str, Any] | None:
         """The spool's counters for the status reply; None when running without a spool."""
@@ -172,6 +195,12 @@ class Agent:
 
         cfg = self.cfg
         await asyncio.to_thread(self.backend.check)  # bad input fails before connecting
+        if cfg.tls is not None and self.cert_cn is not None and self.cert_cn != cfg.agent_id:
+            log.warning("agent id %r is not the CN %r of this agent's certificate (%s): the "
+                        "collector's ACL goes by the certificate's CN, so it will drop everything "
+                        "published as %r and nothing will be acknowledged; set agent_id: %s or "
+                        "install the certificate issued for %s", cfg.agent_id, self.cert_cn,
+                        cfg.tls.cert, cfg.agent_id, self.cert_cn, cfg.agent_id)
         if cfg.spool.dir is not None:
             # fsync from the housekeeping timer (a worker thread), not inside append() on the loop
             self._spool = await asyncio.to_thread(
@@ -229,8 +258,7 @@ class Agent:
         try:
             session = await asyncio.to_thread(zenoh.open, build_config(spec))
         except zenoh.ZError as e:
-            # Zenoh appends the Rust source location after two spaces; the reason comes first.
-            reason = str(e).splitlines()[0].split("  at ")[0].strip() if str(e) else ""
+            reason = zenoh_reason(e)
             if "Unable to connect" in reason or "Timeout" in reason:
                 if first:
                     log.warning("cannot reach the Zenoh router at %s yet (%s); recording "
@@ -280,6 +308,37 @@ class Agent:
                 next_status = t + int(self.cfg.status_interval_s * 1e9)
             await self.clocks.sleep(period)
 
+    def _no_ack_cause(self) -> str:
+        cfg = self.cfg
+        if cfg.tls is not None and self.cert_cn is not None and self.cert_cn != cfg.agent_id:
+            return (f"agent id {cfg.agent_id!r} differs from the certificate's CN {self.cert_cn!r}, "
+                    "and the collector's ACL drops what this certificate publishes under another id")
+        if cfg.tls is not None:
+            return (f"the collector's ACL may not list agent {cfg.agent_id!r} (certificate CN "
+                    f"{self.cert_cn!r}), or the collector cannot write (see `collector status`)")
+        return f"is agent id {cfg.agent_id!r} published on the collector's site {cfg.site!r}?"
+
+    def _watch_acks(self) -> None:
+        """Connected to a router, batches waiting, and no acknowledgement for NO_ACK_WARN_S:
+        our puts are being dropped somewhere. Say so at WARNING, with the likely cause."""
+        pub = self._publisher
+        now = self.clocks.mono_ns()
+        if not pub.connected() or not pub.outstanding():
+            self._ack_wait_since = None
+            return
+        if self._ack_wait_since is None:
+            self._ack_wait_since = now
+        waited = now - max(self._ack_wait_since, pub.last_ack_ns or 0)
+        if waited < self.no_ack_warn_s * 1e9:
+            return
+        if self._ack_warned is not None and now - self._ack_warned < NO_ACK_REPEAT_S * 1e9:
+            return
+        self._ack_warned = now
+        log.warning("connected to %s, but no acknowledgement from the collector for %.0f s "
+                    "(%d stream(s) waiting): its puts are being dropped; likely cause: %s",
+                    ", ".join(self.cfg.connect), waited / 1e9, len(pub.outstanding()),
+                    self._no_ack_cause())
+
     def _refresh_chrony(self) -> None:
         self._chrony = read_chrony()
 
@@ -287,6 +346,7 @@ class Agent:
         """Spool fsync, re-sends, chrony and systemd pings, each on its own period."""
         tasks = [asyncio.create_task(self._every(HOUSEKEEPING_S, self._publisher.resend_due),
                                      name="resend"),
+                 asyncio.create_task(self._every(HOUSEKEEPING_S, self._watch_acks), name="ack-watch"),
                  asyncio.create_task(self._every(CHRONY_REFRESH_S, self._refresh_chrony),
                                      name="chrony")]
         if self.notifier.enabled:
@@ -351,22 +411,41 @@ class Agent:
             if self.clocks.mono_ns() >= deadline or self._stop.is_set():
                 missing = sum(pending.values())
                 acked_any = self._publisher.any_ack()
-                hint = "" if acked_any else " (no acknowledgement at all: is a collector running?)"
+                hint = ""
+                if not acked_any:
+                    hint = (f" (connected, but no acknowledgement at all: {self._no_ack_cause()})"
+                            if self._publisher.connected()
+                            else " (no acknowledgement at all: is a collector running?)")
                 log.warning("%d batch(es) of %d stream(s) not acknowledged", missing, len(pending))
                 raise AckTimeout(f"the collector did not acknowledge {missing} batch(es) of "
                                  f"{len(pending)} stream(s) within {timeout_s:g} s{hint}")
             await self.clocks.sleep(ACK_POLL_S)
 
 
+def _cert_cn(cfg: AgentConfig) -> str | None:
+    """The CN of the agent's TLS certificate (what the collector's ACL sees), if it has one."""
+    if cfg.tls is None:
+        return None
+    from ble_groundtruth.certname import CertificateError, certificate_cn
+
+    try:
+        return certificate_cn(cfg.tls.cert)
+    except (OSError, CertificateError) as e:
+        log.warning("cannot read the CN of %s: %s", cfg.tls.cert, e)
+        return None
+
+
 def _adapter_status(info: AdapterInfo, st: AdapterStats | None, now_mono: int,
-                    restarts: int) -> dict[str, Any]:
+                    restarts: int, power_cycles: int) -> AdapterStatus:
     last_age = None
     if st is not None and st.last_mono_ns is not None:
         last_age = round(max(0, now_mono - st.last_mono_ns) / 1e9, 3)
-    return {"name": info.name, "mac": info.mac, "backend": info.backend, "mode": info.mode,
-            "adverts_per_s": 0.0 if st is None else round(st.rate(now_mono), 2),
-            "last_advert_age_s": last_age, "restarts": restarts,
-            "readings_total": 0 if st is None else st.readings_total}
+    return AdapterStatus(
+        name=info.name, mac=info.mac, backend=info.backend, mode=info.mode,
+        adverts_per_s=0.0 if st is None else round(st.rate(now_mono), 2),
+        last_advert_age_s=last_age, restarts=restarts,
+        readings_total=0 if st is None else st.readings_total,
+        bad_readings=0 if st is None else st.bad_readings, power_cycles=power_cycles)
 
 
 async def run_agent(cfg: AgentConfig, *, wait_ack: bool = True, clocks: Clocks | None = None,

@@ -109,13 +109,13 @@ def adapters() -> None:
 @app.command()
 def check(config: ConfigOpt = None) -> None:
     """Validate a config file and print the resolved configuration (defaults filled in)."""
-    import yaml
+    from ble_groundtruth.safe_yaml import dump
 
     try:
         cfg: AgentConfig = with_overrides(load_config(config))
     except AgentError as e:
         raise _fail(e) from None
-    out.print(yaml.safe_dump(cfg.to_dict(), sort_keys=False), end="", highlight=False)
+    out.print(dump(cfg.to_dict(), sort_keys=False), end="", highlight=False)
 
 
 def main() -> None:

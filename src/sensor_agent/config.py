@@ -333,11 +333,11 @@ def _simulated(f: _Fields, raw: Any) -> SimulatedConfig:
         if isinstance(ev, str) or not isinstance(ev, Sequence):
             raise f.fail("simulated.events", "a list of cover events", ev)
         events = []
-        for i, e in enumerate(ev):
-            if not isinstance(e, Mapping):
-                raise f.fail(f"simulated.events[{i}]", "a mapping", e)
+        for i, item in enumerate(ev):
+            if not isinstance(item, Mapping):
+                raise f.fail(f"simulated.events[{i}]", "a mapping", item)
             try:
-                events.append(CoverEvent.from_dict(e))
+                events.append(CoverEvent.from_dict(item))
             except MotionError as err:
                 raise ConfigError(f"{f.source}: simulated.events[{i}]: {err}") from None
         kw["events"] = tuple(events)
@@ -360,19 +360,13 @@ def load_config(path: str | Path | None) -> AgentConfig:
     """Read and validate a YAML file; ``None`` gives the defaults."""
     if path is None:
         return parse_config({}, "defaults")
-    import yaml
+    from ble_groundtruth.safe_yaml import YamlError, decode_utf8, loads, read_bytes_limited
 
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read ({e.strerror or e})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"{path.name}: not valid YAML{where}") from None
+        data = loads(decode_utf8(read_bytes_limited(path), path.name), path.name)
+    except YamlError as e:
+        raise ConfigError(str(e)) from None
     return parse_config({} if data is None else data, path.name, path.resolve().parent)
 
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ble_groundtruth import wire
+from ble_groundtruth.messages import Ack, ClockReply, ClockRequest
 from ble_groundtruth.wire import Batch, Reading
 from sensor_agent.spool import SpoolError
 
@@ -83,6 +84,7 @@ class Publisher:
         self._interval: dict[str, int] = {}  # stream id -> current re-send interval (ns), backed off
         self._old_boots: set[str] = set()
         self.resent = 0
+        self.last_ack_ns: int | None = None  # monotonic time of the last ack for this agent
         # Held for a whole re-send pass; close() takes it so no pass outlives the publishers.
         self._resend_lock = threading.Lock()
         self._closing = False
@@ -287,23 +289,18 @@ class Publisher:
 
     def _on_ack(self, sample: Any) -> None:
         try:
-            msg = wire.from_json(sample.payload.to_bytes(), "ack")
+            msg = Ack.from_dict(wire.from_json(sample.payload.to_bytes(), "ack"))
         except wire.WireError as e:
             log.warning("ignoring a malformed ack: %s", e)
             return
-        boot = msg.get("boot")
+        boot = msg.boot
         if boot != self.boot_id and boot not in self._old_boots:
             return  # another agent's boot, or one this spool no longer holds anything of
-        streams = msg.get("streams")
-        if not isinstance(streams, dict):
-            log.warning("ignoring an ack without a 'streams' object")
-            return
         now = self.mono_ns()
+        self.last_ack_ns = now
         advanced: list[tuple[str, int]] = []
         with self._lock:
-            for mac, seq in streams.items():
-                if not (isinstance(seq, int) and not isinstance(seq, bool) and isinstance(mac, str)):
-                    continue
+            for mac, seq in msg.streams.items():
                 sid = stream_id(boot, mac)
                 if seq > self._sid_acked.get(sid, -1):
                     self._sid_acked[sid] = seq
@@ -359,17 +356,13 @@ class Publisher:
             payload = query.payload
             raw = payload.to_bytes() if payload is not None else b""
             try:
-                t1 = wire.from_json(raw or b"{}", "clock request").get("t1")
+                req = ClockRequest.from_dict(wire.from_json(raw or b"{}", "clock request"))
             except wire.WireError as e:
                 query.reply_err(wire.to_json({"error": str(e)}))
                 return
-            if not isinstance(t1, int) or isinstance(t1, bool):
-                query.reply_err(wire.to_json({"error": f"t1 must be an integer (ns), got {t1!r}"}))
-                return
             chrony = self._chrony() if self._chrony is not None else None
-            reply = {"t1": t1, "t2": t2, "t3": 0, "chrony": chrony}
-            reply["t3"] = self.wall_ns()
-            query.reply(query.key_expr, wire.to_json(reply),
+            reply = ClockReply(req.t1, t2, self.wall_ns(), chrony)
+            query.reply(query.key_expr, wire.to_json(reply.to_dict()),
                         encoding=self._zenoh.Encoding.APPLICATION_JSON)
         except Exception:
             log.exception("clock query failed")

@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ble_groundtruth.atomic import FileOps, fsync_dir, temp_path, write_all, write_atomic
 from sensor_agent.errors import AgentError
 
 log = logging.getLogger(__name__)
@@ -75,26 +76,6 @@ class SpoolStats:
     last_error: str | None
     recovered_bytes: int  # garbage skipped or truncated when the spool was opened
     max_bytes: int
-
-
-class FileOps:
-    """The few file operations the spool's data path uses; tests subclass it to inject faults
-    (a full disk), the way a scanner fake fails on start."""
-
-    def open(self, path: Path, flags: int, mode: int = 0o644) -> int:
-        return os.open(path, flags, mode)
-
-    def write(self, fd: int, data: bytes | memoryview) -> int:
-        return os.write(fd, data)
-
-    def fsync(self, fd: int) -> None:
-        os.fsync(fd)
-
-    def ftruncate(self, fd: int, length: int) -> None:
-        os.ftruncate(fd, length)
-
-    def close(self, fd: int) -> None:
-        os.close(fd)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -199,14 +180,6 @@ def _segment_name(number: int) -> str:
     return f"{number:016d}{SEGMENT_SUFFIX}"
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 # ---------------------------------------------------------------------------------------------
 # The spool
 
@@ -298,7 +271,7 @@ class Spool:
 
     def _load_acks(self) -> None:
         path = self.directory / ACK_FILE
-        (self.directory / (ACK_FILE + ".tmp")).unlink(missing_ok=True)
+        temp_path(self.directory / ACK_FILE).unlink(missing_ok=True)
         try:
             doc = json.loads(path.read_bytes())
         except FileNotFoundError:
@@ -426,16 +399,11 @@ class Spool:
         self._segments.append(seg)
         self._active = seg
         self._bytes += seg.size
-        _fsync_dir(self.directory)  # the new name must survive a power cut too
+        fsync_dir(self.directory)  # the new name must survive a power cut too
         return seg
 
     def _write_all(self, fd: int, data: bytes) -> None:
-        view = memoryview(data)
-        while view:
-            n = self._files.write(fd, view)
-            if n <= 0:
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-            view = view[n:]
+        write_all(self._files, fd, data)
 
     def _write_record(self, seg: _Segment, rec: bytes) -> None:
         assert seg.fd is not None
@@ -574,20 +542,11 @@ class Spool:
         self._acked = {s: q for s, q in self._acked.items() if s in live}
         data = json.dumps({"version": 1, "acked": self._acked}, separators=(",", ":"),
                           sort_keys=True).encode()
-        tmp = self.directory / (ACK_FILE + ".tmp")
         self._last_ack_write = now
         try:
-            fd = self._files.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
-            try:
-                self._write_all(fd, data)
-                self._files.fsync(fd)
-            finally:
-                self._files.close(fd)
-            os.replace(tmp, self.directory / ACK_FILE)
-            _fsync_dir(self.directory)
+            write_atomic(self.directory / ACK_FILE, data, files=self._files)
         except OSError as e:
             # The previous acks.json is intact; stale acks only cost re-sends.
-            tmp.unlink(missing_ok=True)
             self._last_error = os.strerror(e.errno) if e.errno else str(e)
             log.warning("spool %s: cannot save %s (%s); will retry", self.directory, ACK_FILE,
                         self._last_error)

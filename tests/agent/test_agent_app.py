@@ -46,3 +46,36 @@ def test_boot_ids_are_fresh_16_hex() -> None:
     assert a != b
     assert len(a) == 16
     assert int(a, 16) >= 0
+
+
+class _Collecting:
+    """Stands in for the publisher: keeps what the sink passes on."""
+
+    def __init__(self) -> None:
+        self.added: list[tuple[str, Reading]] = []
+
+    def add(self, sensor: str, reading: Reading) -> None:
+        self.added.append((sensor, reading))
+
+
+def test_sink_skips_implausible_readings_one_by_one_and_counts_them(caplog) -> None:
+    from sensor_agent.app import Agent
+    from sensor_agent.config import AgentConfig
+    from sensor_agent.scanning.replay import ReplayBackend
+
+    agent = Agent(AgentConfig(agent_id="pi-01"), ReplayBackend(["unused.mbd"]))
+    pub = agent._publisher = _Collecting()
+    t = 1_700_000_000 * 10**9
+    sent = [Reading(t, "e78f135624ce", -60, 1), Reading(t + 1, "e78f135624ce", 42, 2),
+            Reading(t + 2, "e78f135624ce", 127, 3),  # BlueZ's "unknown"
+            Reading(5, "e78f135624ce", -61, 4),  # 1970
+            Reading(t + 4, "e78f135624ce", -62, 5)]
+    for r in sent:
+        agent._sink("aa0000000001", r)
+    assert [r for _s, r in pub.added] == [sent[0], sent[4]]
+    assert agent.readings == 2
+    assert agent.bad_readings == 3
+    assert agent.stats["aa0000000001"].bad_readings == 3
+    warned = [r.getMessage() for r in caplog.records if "implausible" in r.getMessage()]
+    assert warned == ["adapter aa0000000001: skipped an implausible reading of beacon e78f135624ce "
+                      "(RSSI 42 dBm out of range); 1 skipped so far"]  # one line a minute

@@ -224,3 +224,41 @@ def test_watchdog_restarts_a_silent_scanner(bluez) -> None:
         await backend.stop()
 
     asyncio.run(main())
+
+
+def test_implausible_bluez_rssi_reaches_the_agent_unclamped_and_is_skipped(bluez) -> None:
+    """No clamp in the backend (a +42 dBm would become a plausible-looking +20): the agent's
+    sink skips and counts the absurd values one by one and passes the rest on."""
+    from sensor_agent.app import Agent
+    from sensor_agent.config import AgentConfig
+
+    bluez.AddAdapter("hci0", "pi-a", dbus_interface=BLUEZ_MOCK_IFACE)
+    path = add_beacon(bluez, "hci0")
+    raw: list[int] = []
+    kept: list[int] = []
+
+    class Publisher:
+        def add(self, _sensor: str, r: Reading) -> None:
+            kept.append(r.rssi)
+
+    backend = BleakBackend((), "active")
+    agent = Agent(AgentConfig(agent_id="pi-01"), backend)
+    agent._publisher = Publisher()
+
+    def sink(mac: str, r: Reading) -> None:
+        raw.append(r.rssi)
+        agent._sink(mac, r)
+
+    async def main() -> None:
+        await backend.start(sink)
+        for rssi in (-60, 42, 127, -61):  # 127: BlueZ's "RSSI unknown"
+            await asyncio.to_thread(device(path).UpdateProperties, DEVICE_IFACE,
+                                    {"RSSI": dbus.Int16(rssi)}, dbus_interface=dbusmock.MOCK_IFACE)
+        await wait_for(lambda: len(raw) == 4)
+        await backend.stop()
+
+    asyncio.run(main())
+    assert raw == [-60, 42, 127, -61]
+    assert kept == [-60, -61]
+    assert agent.bad_readings == 2
+    assert agent.stats["000102030405"].bad_readings == 2

@@ -92,7 +92,7 @@ def test_empty_file_gives_defaults(tmp_path: Path) -> None:
     ("status_interval_s: 0", "agent.yaml: status_interval_s must be a number > 0, got 0"),
     ("colour: blue", "agent.yaml: unknown key 'colour'"),
     ("- just\n- a list", "agent.yaml: the top level must be a mapping"),
-    ("batch_ms: [", "agent.yaml: not valid YAML at line"),
+    ("batch_ms: [", "agent.yaml:2: not valid YAML"),
 ])
 def test_bad_values_name_the_field(tmp_path: Path, text: str, message: str) -> None:
     with pytest.raises(ConfigError) as e:

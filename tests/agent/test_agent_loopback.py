@@ -102,3 +102,25 @@ def test_unreachable_router_keeps_recording_then_one_line(dataset_dir: Path, tmp
     assert "did not acknowledge 1 batch(es) of 1 stream(s)" in text
     assert "no acknowledgement at all" in text
     assert "Traceback" not in text
+
+
+def test_replay_of_a_track_with_an_absurd_rssi_delivers_every_other_reading(
+        endpoint: str, dataset_dir: Path, tmp_path: Path) -> None:
+    """trk/straight_05 as published holds a +42 dBm (and a +29 dBm) reading: they are skipped,
+    counted and reported; every other reading arrives and the replay exits 0."""
+    f = dataset_dir / "trk" / "straight_05" / "sensor30_0.00_0.00_0.00.mbd"
+    rows = list(read_rows([f]))
+    expected = Counter((r.t_ns, r.sensor, r.beacon, r.rssi) for r in rows if r.rssi <= 20)
+    assert len(rows) - sum(expected.values()) == 2
+    collector = FakeCollector(endpoint, "default")
+    try:
+        rc, stderr = _run_agent(["run", "--connect", endpoint, "--replay", str(f), "--replay-speed", "0",
+                                 "--replay-keep-time", "--ack-timeout", "20"], collector,
+                                tmp_path / "agent.log")
+    finally:
+        collector.close()
+    assert rc == 0, stderr
+    got = Counter((r.t_ns, b.sensor, r.beacon, r.rssi) for b in collector.batches for r in b.readings)
+    assert got == expected
+    assert "skipped 2 implausible reading(s)" in stderr
+    assert "Traceback" not in stderr

@@ -17,6 +17,7 @@ import zenoh
 from agent_testing import FakeCollector
 
 from ble_groundtruth import wire
+from ble_groundtruth.atomic import FileOps
 from ble_groundtruth.wire import Reading
 from ble_groundtruth.zenoh_config import SessionSpec, build_config
 from sensor_agent.app import Agent
@@ -24,7 +25,7 @@ from sensor_agent.clockhealth import parse_chronyc_tracking
 from sensor_agent.config import AgentConfig, SpoolConfig
 from sensor_agent.publisher import CACHE_SAMPLES, Publisher, stream_id
 from sensor_agent.scanning.base import AdapterInfo, AdvertSink, ScannerBackend
-from sensor_agent.spool import FileOps, Spool
+from sensor_agent.spool import Spool
 
 SENSOR = "b827eb4521b4"
 BOOT = "00112233aabbccdd"

@@ -131,3 +131,14 @@ def test_dense_rows_are_delivered_in_granules_with_exact_times(tmp_path: Path) -
     # monotonic stamp = scheduled reception; actual delivery at most one granule later
     assert [r.mono_ns - start for _, _, r in got] == [i * 5_000_000 for i in range(200)]
     assert all(0 <= m - r.mono_ns <= 20_000_000 for m, _, r in got)
+
+
+def test_implausible_rssi_is_skipped_and_the_rest_replayed(dataset_dir: Path, caplog) -> None:
+    # The published straight_05 track: sensor30 heard e78f135624ce at +42 dBm (and +29 dBm).
+    f = dataset_dir / "trk" / "straight_05" / "sensor30_0.00_0.00_0.00.mbd"
+    lines = [ln for ln in f.read_text().splitlines() if ln.strip()]
+    backend = ReplayBackend([f], speed=0)
+    backend.check()
+    assert (backend.rows_total, backend.rows_skipped) == (len(lines) - 2, 2)
+    assert any("skipped 2 implausible reading(s) of sensor30_0.00_0.00_0.00.mbd (first: " in r.getMessage()
+               and ":13: RSSI 42 dBm out of range" in r.getMessage() for r in caplog.records)

@@ -16,10 +16,10 @@ from pathlib import Path
 import pytest
 
 from ble_groundtruth import wire
+from ble_groundtruth.atomic import FileOps
 from sensor_agent.spool import (
     ACK_FILE,
     SEGMENT_SUFFIX,
-    FileOps,
     Spool,
     SpoolError,
     encode_record,

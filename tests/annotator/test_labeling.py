@@ -132,3 +132,18 @@ def test_cover_events_are_excluded_and_not_counted_against_coverage() -> None:
     assert np.isnan(labels.positions[1:3]).all()
     assert labels.counts["during a cover event"] == 2
     assert tracked_span_coverage(labels) == 1.0
+
+
+def test_sync_uncertainty_adds_speed_times_time_sigma_to_each_reading():
+    from annotator.labeling import Poses, label_readings
+
+    t = np.arange(0.0, 2.0, 0.1)
+    pos = np.stack([1.5 * t, np.zeros_like(t), np.ones_like(t)], 1)  # 1.5 m/s along x
+    rot = np.repeat(np.eye(3)[None], len(t), axis=0)
+    poses = Poses(t, pos, rot, sigma=np.full(len(t), 0.004))
+    t_ns = np.array([0.35e9, 1.25e9], dtype=np.int64)
+    plain = label_readings(poses, t_ns)
+    synced = label_readings(poses, t_ns, time_sigma=0.01)
+    assert np.allclose(plain.sigma, 0.004)
+    assert np.allclose(synced.sigma, np.hypot(0.004, 1.5 * 0.01))
+    assert np.allclose(synced.positions, plain.positions)

@@ -46,7 +46,7 @@ def test_fisheye_and_readout_parsed_and_checked():
 def test_priors_defaults_overrides_and_errors():
     p = parse_priors(None, "e.yaml")
     assert p.mode == "all"
-    assert p.marker(3).sigma_m == 0.01
+    assert p.marker(3).sigma_m == 0.015
     p = parse_priors({"mode": "map", "survey_sigma_m": 0.02, "markers": {3: {"sigma_m": 0.001}, 7: "unknown"}},
                      "e.yaml")
     assert p.mode == "map"

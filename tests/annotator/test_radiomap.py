@@ -148,7 +148,8 @@ def test_radiomap_writes_grd_in_the_published_layout(small_hst: Path, tmp_path: 
         assert row is not None, line[:80]
         assert row["beacon"] == BEACON
         p = np.array([float(v) for v in row["p"].split(", ")])
-        assert len(p) == 80
+        assert len(p) == 81  # one value per bin edge, as the published files
+        assert p[-1] == 0.0
         assert p.sum() == pytest.approx(1.0, abs=1e-9)
         assert (p >= 0).all()
         seen.add((float(row["gx"]), float(row["gy"])))

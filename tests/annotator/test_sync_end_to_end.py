@@ -95,6 +95,12 @@ def test_auto_sync_run_labels_readings_with_centimetre_error(rendered: Path, tmp
     assert rep["sync"]["cameras"]["back"]["method"] == "auto via front"
     assert rep["sync"]["mode"] == "auto"
     assert len(rep["sync"]["rssi_events"]) == 1
+    # The self-calibration ran (default --refine all) and wrote its record and files.
+    if result.refinement is not None:
+        assert set(rep["refinement"]["cameras"]) == {"front", "back"}
+        assert (tmp_path / "out" / rep["refinement"]["files"]["marker_positions"]).is_file()
+    assert result.params is not None
+    assert result.params.rig
 
     # Labels: every reading in the tracked span, position error against the truth at its own time.
     labels, table = result.labels, result.rssi

@@ -32,6 +32,14 @@ def expected_lines(batches: list[wire.Batch]) -> list[str]:
             for b in batches for r in b.readings]
 
 
+def run_yaml_doc(run_dir) -> dict:
+    from pathlib import Path
+
+    import yaml
+
+    return yaml.safe_load((Path(run_dir) / "run.yaml").read_text(encoding="utf-8"))
+
+
 def wait_for(cond: Callable[[], object], timeout: float = 20.0, what: str = "condition") -> object:
     """Poll until cond() is truthy; generous deadline because the test machine is shared."""
     end = time.monotonic() + timeout

@@ -82,7 +82,7 @@ def test_two_replaying_agents_end_to_end(serve, endpoint, dataset_dir) -> None:
     assert run_dir == (serve / run_id).resolve()
 
     want = rows_by_sensor(files)
-    got = rows_by_sensor(sorted((run_dir / "rssi").glob("*.mbd")))
+    got = rows_by_sensor(sorted((run_dir / "rssi").glob("*/*.mbd")))
     assert sorted(got) == sorted(want)
     assert len(got) == 12
     for sensor, rows in want.items():
@@ -121,7 +121,7 @@ def test_cli_start_status_stop_runs(serve, endpoint) -> None:
         stop = cli("stop", "--connect", endpoint)
         assert stop.returncode == 0
         run_dir = Path(stop.stdout.strip())
-        assert (run_dir / "rssi" / f"{batches[0].sensor}.mbd").read_text().splitlines() == expected_lines(batches)
+        assert (run_dir / "rssi" / "pi-01" / f"{batches[0].sensor}.mbd").read_text().splitlines() == expected_lines(batches)
         runs = json.loads(cli("runs", "--json", "--connect", endpoint).stdout)
         assert [(r["run_id"], r["name"], r["readings"]) for r in runs] == [(run_id, "cli", 15)]
         assert "cli" in cli("runs", "--connect", endpoint).stdout
@@ -168,7 +168,7 @@ def test_record_in_the_foreground(tmp_path, endpoint) -> None:
             proc.kill()
     assert proc.returncode == 0, err
     (run,) = list(tmp_path.glob("*-fg"))
-    assert (run / "rssi" / f"{b.sensor}.mbd").read_text().splitlines() == expected_lines([b])
+    assert (run / "rssi" / "pi-01" / f"{b.sensor}.mbd").read_text().splitlines() == expected_lines([b])
     assert yaml.safe_load((run / "run.yaml").read_text())["readings"] == 5
     assert "5 readings in" in out
 
@@ -204,3 +204,26 @@ def test_serve_on_a_busy_port_is_one_line(tmp_path) -> None:
     assert r.stderr.count("\n") == 1
     assert r.stderr.startswith(f"cannot open the Zenoh router on tcp/127.0.0.1:{port}: ")
     assert "Address already in use" in r.stderr
+
+
+def test_export_merges_per_agent_files_into_the_published_layout(tmp_path) -> None:
+    run = tmp_path / "run"
+    mac, other = "b827eb4521b4", "b827eb4521b5"
+    (run / "rssi" / "pi-01").mkdir(parents=True)
+    (run / "rssi" / "pi-02").mkdir()
+    (run / "rssi" / "pi-01" / f"{mac}.mbd").write_text(
+        f"1700000000.000000003,{mac},e78f135624ce,-50\n1700000000.200000000,{mac},e78f135624ce,-52\n")
+    (run / "rssi" / "pi-02" / f"{mac}.mbd").write_text(
+        f"1700000000.1,{mac},e78f135624ce,-60\n")
+    (run / "rssi" / "pi-02" / f"{other}.mbd").write_text(f"1700000001.0,{other},e78f135624ce,-70\n")
+    r = cli("export", str(run), "--out", str(tmp_path / "out"))
+    assert r.returncode == 0, r.stderr
+    assert "4 readings of 2 sensor(s)" in r.stdout
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [f"{mac}.mbd", f"{other}.mbd"]
+    assert (tmp_path / "out" / f"{mac}.mbd").read_text().splitlines() == [
+        f"1700000000.000000003,{mac},e78f135624ce,-50", f"1700000000.1,{mac},e78f135624ce,-60",
+        f"1700000000.200000000,{mac},e78f135624ce,-52"]
+    bad = cli("export", str(tmp_path / "nowhere"))
+    assert bad.returncode == 1
+    assert bad.stderr.strip().endswith("not a run directory (no rssi/ folder)")
+    assert len(bad.stderr.strip().splitlines()) == 1

@@ -19,12 +19,13 @@ import yaml
 from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
 from ble_groundtruth import wire
+from ble_groundtruth.messages import Ack, ClockReply, ClockSample
 from ble_groundtruth.sdnotify import Notifier
 from collector.client import CollectorClient
 from collector.config import CollectorConfig, load_config
 from collector.errors import CollectorError, CommandFailed, ConfigError
 from collector.ingest import StreamTracker, decode
-from collector.server import Collector, clock_sample
+from collector.service import Collector
 from collector.store import STATE_FILE, RunWriter, repair_file
 
 A, B = "b827eb4521b4", "000000000101"
@@ -54,8 +55,8 @@ def resend_until_acked(ag: FakeAgent, batches: list[wire.Batch], timeout: float 
             pass
 
 
-def lines(run_dir, sensor) -> list[str]:
-    return (Path(run_dir) / "rssi" / f"{sensor}.mbd").read_text().splitlines()
+def lines(run_dir, sensor, agent: str = "pi-01") -> list[str]:
+    return (Path(run_dir) / "rssi" / agent / f"{sensor}.mbd").read_text().splitlines()
 
 
 def run_yaml(run_dir) -> dict:
@@ -96,8 +97,8 @@ def test_acks_cover_every_boot_of_an_agent() -> None:
     t.accept(("pi-01", BOOT_NEW, B), 1, floor=0)
     t.accept(("pi-02", BOOT_OLD, A), 0, floor=0)
     assert t.mark_durable() == {"pi-01", "pi-02"}
-    assert t.ack_messages("pi-01") == [{"boot": BOOT_OLD, "streams": {A: 7}},
-                                       {"boot": BOOT_NEW, "streams": {A: 0, B: 1}}]
+    assert t.ack_messages("pi-01") == [Ack(BOOT_OLD, {A: 7}),
+                                       Ack(BOOT_NEW, {A: 0, B: 1})]
 
 
 def test_tracker_state_round_trip_keeps_dedupe() -> None:
@@ -125,11 +126,12 @@ def test_clock_sample_arithmetic() -> None:
     t2 = t1 + 2_000_000 + 30_000_000
     t3 = t2 + 1_000_000
     t4 = t1 + 7_000_000
-    s = clock_sample({"t1": t1, "t2": t2, "t3": t3, "chrony": None}, t1, t4, "x")
-    assert s["rtt_ms"] == 6.0
-    assert s["offset_ms"] == 29.0  # asymmetric paths bias the estimate by half the difference
+    s = ClockSample.measure(ClockReply.from_dict({"t1": t1, "t2": t2, "t3": t3, "chrony": None}),
+                            t1, t4, "x")
+    assert s.rtt_ms == 6.0
+    assert s.offset_ms == 29.0  # asymmetric paths bias the estimate by half the difference
     with pytest.raises(wire.InvalidField, match="t1"):
-        clock_sample({"t1": 5, "t2": t2, "t3": t3}, t1, t4, "x")
+        ClockSample.measure(ClockReply.from_dict({"t1": 5, "t2": t2, "t3": t3}), t1, t4, "x")
 
 
 def test_config_clock_interval(tmp_path) -> None:
@@ -144,15 +146,15 @@ def test_config_clock_interval(tmp_path) -> None:
 
 
 def test_repair_cuts_to_recorded_size_and_last_whole_line(tmp_path) -> None:
-    rssi = tmp_path / "rssi"
-    rssi.mkdir()
+    rssi = tmp_path / "rssi" / "pi-01"
+    rssi.mkdir(parents=True)
     f = rssi / f"{A}.mbd"
     f.write_bytes(b"1.000000001,a,b,-1\n2.000000002,a,b,-2\n3.0000")
     assert repair_file(f, None) == 6  # no state: only the torn line goes
     assert f.read_bytes() == b"1.000000001,a,b,-1\n2.000000002,a,b,-2\n"
     assert repair_file(f, 19) == 19  # the state covers the first line only
     assert f.read_bytes() == b"1.000000001,a,b,-1\n"
-    assert (tmp_path / "recovered" / f"{A}.mbd.tail").read_bytes() == b"3.00002.000000002,a,b,-2\n"
+    assert (tmp_path / "recovered" / "pi-01" / f"{A}.mbd.tail").read_bytes() == b"3.00002.000000002,a,b,-2\n"
 
 
 def test_run_writer_resume_truncates_to_state(tmp_path) -> None:
@@ -163,12 +165,12 @@ def test_run_writer_resume_truncates_to_state(tmp_path) -> None:
     state = w.state({})
     w.append("pi-01", A, "\n".join(expected_lines([b1])) + "\n", 2)
     w.flush()  # written but never covered by a state: must not survive a crash
-    (w.dir / "rssi" / f"{B}.mbd").write_text("1.0,")  # a file created after the last state
+    (w.dir / "rssi" / "pi-01" / f"{B}.mbd").write_text("1.0,")  # a file created after the last state
     r = RunWriter(tmp_path, "r1", "n", 1_795_318_500 * 10**9, {"site": "default"}, resume=state)
     assert lines(r.dir, A) == expected_lines([b0])
-    assert (r.dir / "rssi" / f"{B}.mbd").read_bytes() == b""
+    assert (r.dir / "rssi" / "pi-01" / f"{B}.mbd").read_bytes() == b""
     assert r.readings == 2
-    assert r.sensors[A].batches == 1
+    assert r.sensors[("pi-01", A)].batches == 1
     r.append("pi-01", A, "\n".join(expected_lines([b1])) + "\n", 2)
     r.close()
     assert lines(r.dir, A) == expected_lines([b0, b1])
@@ -241,16 +243,10 @@ def test_restart_resumes_the_same_run_without_loss_or_duplicates(tmp_path, endpo
     for b in sent[:20]:
         ag.put(b)
     wait_for(lambda: ag.acked(A) == 19, what="acks before the crash")
-    # Simulate the crash: freeze the old collector (session closed, threads stopped, files not
-    # finalised, run.yaml still says stop: null) and leave a torn line as a killed write would.
-    first._closing.set()
-    for d in first._decls:
-        d.undeclare()
-    first._session.close()
-    first._session = None
-    for t in first._threads:
-        t.join(5)
-    mbd = Path(run["run_dir"]) / "rssi" / f"{A}.mbd"
+    # Simulate the crash: the old collector stops as a killed one would (run not finalised,
+    # run.yaml still says stop: null), and a torn line is left as a killed write would.
+    first.abandon()
+    mbd = Path(run["run_dir"]) / "rssi" / "pi-01" / f"{A}.mbd"
     with mbd.open("ab") as f:
         f.write(b"1700000000.12345,b827eb4521b4,e78")
     state = json.loads((Path(run["run_dir"]) / STATE_FILE).read_text())
@@ -302,7 +298,7 @@ def test_disk_full_holds_acks_and_resumes_without_loss(make_collector, agent) ->
         ag.put(b)
     wait_for(lambda: c.status()["deferred_batches"] > 0, what="batches refused beyond the memory bound")
     assert ag.acked(A) == 9  # nothing written, nothing acknowledged
-    mbd = Path(run["run_dir"]) / "rssi" / f"{A}.mbd"
+    mbd = Path(run["run_dir"]) / "rssi" / "pi-01" / f"{A}.mbd"
     assert mbd.read_text().splitlines() == expected_lines(sent[:10])  # no torn line left behind
     disk.full = False
     wait_for(lambda: not c.status()["disk_full"], what="writing again")
@@ -355,7 +351,7 @@ def test_unknown_agent_data_is_recorded_and_counted(make_collector, agent) -> No
     wait_for(lambda: known.acked(A) == 0 and stranger.acked(B) == 0, what="acks for both")
     assert c.status()["unknown_agents"] == {"pi-99": 1}
     c.stop_run()
-    assert lines(run["run_dir"], B) == expected_lines([make_batch(0, sensor=B, agent="pi-99")])
+    assert lines(run["run_dir"], B, "pi-99") == expected_lines([make_batch(0, sensor=B, agent="pi-99")])
 
 
 def test_clock_offsets_measured_warned_refused_and_stored(make_collector, agent, endpoint) -> None:
@@ -441,10 +437,26 @@ def test_resume_refuses_a_corrupt_state_in_one_line(tmp_path, endpoint) -> None:
     run_dir = tmp_path / "data" / "20261122T031500Z-x"
     (run_dir / "rssi").mkdir(parents=True)
     (run_dir / "run.yaml").write_text("id: x\nstop: null\n")
-    (run_dir / STATE_FILE).write_text(json.dumps({"version": 1, "active": True, "run_id": run_dir.name}))
+    (run_dir / STATE_FILE).write_text(json.dumps({"version": 2, "active": True, "run_id": run_dir.name}))
     with pytest.raises(CollectorError, match=r"state\.json: cannot resume the run: KeyError") as e:
         Collector(CollectorConfig(data_dir=tmp_path / "data", listen=(endpoint,))).open()
     assert "\n" not in str(e.value)
+
+
+def test_resume_refuses_an_older_state_version_in_one_line(tmp_path, endpoint) -> None:
+    # A run left active by a collector that keyed files by sensor alone (rssi/<mac>.mbd).
+    run_dir = tmp_path / "data" / "20261122T031500Z-x"
+    (run_dir / "rssi").mkdir(parents=True)
+    (run_dir / "rssi" / f"{A}.mbd").write_text("1700000000.000000001,b827eb4521b4,e78f135624ce,-40\n")
+    (run_dir / "run.yaml").write_text("id: x\nstop: null\n")
+    (run_dir / STATE_FILE).write_text(json.dumps({
+        "version": 1, "active": True, "run_id": run_dir.name, "files": {A: 51},
+        "sensors": {A: {"agent": "pi-01", "readings": 1, "batches": 1}}}))
+    with pytest.raises(CollectorError, match=r"state\.json: version 1 state of an unfinished run, "
+                                             r"written by an older collector") as e:
+        Collector(CollectorConfig(data_dir=tmp_path / "data", listen=(endpoint,))).open()
+    assert "\n" not in str(e.value)
+    assert (run_dir / "rssi" / f"{A}.mbd").stat().st_size == 51  # nothing touched
 
 
 def test_cli_start_warns_or_refuses_on_clock_offset(make_collector, agent, endpoint) -> None:
@@ -495,11 +507,12 @@ class _Sample:
 
 def test_full_receive_queue_drops_unacknowledged_after_waiting(tmp_path, caplog) -> None:
     # Not opened: no writer drains the queue, as when it is far behind.
-    c = Collector(CollectorConfig(data_dir=tmp_path), queue_max=2)
+    one = 512 + 192 * 5  # the queue's memory estimate of one 5-reading batch
+    c = Collector(CollectorConfig(data_dir=tmp_path), queue_bytes=2 * one)
     key = wire.data_key("default", "pi-01", A)
     for i in range(4):
-        c._on_sample(_Sample(key, wire.to_wire(make_batch(i, sensor=A))))
-    status = c._do_status()
+        c.inbox.on_sample(_Sample(key, wire.to_wire(make_batch(i, sensor=A))))
+    status = c.status_now()
     assert (status["queue"], status["queue_overflow"]) == (2, 2)
-    assert c._tracker.streams == {}  # dropped before dedupe: nothing will be acknowledged for them
+    assert c.writer.tracker.streams == {}  # dropped before dedupe: nothing will be acknowledged for them
     assert sum("receive queue full" in r.message for r in caplog.records) == 1  # rate-limited

@@ -20,7 +20,7 @@ from test_collector_reliability import resend_until_acked, with_floor
 from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
-from collector.server import Collector
+from collector.service import Collector
 from collector.store import STATE_FILE
 
 A = "b827eb4521b4"
@@ -74,7 +74,7 @@ def test_kill_9_mid_run_then_restart_loses_and_duplicates_nothing(tmp_path, endp
             proc.send_signal(signal.SIGTERM)
         proc.communicate(timeout=30)
     assert stopped["run_id"] == run["run_id"]
-    got = (Path(run["run_dir"]) / "rssi" / f"{A}.mbd").read_text().splitlines()
+    got = (Path(run["run_dir"]) / "rssi" / "pi-01" / f"{A}.mbd").read_text().splitlines()
     assert len(got) == len(expected_lines(sent))  # nothing twice
     assert sorted(got) == sorted(expected_lines(sent))  # nothing missing
     doc = yaml.safe_load((Path(run["run_dir"]) / "run.yaml").read_text())
@@ -122,12 +122,12 @@ def test_really_full_disk_stops_cleanly_and_resumes(small_fs, endpoint) -> None:
             agent.put(b)
         wait_for(lambda: c.status()["disk_full"], what="disk_full in status")
         stuck = agent.acked(A)
-        mbd = Path(run["run_dir"]) / "rssi" / f"{A}.mbd"
+        mbd = Path(run["run_dir"]) / "rssi" / "pi-01" / f"{A}.mbd"
         on_disk = mbd.read_text()
         assert on_disk.endswith("\n")  # no torn line, even though the fs took part of a write
         assert on_disk.splitlines() == expected_lines(sent)[:len(on_disk.splitlines())]
         state = json.loads((Path(run["run_dir"]) / STATE_FILE).read_text())
-        assert state["files"][A] <= len(on_disk)
+        assert state["files"][f"pi-01/{A}"] <= len(on_disk)
         assert not list(Path(run["run_dir"]).glob("*.tmp"))  # failed state writes left nothing
         assert stuck < 59
         (small_fs / "filler").unlink()
@@ -137,7 +137,7 @@ def test_really_full_disk_stops_cleanly_and_resumes(small_fs, endpoint) -> None:
     finally:
         agent.close()
         c.close()
-    got = (Path(run["run_dir"]) / "rssi" / f"{A}.mbd").read_text().splitlines()
+    got = (Path(run["run_dir"]) / "rssi" / "pi-01" / f"{A}.mbd").read_text().splitlines()
     assert len(got) == 60 * 20
     assert sorted(got) == sorted(expected_lines(sent))
     assert stopped["readings"] == 1200

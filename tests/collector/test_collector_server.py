@@ -3,7 +3,6 @@ for an agent): runs, acks, rejects, dedupe, status, and the control queryables."
 
 from __future__ import annotations
 
-import struct
 import threading
 from pathlib import Path
 
@@ -15,7 +14,7 @@ from ble_groundtruth import wire
 from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import CollectorError, CommandFailed, Unreachable
-from collector.server import Collector
+from collector.service import Collector
 
 A, B = "b827eb4521b4", "000000000101"
 
@@ -42,7 +41,7 @@ def client(endpoint, collector):
 
 
 def lines(run_dir, sensor) -> list[str]:
-    return (Path(run_dir) / "rssi" / f"{sensor}.mbd").read_text().splitlines()
+    return (Path(run_dir) / "rssi" / "pi-01" / f"{sensor}.mbd").read_text().splitlines()
 
 
 def run_yaml(run_dir) -> dict:
@@ -76,10 +75,11 @@ def test_run_holds_exactly_the_published_rows(agent, client) -> None:
     assert [r["run_id"] for r in client.runs()] == [started["run_id"]]
 
 
-def _raw(sensor: str, rssi: int) -> bytes:
-    meta = (f'{{"agent":"pi-01","boot":"0123456789abcdef","sensor":"{sensor}","seq":99}}').encode()
-    return (struct.pack("<4sHHI", wire.MAGIC, 1, len(meta), 1) + meta
-            + struct.pack("<qq6sb", 1_700_000_000 * 10**9, 0, bytes(6), rssi))
+def _raw(sensor: str, rssis: list[int], seq: int = 99) -> bytes:
+    meta = (f'{{"agent":"pi-01","boot":"0123456789abcdef","sensor":"{sensor}","seq":{seq}}}').encode()
+    return (wire.BATCH_HEAD.pack(wire.MAGIC, 1, len(meta), len(rssis)) + meta
+            + b"".join(wire.BATCH_READING.pack(1_700_000_000 * 10**9 + i, 0, bytes(6), r)
+                       for i, r in enumerate(rssis)))
 
 
 def test_malformed_payloads_are_counted_never_written(agent, client, collector) -> None:
@@ -89,18 +89,21 @@ def test_malformed_payloads_are_counted_never_written(agent, client, collector) 
     agent.put_raw(A, b"short")                                 # truncated
     agent.put_raw(A, b"XXXX" + wire.to_wire(good[1])[4:])        # bad magic
     agent.put_raw(A, wire.to_wire(good[1])[:-5])                  # truncated
-    agent.put_raw(A, _raw(A, 99))                                 # impossible RSSI
     agent.put_raw(B, wire.to_wire(good[1]))                       # sensor A's batch on B's key
     agent.put_raw(A, wire.to_wire(good[1]), agent="pi-02")        # another agent's key
     agent.put(good[1])
     agent.put(good[2])
-    wait_for(lambda: agent.acked(A) == 2, what="ack of the valid stream")
+    agent.put_raw(A, _raw(A, [-70, 42, -71, 99], seq=3))          # two impossible RSSIs of four
+    wait_for(lambda: agent.acked(A) == 3, what="ack of the valid stream, bad readings and all")
     st = client.status()
-    assert st["rejected_payloads"] == {"truncated": 2, "bad_magic": 1, "invalid_field": 1,
-                                       "key_mismatch": 2}
+    assert st["rejected_payloads"] == {"truncated": 2, "bad_magic": 1, "key_mismatch": 2,
+                                       "bad_reading": 2}
     stopped = client.stop()
-    assert lines(stopped["run_dir"], A) == expected_lines(good)
-    assert sorted(p.name for p in (collector.cfg.data_dir / stopped["run_id"] / "rssi").iterdir()) == [f"{A}.mbd"]
+    t0 = 1_700_000_000 * 10**9
+    assert lines(stopped["run_dir"], A) == expected_lines(good) + [
+        f"{wire.format_ts(t0)},{A},000000000000,-70", f"{wire.format_ts(t0 + 2)},{A},000000000000,-71"]
+    rssi = collector.cfg.data_dir / stopped["run_id"] / "rssi"
+    assert sorted(str(p.relative_to(rssi)) for p in rssi.rglob("*.mbd")) == [f"pi-01/{A}.mbd"]
     doc = run_yaml(stopped["run_dir"])
     assert doc["rejected_payloads"]["key_mismatch"] == 2
 
@@ -197,6 +200,7 @@ def test_agent_status_goes_into_run_yaml(agent, client) -> None:
     a = doc["agents"]["pi-01"]
     assert (a["hostname"], a["version"], a["backend"], a["boot_ids"]) == ("pi-kitchen", "9.9", "replay", [agent.boot])
     assert a["sensors"][A] == {"adapter": "hci0", "mac": A, "backend": "replay", "mode": "passive",
+                               "file": f"rssi/pi-01/{A}.mbd",
                                "readings": 5, "batches": 1, "gaps": 0, "missing_batches": 0,
                                "lost_batches": 0}
 

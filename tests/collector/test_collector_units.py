@@ -12,6 +12,7 @@ from collector_helpers import make_batch
 
 from ble_groundtruth import wire
 from ble_groundtruth.formats.mbd import format_row, iter_rows
+from ble_groundtruth.messages import Ack
 from collector.config import CollectorConfig, load_config
 from collector.errors import CollectorError, ConfigError
 from collector.ingest import RejectCounter, StreamTracker, decode, format_rows, reject_reason
@@ -49,8 +50,6 @@ def _corrupt(data: bytes, off: int, fmt: str, value) -> bytes:
     lambda d: d + b"x",
     lambda d: d.replace(b'"seq":0', b'"seq":-1'),
     lambda d: d.replace(b"b827eb4521b4", b"b827eb4521bz"),
-    lambda d: _corrupt(d, len(d) - 1, "<b", 100),  # RSSI of the last reading
-    lambda d: _corrupt(d, len(d) - 23, "<q", 42),  # timestamp of the last reading
 ])
 def test_decode_raises_exactly_what_wire_raises(mutate) -> None:
     bad = mutate(wire.to_wire(make_batch(0, n=2)))
@@ -60,6 +59,23 @@ def test_decode_raises_exactly_what_wire_raises(mutate) -> None:
         decode(bad)
     assert type(got.value) is type(expected.value)
     assert str(got.value) == str(expected.value)
+
+
+@pytest.mark.parametrize(("mutate", "why"), [
+    (lambda d: _corrupt(d, len(d) - 1, "<b", 100), "reading 1: RSSI 100 dBm out of range"),
+    (lambda d: _corrupt(d, len(d) - 23, "<q", 42), "reading 1: timestamp 42 ns is not a plausible"),
+    (lambda d: _corrupt(d, len(d) - 15, "<q", -1), "reading 1: negative monotonic time"),
+])
+def test_decode_skips_an_implausible_reading_and_keeps_the_rest(mutate, why) -> None:
+    b = make_batch(0, n=2)
+    bad = mutate(wire.to_wire(b))
+    with pytest.raises(wire.InvalidField, match=why):
+        wire.from_wire(bad)  # the strict decoder still refuses the batch
+    got = decode(bad)
+    assert (got.seq, got.skipped) == (0, 1)
+    assert got.skip_reason.startswith(why)
+    r = b.readings[0]
+    assert got.rows == [(r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi)]
 
 
 def test_reject_reasons() -> None:
@@ -98,9 +114,9 @@ def test_tracker_dedupes_and_keeps_contiguous_watermark() -> None:
     assert t.accept(S, 2)  # recovery fills the gap: watermark jumps over what was already there
     assert st.done_upto == 4
     assert t.missing(S) == 0
-    assert t.ack_message("pi-01") == {"boot": S[1], "streams": {}}  # nothing durable yet
+    assert t.ack_message("pi-01") == Ack(S[1], {})  # nothing durable yet
     assert t.mark_durable() == {"pi-01"}
-    assert t.ack_message("pi-01") == {"boot": S[1], "streams": {"b827eb4521b4": 4}}
+    assert t.ack_message("pi-01") == Ack(S[1], {"b827eb4521b4": 4})
     assert t.mark_durable() == set()  # unchanged -> nobody to tell
 
 
@@ -110,7 +126,7 @@ def test_tracker_acks_only_the_latest_boot() -> None:
     t.accept(("pi-01", "fedcba9876543210", S[2]), 0)
     t.accept(("pi-01", "fedcba9876543210", S[2]), 1)
     t.mark_durable()
-    assert t.ack_message("pi-01") == {"boot": "fedcba9876543210", "streams": {S[2]: 1}}
+    assert t.ack_message("pi-01") == Ack("fedcba9876543210", {S[2]: 1})
     assert t.ack_message("nobody") is None
 
 
@@ -120,7 +136,7 @@ def test_tracker_stream_first_seen_late() -> None:
     assert t.streams[S].first_seq == 5
     assert t.streams[S].done_upto == 5
     t.mark_durable()
-    assert t.ack_message("pi-01")["streams"] == {S[2]: 5}
+    assert t.ack_message("pi-01").streams == {S[2]: 5}
     assert t.accept(S, 4)  # from before the collector joined (e.g. history): written once
     assert not t.accept(S, 4)
     assert not t.accept(S, 5)
@@ -160,7 +176,7 @@ def test_run_writer_files_and_yaml(tmp_path) -> None:
     w.append("pi-01", b.sensor, format_rows(b.sensor, rows), len(rows))
     w.close()
     w.write_yaml(stop_ns=1_795_318_560 * 10**9, agents={"pi-01": {}}, extra={"gaps": 0})
-    got = [(r.t_ns, r.sensor, r.beacon, r.rssi) for r in iter_rows(w.dir / "rssi" / f"{b.sensor}.mbd")]
+    got = [(r.t_ns, r.sensor, r.beacon, r.rssi) for r in iter_rows(w.dir / "rssi" / "pi-01" / f"{b.sensor}.mbd")]
     assert got == [(r.t_ns, b.sensor, r.beacon, r.rssi) for r in b.readings]
     doc = yaml.safe_load((w.dir / "run.yaml").read_text())
     assert doc["start"] == "2026-11-22T03:35:00.000Z"
@@ -245,14 +261,14 @@ def test_failed_write_keeps_rows_for_the_retry(tmp_path) -> None:
     rows = decode(wire.to_wire(b)).rows
     w.append("pi-01", b.sensor, format_rows(b.sensor, rows[:1]), 1)
     w.flush()
-    path = w.dir / "rssi" / f"{b.sensor}.mbd"
+    path = w.dir / "rssi" / "pi-01" / f"{b.sensor}.mbd"
     good = path.read_bytes()
     w.append("pi-01", b.sensor, format_rows(b.sensor, rows[1:2]), 1)
     disk.full = True
     with pytest.raises(OSError, match="No space"):
         w.flush()
     assert path.read_bytes() == good  # the partial write was rolled back to the last whole line
-    assert w.appenders[b.sensor].size == len(good)
+    assert w.appenders[("pi-01", b.sensor)].size == len(good)
     w.append("pi-01", b.sensor, format_rows(b.sensor, rows[2:]), 1)
     assert w.buffered > 0
     disk.full = False  # space again
@@ -276,6 +292,7 @@ def test_sparkline_maps_rssi_to_bar_heights() -> None:
 
     assert sparkline([-120, -100, -65, -30, 0]) == "▁▁▅██"
     assert sparkline([]) == ""
+    assert sparkline([-65, None, float("nan"), "x", 42]) == "▅   █"  # never fails the view
 
 
 def test_live_table_shows_every_sensor_and_the_run() -> None:
@@ -297,4 +314,23 @@ def test_live_table_shows_every_sensor_and_the_run() -> None:
     assert row.split()[:7] == ["pi-01", "b827eb4521b4", "yes", "9.5", "-61", "0.2s", "12"]
     assert "▂█" in row  # -90 dBm is one step above the -100 floor
     assert "pi-02" in text
-    assert "rejected payloads: 3  duplicates dropped: 1" in text
+    assert "rejected payloads: 3  bad readings skipped: 0  duplicates dropped: 1" in text
+
+
+def test_live_view_reports_bad_readings_refused_and_shared_streams() -> None:
+    from rich.console import Console
+
+    from collector.live import render
+
+    status = {"run": None, "agents": {}, "duplicates_dropped": 0,
+              "rejected_payloads": {"bad_reading": 2, "truncated": 1},
+              "streams": {"total": 1300, "shown": 200, "admitted": 1100, "open_files": 128},
+              "refused_streams": {"batches": 100, "streams": 100, "by_agent": {"pi-bad": 100}},
+              "shared_sensors": {"b827eb4521b4": ["pi-01", "pi-02"]}}
+    console = Console(width=160, record=True)
+    console.print(render(status))
+    text = console.export_text()
+    assert "rejected payloads: 1  bad readings skipped: 2" in text
+    assert "1100 more streams not shown (1300 in all)" in text
+    assert "100 batches of 100 streams refused over the stream limits: pi-bad (100)" in text
+    assert "sensor b827eb4521b4 is published by several agents: pi-01, pi-02" in text

@@ -84,8 +84,17 @@ def site(pki_dir: Path, tmp_path: Path):
             }
             q.reply(key, wire.to_json(status))
 
+        clock_key = wire.agent_clock_key(SITE, a)
+
+        def answer_clock(q: zenoh.Query, off: float = off, key: str = clock_key) -> None:
+            t2 = time.time_ns() + int(off * 1e6)
+            t1 = json.loads(q.payload.to_bytes())["t1"]
+            t3 = time.time_ns() + int(off * 1e6)
+            q.reply(key, wire.to_json({"t1": t1, "t2": t2, "t3": t3, "chrony": None}))
+
         keep += [
             s.declare_queryable(key, answer),
+            s.declare_queryable(clock_key, answer_clock),
             s.liveliness().declare_token(wire.agent_token_key(SITE, a)),
         ]
         agents.append(s)
@@ -123,10 +132,10 @@ def test_query_fleet_reports_alive_version_and_clock_offset(site) -> None:
         assert s.alive
         assert s.answered
         assert s.version == "9.9.9"
-        assert s.adapters[0]["name"] == "hci0"
+        assert s.adapters[0].name == "hci0"
         assert s.ntp_source == "C0A8320A (192.168.50.10)"
         assert s.ntp_offset_ms == pytest.approx(0.025)
-        # The midpoint estimate is off by at most half the round trip (+1 ms of rounding).
+        # The four-timestamp estimate is off by at most half the round trip (+1 ms of rounding).
         assert abs(s.offset_ms - off) <= s.rtt_ms / 2 + 1.0, (a, s.offset_ms, s.rtt_ms)
     assert not states["a3"].alive
     assert not states["a3"].answered

@@ -187,10 +187,11 @@ def test_capture_through_mtls_and_acl(site: dict) -> None:
         stopped = cli(["stop", "--connect", ep, *site["operator"]])
         assert stopped.returncode == 0, stopped.stdout + stopped.stderr
         run_dir = Path(stopped.stdout.strip())
-        files = {p.stem for p in (run_dir / "rssi").glob("*.mbd")}
+        files = {p.stem for p in (run_dir / "rssi").glob("*/*.mbd")}
         assert files == legit  # the impostor's sensor30 never made it in
         for mac in legit:
-            rows = (run_dir / "rssi" / f"{mac}.mbd").read_text().splitlines()
+            (path,) = (run_dir / "rssi").glob(f"*/{mac}.mbd")
+            rows = path.read_text().splitlines()
             assert rows
             assert all(r.split(",")[1] == mac for r in rows if r and not r.startswith("#"))
     finally:

@@ -24,7 +24,8 @@ def _ids(paths: list[Path]) -> list[str]:
 
 
 def test_the_dataset_subset_is_all_covered():
-    assert len(MBD_FILES) == 12 + 12 + 1
+    # 12 fingerprint files, 12 straight_01 sensors + their merged file, straight_05's sensor 30
+    assert len(MBD_FILES) == 12 + 12 + 1 + 1
     assert len(OCC_FILES) == 2
 
 
@@ -206,6 +207,33 @@ def test_grd_round_trip(tmp_path: Path):
     frame = tables.grd_to_frame(again)
     assert len(frame) == 2 * 80
     assert set(frame["gx"]) == {0.0, 2.0}
+    # one value per bin edge, the last 0, as the published files
+    values = lines[1].split("::")[2].strip("[]").split(", ")
+    assert len(values) == 81
+    assert values[-1] == "0.0"
+
+
+PUBLISHED_GRD = Path(__file__).resolve().parents[1] / "data" / "grd" / "published_layout.grd"
+
+
+def test_grd_published_line_round_trip(tmp_path: Path):
+    # built from the dataset's format description (no published .grd is bundled; see its README)
+    text = PUBLISHED_GRD.read_text(encoding="utf-8")
+    g = grd.parse_grd(text)
+    assert g.sensor == "b827eb4521b4"
+    assert len(g.bins) == 81
+    for hist in (b["e78f135624ce"] for b in g.cells.values()):
+        assert len(hist) == 80
+        assert sum(hist) == pytest.approx(1.0, abs=1e-9)
+    assert grd.format_grd(g) == text  # byte for byte
+    # our older files (80 values per cell) still read, to the same grid
+    old = "\n".join(line if i == 0 else line.replace(", 0.0]", "]")
+                     for i, line in enumerate(text.splitlines())) + "\n"
+    assert grd.parse_grd(old) == g
+    # an 81st value that is not 0 is not a published layout
+    bad = text.replace(", 0.0]\n", ", 0.5]\n", 1)
+    with pytest.raises(grd.GridFormatError, match=":2:.*must be 0"):
+        grd.parse_grd(bad, "bad.grd")
 
 
 def test_atomic_writer_leaves_no_temporary_files(tmp_path: Path):

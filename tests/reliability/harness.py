@@ -1,6 +1,6 @@
 """Harness for the cross-process reliability scenarios (issue 5): real `collector serve` and
 `sensor-agent run` processes on loopback Zenoh, faults injected from outside, and a checker
-that compares a run's rssi/*.mbd files with the exact readings the agents were given.
+that compares a run's rssi/<agent>/*.mbd files with the exact readings the agents were given.
 
 Both tests/reliability/test_*.py and bench/reliability_scenarios.py drive the scenarios below;
 the tests assert zero lost / zero duplicated, the bench prints the counts at a larger scale.
@@ -31,18 +31,12 @@ import yaml
 from ble_groundtruth import wire
 from ble_groundtruth.formats.mbd import format_row, parse_line
 from collector.errors import CollectorError
+from loopback import free_port  # noqa: F401 - also the bench's port helper
 
 log = logging.getLogger(__name__)
 
 SITE = "default"
 BIN = Path(sys.executable).parent
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nobody listens on right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _command(script: str, module: str) -> list[str]:
@@ -288,7 +282,7 @@ class Tally:
 
 def read_rows(run_dir: Path, sensors: Iterable[str] | None = None) -> tuple[Counter[str], int]:
     """Every row of the run's rssi files (only these sensors' files if given) and the torn count."""
-    files = sorted((run_dir / "rssi").glob("*.mbd"))
+    files = sorted((run_dir / "rssi").glob("*/*.mbd"))
     if sensors is not None:
         wanted = set(sensors)
         files = [f for f in files if f.stem in wanted]
@@ -336,7 +330,7 @@ def tally(run_dir: Path, expected: Iterable[str], sensors: Iterable[str] | None 
 
 def count_lines(run_dir: Path) -> int:
     n = 0
-    for f in (run_dir / "rssi").glob("*.mbd"):
+    for f in (run_dir / "rssi").glob("*/*.mbd"):
         try:
             n += f.read_bytes().count(b"\n")
         except OSError:
@@ -613,7 +607,7 @@ def agent_restart(root: Path, scale: Scale, *, pause_s: float = 2.0) -> Result:
 
 def _mutations(rng: Any, valid: bytes) -> list[tuple[str, bytes]]:
     """Kinds of broken payloads, each derived from a valid batch or made from scratch."""
-    head = struct.Struct("<4sHHI")
+    head = wire.BATCH_HEAD
     magic, ver, mlen, n = head.unpack_from(valid, 0)
     meta = valid[head.size:head.size + mlen]
     body = valid[head.size + mlen:]

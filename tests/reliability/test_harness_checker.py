@@ -12,9 +12,9 @@ from sensor_agent.spool import Spool
 
 
 def _run_dir(tmp_path: Path, files: dict[str, str]) -> Path:
-    (tmp_path / "rssi").mkdir()
+    (tmp_path / "rssi" / "pi-01").mkdir(parents=True)
     for sensor, text in files.items():
-        (tmp_path / "rssi" / f"{sensor}.mbd").write_text(text, encoding="utf-8")
+        (tmp_path / "rssi" / "pi-01" / f"{sensor}.mbd").write_text(text, encoding="utf-8")
     return tmp_path
 
 

@@ -5,18 +5,33 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import typer
 from rich.console import Console
 from rich.markup import escape
+from rich.progress import Progress, TaskID
 
 from annotator.errors import AnnotatorError
 from ble_groundtruth.formats.devices import SiteConfigError
+from ble_groundtruth.formats.hst import HstError
 from ble_groundtruth.formats.markers import MarkerMapError
 from ble_groundtruth.formats.mbd import MbdError
+from ble_groundtruth.formats.occ import GridFormatError
+from ble_groundtruth.safe_yaml import YamlError
 
 console = Console(stderr=True)
-KNOWN_ERRORS = (AnnotatorError, MarkerMapError, MbdError, SiteConfigError, FileNotFoundError)
+# The errors that mean "bad input": each carries one line naming the file and the field or line.
+KNOWN_ERRORS = (AnnotatorError, MarkerMapError, MbdError, SiteConfigError, HstError, GridFormatError,
+                YamlError, FileNotFoundError)
+# A message is cut to this many characters: a bad value quoted in it must not flood the terminal.
+MAX_MESSAGE = 400
+
+
+def one_line(message: str) -> str:
+    """Whitespace (newlines included) collapsed and the length capped: one terminal line's worth."""
+    text = " ".join(message.split())
+    return text if len(text) <= MAX_MESSAGE else text[: MAX_MESSAGE - 1] + "…"
 
 
 @contextmanager
@@ -27,8 +42,43 @@ def one_line_errors() -> Iterator[None]:
     except KNOWN_ERRORS as e:
         # escape: messages quote formats like "[x, y]" that rich would eat as markup;
         # soft_wrap: one line however narrow the terminal.
-        console.print(f"[red]error:[/red] {escape(str(e))}", highlight=False, soft_wrap=True)
+        console.print(f"[red]error:[/red] {escape(one_line(str(e)))}", highlight=False, soft_wrap=True)
         raise typer.Exit(1) from None
+
+
+class LazyProgress:
+    """A rich Progress that appears only when the first task is added, so an input error found
+    before any work starts is printed alone, not after an empty or half-drawn progress display.
+    A transient one (erased when done) is not shown at all off a terminal, where it could only
+    leave a stray blank line before the result or the error."""
+
+    def __init__(self, *columns: Any, **kwargs: Any) -> None:
+        kwargs = {"console": console, **kwargs}
+        if kwargs.get("transient") and not kwargs["console"].is_terminal:
+            kwargs["disable"] = True
+        self._columns, self._kwargs = columns, kwargs
+        self._bar: Progress | None = None
+
+    def __enter__(self) -> LazyProgress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._bar is not None:
+            self._bar.stop()
+
+    def add_task(self, description: str, **kwargs: Any) -> TaskID:
+        if self._bar is None:
+            self._bar = Progress(*self._columns, **self._kwargs)
+            self._bar.start()
+        return self._bar.add_task(description, **kwargs)
+
+    def update(self, task: TaskID, **kwargs: Any) -> None:
+        if self._bar is not None:
+            self._bar.update(task, **kwargs)
+
+    def advance(self, task: TaskID, advance: float = 1) -> None:
+        if self._bar is not None:
+            self._bar.advance(task, advance)
 
 
 def default_jobs() -> int:

@@ -16,14 +16,12 @@ from annotator.errors import ConfigError
 
 def load_waypoints(path: Path) -> np.ndarray:
     """PATH.yaml: ``waypoints: [[x, y], ...]`` (at least two); ConfigError names what is wrong."""
-    import yaml
+    from ble_groundtruth.safe_yaml import YamlError, load_file
 
     try:
-        obj = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise ConfigError(f"cannot read path {path}: {e.strerror}") from None
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML ({e})") from None
+        obj = load_file(path)
+    except YamlError as e:
+        raise ConfigError(f"path: {e}") from None
     wp = obj.get("waypoints") if isinstance(obj, dict) else None
     try:
         arr = np.array(wp, dtype=float)

@@ -6,9 +6,8 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.progress import Progress
 
-from annotator.commands._common import console, one_line_errors
+from annotator.commands._common import LazyProgress, console, one_line_errors
 from annotator.commands._format_errors import format_errors
 from annotator.errors import ConfigError
 
@@ -59,7 +58,7 @@ def fingerprints(
         sources = list(from_annotated or paths or [])
         files = (radio_data.annotated_files(sources) if from_annotated
                  else [f for f, _, _ in radio_data.stationary_files(sources)])
-        with Progress(console=console, transient=True) as bar:
+        with LazyProgress(console=console, transient=True) as bar:
             task = bar.add_task("reading recordings", total=len(files))
 
             def advance(n: int) -> None:

@@ -6,9 +6,8 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.progress import Progress
 
-from annotator.commands._common import console, one_line_errors
+from annotator.commands._common import LazyProgress, console, one_line_errors
 from annotator.commands._format_errors import format_errors
 from annotator.errors import ConfigError
 
@@ -58,7 +57,7 @@ def radiomap(
             raise ConfigError(f"--free-value must be 0 or 1, got {free_value}")
         grid = radio_data.make_grid(h, cell, occ, site, free_value=free_value)
         n_sensors = len({s for v in h.fingerprints.values() for s in v})
-        with Progress(console=console, transient=True) as bar:
+        with LazyProgress(console=console, transient=True) as bar:
             task = bar.add_task("interpolating", total=n_sensors)
 
             def advance(n: int) -> None:

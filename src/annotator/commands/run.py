@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
 
-from annotator.commands._common import console, default_jobs, one_line_errors
+from annotator.commands._common import LazyProgress, console, default_jobs, one_line_errors
 from annotator.errors import ConfigError
 
 
@@ -25,6 +25,9 @@ def run(
     beacon: Annotated[str | None, typer.Option(
         help="MAC of the bundle's beacon (default: sync.beacon, else the most often heard one).")] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write the PNG plots.")] = True,
+    refine: Annotated[str | None, typer.Option(
+        help="none | map | all: self-calibration, as in `annotator track`; writes DIR/refined/ and "
+             "report.json's refinement section.", show_default="experiment.yaml's refine.mode, else all")] = None,
 ) -> None:
     """Write DIR/trajectory.csv, DIR/annotated/<sensor>.mbd + all_sensors.mbd (the dataset's trk
     rows), DIR/annotated.parquet (plus quality columns), DIR/report.json and plots.
@@ -37,6 +40,8 @@ def run(
         from annotator.pipeline import RunSettings, TrackSettings, run_experiment
         from ble_groundtruth.wire import normalize_mac
 
+        if refine is not None and refine not in ("none", "map", "all"):
+            raise ConfigError(f"--refine must be none, map or all, not {refine!r}")
         if method not in ("rig", "paper"):
             raise ConfigError(f"--method must be 'rig' or 'paper', not {method!r}")
         jobs = default_jobs() if jobs is None else jobs
@@ -49,11 +54,14 @@ def run(
             except ValueError:
                 raise ConfigError(f"--beacon {beacon!r} is not a MAC address") from None
         exp = load_experiment(experiment)
-        settings = RunSettings(track=TrackSettings(method=method, jobs=jobs), max_gap=max_gap,
+        settings = RunSettings(track=TrackSettings(method=method, jobs=jobs,
+                                                         refine=refine or exp.priors.mode), max_gap=max_gap,
                                beacon=mac, plots=plots)
-        with Progress(TextColumn("{task.description:>12}"), BarColumn(),
-                      TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn(),
-                      console=console) as bar:
+        # Lazy: the bars appear with the first frame, so an error in the RSSI files (read
+        # first) is printed alone.
+        with LazyProgress(TextColumn("{task.description:>12}"), BarColumn(),
+                          TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn(),
+                          console=console) as bar:
             tasks: dict[str, int] = {}
 
             def progress(name: str, done: int, total: int) -> None:

@@ -8,14 +8,26 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 
-from annotator.commands._common import default_jobs, one_line_errors
+from annotator.commands._common import LazyProgress, default_jobs, one_line_errors
 
 
 class Method(StrEnum):
     rig = "rig"
     paper = "paper"
+
+
+class Refine(StrEnum):
+    none = "none"
+    map = "map"
+    all = "all"
+
+
+REFINE_HELP = ("rig: self-calibration from the video after a first pass (bundle adjustment over keyframes, "
+               "priors from experiment.yaml's refine: section). map: the marker map (and markers the survey "
+               "skipped); all: also the rig, the intrinsics and distortion, the rolling-shutter readout. "
+               "none: the files as given.")
 
 
 class CornerRefine(StrEnum):
@@ -47,6 +59,8 @@ def track(
              "this is ~2x slower detection for ~1-2 % more markers.")] = False,
     joint: Annotated[bool, typer.Option(
         help="rig: solve near-simultaneous frames of all cameras jointly (motion-compensated).")] = True,
+    refine: Annotated[Refine | None, typer.Option(help=REFINE_HELP, show_default="experiment.yaml's refine.mode, "
+                                                  "else all")] = None,
     max_frames: Annotated[int | None, typer.Option(help="Stop each video after this many frames.")] = None,
     batch_frames: Annotated[int, typer.Option(
         help="paper: F, frames per batch, counted over all cameras in time order "
@@ -63,7 +77,7 @@ def track(
     """
     from annotator.errors import ConfigError
     from annotator.experiment import load_experiment
-    from annotator.pipeline import TrackSettings, track_experiment
+    from annotator.pipeline import TrackSettings, track
     from annotator.trajectory_io import write_trajectory
     from annotator.vision.detection import DetectorSettings
     from annotator.vision.paper import PaperSettings
@@ -81,24 +95,52 @@ def track(
         exp = load_experiment(experiment)
         settings = TrackSettings(
             method=method.value, jobs=jobs, joint=joint, max_frames=max_frames,
+            refine=refine.value if refine is not None else exp.priors.mode,
             detector=DetectorSettings(dictionary=exp.markers.dictionary, corner_refine=corner_refine.value,
                                       downscale=downscale, board_refine=board_refine,
                                       threshold_windows=(3, 23, 10) if thorough_detect else (7, 7, 10)),
             paper=PaperSettings(frames=batch_frames, close=close, keep=keep, q=q, process=process_noise))
-        with Progress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn(),
-                      TimeRemainingColumn(), console=console) as bar:
-            tasks = {name: bar.add_task(name, total=None) for name in exp.videos}
+        # Lazy: no bars until a video reports its first frames.
+        with LazyProgress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn(),
+                          TimeRemainingColumn(), console=console) as bar:
+            tasks: dict[str, int] = {}
 
             def report(name: str, done: int, total: int) -> None:
+                if not tasks:
+                    tasks.update({n: bar.add_task(n, total=None) for n in exp.videos})
                 bar.update(tasks[name], completed=done, total=max(total, done))
 
-            traj = track_experiment(exp, settings, report)
+            result = track(exp, settings, report)
+        traj = result.trajectory
         out.mkdir(parents=True, exist_ok=True)
         path = out / "trajectory.csv"
         write_trajectory(path, traj)
+        if result.refinement is not None:
+            _report_refinement(out, result.refinement, console)
         n_ok = int(traj.valid.sum())
         console.print(f"wrote {path}: {len(traj)} rows, {n_ok} with a pose "
                       f"({100 * n_ok / max(len(traj), 1):.0f} %), method {method.value}", highlight=False)
+
+
+def _report_refinement(out: Path, refinement: object, console: Console) -> None:
+    """refined/ (map, rig, calibrations, refinement.json) and a few lines on the console."""
+    import json
+    import math
+
+    from annotator.refine import write_refined
+
+    write_refined(out / "refined", refinement)
+    rep = refinement.report
+    (out / "refined" / "refinement.json").write_text(json.dumps(rep, indent=1), encoding="utf-8")
+    for name, cam in rep["cameras"].items():
+        console.print(f"refine {name}: reprojection {cam['rms_px_before']:.2f} -> {cam['rms_px_after']:.2f} px, "
+                      f"focal {100 * cam['focal_change_rel'][0]:+.2f} %, readout {1000 * cam['readout_s']:.1f} ms",
+                      highlight=False)
+    if rep["markers_mapped"]:
+        console.print(f"refine: mapped markers {rep['markers_mapped']} from the video", highlight=False)
+    for m in rep["markers_moved"]:
+        console.print(f"refine: marker {m['id']} is {100 * math.hypot(*m['offset_m']):.1f} cm from its "
+                      f"survey: moved since the survey?", style="yellow", highlight=False)
 
 
 def register(app: typer.Typer) -> None:

@@ -324,12 +324,12 @@ def write_experiment_files(
     record = perturbation_record({**(settings or {}), **asdict(errors), "readout_s": float(readout)},
                                  markers, written_markers, cameras, written_cams, true_rig, written_rig,
                                  readout, written_readout)
-    import yaml
+    from ble_groundtruth.safe_yaml import dump
 
     text = ("# What `annotator simulate` changed in the files handed to the annotator: true vs written\n"
             "# values (offsets are written - true; rotation offsets are rotation vectors, degrees, taking\n"
             "# the true orientation to the written one, world frame for markers, bundle frame for the rig).\n")
-    (out / "perturbation.yaml").write_text(text + yaml.safe_dump(record, sort_keys=False), encoding="utf-8")
+    (out / "perturbation.yaml").write_text(text + dump(record, sort_keys=False), encoding="utf-8")
     return record
 
 

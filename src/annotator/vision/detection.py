@@ -41,6 +41,8 @@ class DetectorSettings:
     # Board refinement only on frames with fewer than this many known markers (0 = every frame):
     # where several are found, one more adds little, and the search costs as much as a detection.
     board_refine_below: int = 4
+    # Keep markers of the dictionary that are not in the map (the refinement maps them from video).
+    keep_unknown: bool = False
 
 
 AUTO_MAX_WIDTH = 1280
@@ -109,7 +111,8 @@ class MarkerDetector:
                 return Detections.empty()
             corners, ids = (), np.zeros((0, 1), dtype=np.int32)
         ids = ids.reshape(-1)
-        keep = self.room.index(ids) >= 0  # ids not in the map are someone else's markers
+        # Ids not in the map are someone else's markers, or ones the surveyor skipped (keep_unknown).
+        keep = (self.room.index(ids) >= 0) | self.settings.keep_unknown
         corners = [c for c, k in zip(corners, keep, strict=True) if k]
         ids = ids[keep].reshape(-1, 1).astype(np.int32)
         few = self.settings.board_refine_below <= 0 or len(ids) < self.settings.board_refine_below

@@ -56,14 +56,44 @@ class BundlePose:
 
 
 def observe(det: Detections, room: MarkerRoom, cal: CameraCalibration, R_bc: np.ndarray,
-            t_bc: np.ndarray) -> CameraObservation:
-    """Undistort one frame's detections and attach their world corners."""
+            t_bc: np.ndarray, motion: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+            ) -> CameraObservation:
+    """Undistort one frame's detections and attach their world corners.
+
+    With a rolling shutter (``cal.readout_s`` > 0) and the bundle's ``motion`` at the frame time,
+    (R_wb, p_wb, angular velocity, velocity; world frame), each corner is seen at frame time +
+    readout x row / height. Its world point is moved so that the bundle pose at the frame time sees
+    it where the bundle pose at its own time saw the real corner: every solver downstream stays a
+    global-shutter solver.
+    """
     idx = room.index(det.ids)
     keep = idx >= 0
     ids, corners, idx = det.ids[keep], det.corners[keep], idx[keep]
+    if cal.corner_bias_px and len(ids):
+        # The detector's corner bias (estimated by the refinement): move each corner back along
+        # its square's diagonal.
+        d = corners - corners.mean(axis=1, keepdims=True)
+        corners = corners - cal.corner_bias_px * d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-9)
     xn = undistort_points(cal, corners.reshape(-1, 4, 2)) if len(ids) else np.zeros((0, 4, 2))
     focal = float(np.sqrt(cal.camera_matrix[0, 0] * cal.camera_matrix[1, 1]))
-    return CameraObservation(ids, xn, room.corners_world[idx], R_bc, t_bc, focal)
+    world = room.corners_world[idx]
+    if motion is not None and cal.readout_s > 0 and len(ids):
+        world = rolling_shutter_points(world, corners, cal, *motion)
+    return CameraObservation(ids, xn, world, R_bc, t_bc, focal)
+
+
+def rolling_shutter_points(world: np.ndarray, pixels: np.ndarray, cal: CameraCalibration, R_wb: np.ndarray,
+                           p_wb: np.ndarray, omega: np.ndarray, vel: np.ndarray) -> np.ndarray:
+    """World points (..., 3) moved by the bundle's motion over each pixel's readout delay.
+
+    Bundle at t + tau: R(tau) = exp(omega tau) R_wb, p(tau) = p_wb + vel tau. A point X seen at
+    t + tau lands where X' = p + exp(-omega tau) (X - p - vel tau) lands at t.
+    """
+    tau = cal.readout_s * pixels[..., 1].reshape(-1) / cal.height
+    X = world.reshape(-1, 3)
+    back = Rotation.from_rotvec(-tau[:, None] * np.asarray(omega)[None, :])
+    moved = p_wb + back.apply(X - p_wb - tau[:, None] * np.asarray(vel)[None, :])
+    return moved.reshape(world.shape)
 
 
 def _subset(obs: CameraObservation, keep: np.ndarray) -> CameraObservation:

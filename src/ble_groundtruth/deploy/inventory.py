@@ -79,15 +79,13 @@ def _groups(
 
 def load_inventory(path: str | Path) -> Fleet:
     """Parse ``path``; raises InventoryError with the file and field for anything wrong."""
-    import yaml
+    from ble_groundtruth.safe_yaml import YamlError, load_file
 
     p = Path(path)
     try:
-        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise InventoryError(f"{p}: cannot read inventory: {e.strerror or e}") from e
-    except yaml.YAMLError as e:
-        raise InventoryError(f"{p}: not valid YAML: {str(e).splitlines()[0]}") from e
+        doc = load_file(p)
+    except YamlError as e:
+        raise InventoryError(f"inventory: {e}") from None
     root = _mapping(_mapping(doc, str(p)).get("all"), f"{p}: all")
     if not root:
         raise InventoryError(f"{p}: expected a YAML inventory with a top-level 'all:' group")

@@ -6,6 +6,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from ble_groundtruth.formats._textio import finite, json_loads, read_text
 from ble_groundtruth.wire import WireError, normalize_mac
 
 
@@ -40,10 +41,10 @@ def _devices(obj: object, what: str) -> dict[str, Device]:
     for mac, spec in obj.items():
         try:
             pos, colour, alias = spec
-            out[normalize_mac(mac)] = Device(normalize_mac(mac), tuple(float(v) for v in pos),
-                                             int(colour), str(alias))
-        except (TypeError, ValueError, WireError) as e:
-            raise SiteConfigError(f"{what} entry {mac!r}: expected [[x, y, z], colour, alias] ({e})") from None
+            position = tuple(finite(v, "position") for v in pos)
+            out[normalize_mac(mac)] = Device(normalize_mac(mac), position, int(colour), str(alias))
+        except (TypeError, ValueError, WireError, OverflowError) as e:
+            raise SiteConfigError(f"{what} entry {mac!r:.40}: expected [[x, y, z], colour, alias] ({e})") from None
     return out
 
 
@@ -56,9 +57,9 @@ def parse_dev(text: str, source: str = "<dev>") -> Devices:
         if not sep:
             raise SiteConfigError(f"{source}:{lineno}: expected 'Key:JSON'")
         try:
-            fields[key.strip()] = json.loads(value)
+            fields[key.strip()] = json_loads(value)
         except ValueError as e:
-            raise SiteConfigError(f"{source}:{lineno}: {key.strip()} is not valid JSON ({e})") from None
+            raise SiteConfigError(f"{source}:{lineno}: {key.strip()[:40]} is not valid JSON ({e})") from None
     if "Dongles" not in fields:
         raise SiteConfigError(f"{source}: no 'Dongles:' line")
     return Devices(_devices(fields["Dongles"], f"{source}: Dongles"),
@@ -67,7 +68,7 @@ def parse_dev(text: str, source: str = "<dev>") -> Devices:
 
 def read_dev(path: str | Path) -> Devices:
     path = Path(path)
-    return parse_dev(path.read_text(encoding="utf-8"), str(path))
+    return parse_dev(read_text(path, SiteConfigError, "devices file"), str(path))
 
 
 def _device_json(d: Device) -> str:
@@ -97,16 +98,23 @@ class MapParams:
 
 def parse_par(text: str, source: str = "<par>") -> MapParams:
     try:
-        d = json.loads(text)
-        return MapParams(tuple(float(v) for v in d["origin"]), tuple(float(v) for v in d["limits"]),
-                         tuple(int(v) for v in d["direction"]), float(d["parity"]))
-    except (ValueError, KeyError, TypeError) as e:
+        d = json_loads(text)
+        ox, oy = (finite(v, "origin") for v in d["origin"])
+        x0, y0, x1, y1 = (finite(v, "limits") for v in d["limits"])
+        a, b, sx, sy = (int(v) for v in d["direction"])
+        p = MapParams((ox, oy), (x0, y0, x1, y1), (a, b, sx, sy), finite(d["parity"], "parity"))
+    except (ValueError, KeyError, TypeError, OverflowError) as e:
         raise SiteConfigError(f"{source}: expected origin, limits, direction, parity ({e})") from None
+    if (len(p.origin) != 2 or len(p.limits) != 4 or len(p.direction) != 4 or not p.parity > 0
+            or not set(p.direction[:2]) <= {0, 1}):
+        raise SiteConfigError(f"{source}: expected origin [u, v], limits [x0, y0, x1, y1], "
+                              "direction [a, b, sx, sy] (a, b: 0 or 1) and parity > 0")
+    return p
 
 
 def read_par(path: str | Path) -> MapParams:
     path = Path(path)
-    return parse_par(path.read_text(encoding="utf-8"), str(path))
+    return parse_par(read_text(path, SiteConfigError, "map parameters"), str(path))
 
 
 def format_par(p: MapParams) -> str:

@@ -1,14 +1,18 @@
 """`.grd` radio-map grids: one sensor's RSSI histogram for every grid cell and beacon.
-Standard library only; see docs/formats.md."""
+Standard library only; see docs/formats.md.
+
+The published files carry one value per bin *edge* (``len(bins)`` values, e.g. 81 for the edges
+-100..-20 dBm), the last always 0: the probabilities of the ``len(bins) - 1`` bins followed by a
+0 for "above the last edge". We write them that way, so loaders written for the published files
+read ours, and read either spelling (``len(bins)`` or ``len(bins) - 1`` values). In memory a
+histogram always has ``len(bins) - 1`` entries."""
 
 from __future__ import annotations
 
-import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from ble_groundtruth.formats._textio import write_text_atomic
+from ble_groundtruth.formats._textio import finite, json_loads, read_text, write_text_atomic
 from ble_groundtruth.formats.hst import check_edges
 from ble_groundtruth.formats.occ import (
     Cell,
@@ -35,14 +39,23 @@ class RadioMapGrid:
 
 
 def _floats(text: str, n: int | None, what: str) -> tuple[float, ...]:
-    v = json.loads(text)
+    v = json_loads(text)
     if not isinstance(v, list) or (n is not None and len(v) != n):
         raise ValueError(f"{what}: expected a list of {n if n is not None else 'numbers'}, "
                          f"got {len(v) if isinstance(v, list) else type(v).__name__}")
-    out = tuple(float(x) for x in v)
-    if not all(math.isfinite(x) for x in out):
-        raise ValueError(f"{what}: values must be finite")
-    return out
+    return tuple(finite(x, what) for x in v)
+
+
+def _histogram(text: str, n_edges: int) -> tuple[float, ...]:
+    v = _floats(text, None, "histogram")
+    if len(v) == n_edges:
+        if v[-1] != 0.0:
+            raise ValueError(f"the value after the last bin (number {n_edges}) must be 0, got {v[-1]}")
+        return v[:-1]
+    if len(v) != n_edges - 1:
+        raise ValueError(f"histogram: expected {n_edges} values (one per bin edge, the last 0) or "
+                         f"{n_edges - 1}, got {len(v)}")
+    return v
 
 
 def parse_grd(text: str, source: str = "<grd>") -> RadioMapGrid:
@@ -53,9 +66,9 @@ def parse_grd(text: str, source: str = "<grd>") -> RadioMapGrid:
     try:
         mac, lim_text, cell_text, bins_text = lines[header_no].split("::")
         sensor, limits, cell = normalize_mac(mac), parse_limits(lim_text), float(cell_text)
-        bins = check_edges(json.loads(bins_text))
+        bins = check_edges(json_loads(bins_text))
         cell = check_cell(cell)
-    except (ValueError, TypeError, WireError) as e:
+    except (ValueError, TypeError, WireError, OverflowError) as e:
         raise GridFormatError(f"{source}:{header_no + 1}: expected "
                               f"'<sensor>::[[x0, y0], [x1, y1]]::<cell>::[bins]' ({e})") from None
     cells: dict[Cell, dict[str, tuple[float, ...]]] = {}
@@ -66,7 +79,7 @@ def parse_grd(text: str, source: str = "<grd>") -> RadioMapGrid:
             key_text, beacon, hist_text = line.split("::")
             key = parse_cell_key(key_text)
             beacon = normalize_mac(beacon)
-            hist = _floats(hist_text, len(bins) - 1, "histogram")
+            hist = _histogram(hist_text, len(bins))
         except (ValueError, TypeError, WireError) as e:
             raise GridFormatError(f"{source}:{lineno}: expected '[gx, gy]::<beacon>::[p, ...]' ({e})") from None
         per_cell = cells.setdefault(key, {})
@@ -78,11 +91,7 @@ def parse_grd(text: str, source: str = "<grd>") -> RadioMapGrid:
 
 def read_grd(path: str | Path) -> RadioMapGrid:
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise GridFormatError(f"cannot read {path}: {e.strerror}") from None
-    return parse_grd(text, str(path))
+    return parse_grd(read_text(path, GridFormatError), str(path))
 
 
 def format_grd(g: RadioMapGrid) -> str:
@@ -91,7 +100,9 @@ def format_grd(g: RadioMapGrid) -> str:
     for c, beacons in g.cells.items():
         key = format_cell_key(c)
         for beacon, hist in beacons.items():
-            out.append(f"{key}::{beacon}::[{', '.join(repr(float(p)) for p in hist)}]\n")
+            # one value per bin edge, as the published files: the bins' probabilities, then 0.0
+            values = ", ".join(repr(float(p)) for p in (*hist, 0.0))
+            out.append(f"{key}::{beacon}::[{values}]\n")
     return "".join(out)
 
 

@@ -6,11 +6,12 @@ from __future__ import annotations
 import ast
 import json
 import math
+import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from ble_groundtruth.formats._textio import write_text_atomic
+from ble_groundtruth.formats._textio import check_nesting, read_text, write_text_atomic
 from ble_groundtruth.formats.devices import (
     Devices,
     SiteConfigError,
@@ -37,13 +38,6 @@ class FingerprintHistograms:
     fingerprints: FingerprintTable
 
 
-def bins_from_range(lo: int, hi: int) -> tuple[float, ...]:
-    """Edges ``lo, lo+1, ..., hi`` (one bin per integer dBm, the last one closed at ``hi``)."""
-    if hi <= lo:
-        raise ValueError(f"empty bin range {lo}:{hi}")
-    return tuple(float(v) for v in range(lo, hi + 1))
-
-
 def check_edges(obj: object) -> tuple[float, ...]:
     """Bin edges as floats; ValueError unless at least two, finite and strictly increasing."""
     if not isinstance(obj, list | tuple) or len(obj) < 2:
@@ -60,17 +54,25 @@ def position_key(pos: Iterable[float]) -> str:
     return str(tuple(float(v) for v in pos))
 
 
+_NUM = r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*"
+# '(x, y, z)' (or '[x, y, z]'): three plain numbers, one level of brackets and nothing else.
+_POSITION_KEY = re.compile(rf"^\s*[(\[]{_NUM},{_NUM},{_NUM},?\s*[)\]]\s*$")
+
+
 def parse_position_key(key: str) -> Position:
-    try:
-        value = ast.literal_eval(key)
-        x, y, z = (float(v) for v in value)
-    except (ValueError, TypeError, SyntaxError):
-        raise ValueError(f"position key {key!r} is not '(x, y, z)'") from None
+    m = _POSITION_KEY.match(key) if len(key) <= 200 else None
+    if m is None:
+        raise ValueError(f"position key {key[:60]!r} is not '(x, y, z)'")
+    x, y, z = (float(v) for v in m.groups())
+    if not all(math.isfinite(v) for v in (x, y, z)):
+        raise ValueError(f"position key {key[:60]!r}: coordinates must be finite")
     return (x, y, z)
 
 
 def _decode(value: str) -> object:
     # The published files are valid JSON (fast to parse); Python-literal spellings are accepted too.
+    # Nesting is checked first: no input can reach a RecursionError.
+    check_nesting(value)
     try:
         return json.loads(value)
     except ValueError:
@@ -118,35 +120,38 @@ def parse_hst(text: str, source: str = "<hst>") -> FingerprintHistograms:
             raise HstError(f"{source}:{lineno}: expected 'Key:<literal>'")
         try:
             fields[key.strip()] = (lineno, _decode(value))
-        except (ValueError, SyntaxError, MemoryError, RecursionError):
-            raise HstError(f"{source}:{lineno}: {key.strip()} is not a valid literal") from None
+        except ValueError as e:
+            if str(e).startswith("nested deeper"):
+                raise HstError(f"{source}:{lineno}: {key.strip()[:40]}: {e}") from None
+            raise HstError(f"{source}:{lineno}: {key.strip()[:40]} is not a valid literal") from None
+        except (SyntaxError, MemoryError, RecursionError, TypeError):
+            raise HstError(f"{source}:{lineno}: {key.strip()[:40]} is not a valid literal") from None
     for required in ("Bins", "Dongles", "Fingerprints"):
         if required not in fields:
             raise HstError(f"{source}: no '{required}:' line")
     lineno, bins_obj = fields["Bins"]
     try:
         bins = check_edges(bins_obj)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise HstError(f"{source}:{lineno}: Bins: {e}") from None
-    try:
-        devices = devices_from_obj(fields["Dongles"][1], fields.get("Beacons", (0, {}))[1], source)
+    d_line, dongles = fields["Dongles"]
+    b_line, beacons = fields.get("Beacons", (d_line, {}))
+    try:  # each part checked on its own, so the message names its line
+        devices = Devices(devices_from_obj(dongles, {}, f"{source}:{d_line}").dongles,
+                          devices_from_obj({}, beacons, f"{source}:{b_line}").beacons)
     except SiteConfigError as e:
         raise HstError(str(e)) from None
     lineno, fp_obj = fields["Fingerprints"]
     try:
         table = _fingerprints(fp_obj, len(bins) - 1)
-    except (ValueError, TypeError, WireError) as e:
+    except (ValueError, TypeError, WireError, OverflowError) as e:
         raise HstError(f"{source}:{lineno}: Fingerprints: {e}") from None
     return FingerprintHistograms(bins, devices, table)
 
 
 def read_hst(path: str | Path) -> FingerprintHistograms:
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise HstError(f"cannot read {path}: {e.strerror}") from None
-    return parse_hst(text, str(path))
+    return parse_hst(read_text(path, HstError), str(path))
 
 
 def format_hst(h: FingerprintHistograms) -> str:

@@ -6,11 +6,11 @@ Standard library only: rotations are returned as nested lists; the annotator con
 
 from __future__ import annotations
 
-import json
-import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
+
+from ble_groundtruth.formats._textio import finite, json_loads, read_text
 
 
 class MarkerMapError(ValueError):
@@ -23,25 +23,37 @@ class MarkerPose:
     position: tuple[float, float, float]  # marker centre, world frame, metres
     euler_xyz: tuple[float, float, float]  # rx, ry, rz radians (R = Rz Ry Rx)
 
-    def rotation(self) -> list[list[float]]:
-        """3x3 marker->world rotation as nested lists."""
-        rx, ry, rz = self.euler_xyz
-        cx, sx, cy, sy, cz, sz = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry), math.cos(rz), math.sin(rz)
-        return [
-            [cz * cy, cz * sy * sx - sz * cx, cz * sy * cx + sz * sx],
-            [sz * cy, sz * sy * sx + cz * cx, sz * sy * cx - cz * sx],
-            [-sy, cy * sx, cy * cx],
-        ]
-
 
 _LINE = re.compile(r"^\s*(\d+)\s*:\s*(\[[^\]]*\])\s*:\s*(\[[^\]]*\])\s*$")
+# Marker ids the map may name: ArUco dictionaries hold at most 1,000 markers (AprilTag 36h11: 587).
+MAX_MARKER_ID = 9999
+# |coordinate| limit, metres: a room, not the solar system (also keeps squares finite).
+MAX_COORDINATE_M = 1e5
 
 
-def _triple(text: str, what: str) -> tuple[float, float, float]:
-    v = json.loads(text)
-    if not (isinstance(v, list) and len(v) == 3 and all(isinstance(a, int | float) for a in v)):
+def _marker_id(value: object) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | str):
+        raise ValueError(f"marker id must be an integer, not {value!r:.40}")  # noqa: TRY004
+    text = str(value).strip()
+    if not (text.isascii() and text.isdigit()) or len(text) > 12 or int(text) > MAX_MARKER_ID:
+        raise ValueError(f"marker id {text[:24]!r} is not an integer in 0..{MAX_MARKER_ID}")
+    return int(text)
+
+
+def _triple(value: object, what: str, limit: float) -> tuple[float, float, float]:
+    if isinstance(value, str):
+        value = json_loads(value)
+    if not (isinstance(value, list) and len(value) == 3):
         raise ValueError(f"{what} must be three numbers")
-    return (float(v[0]), float(v[1]), float(v[2]))
+    out = tuple(finite(a, what) for a in value)
+    if any(abs(a) > limit for a in out):
+        raise ValueError(f"{what} {list(out)}: values beyond ±{limit:g}")
+    return out  # type: ignore[return-value]
+
+
+def _pose(mid: int, position: object, rotation: object, rotation_name: str) -> MarkerPose:
+    return MarkerPose(mid, _triple(position, "position", MAX_COORDINATE_M),
+                      _triple(rotation, rotation_name, 1e6))
 
 
 def parse_dat(text: str, source: str = "<markers>") -> dict[int, MarkerPose]:
@@ -53,8 +65,8 @@ def parse_dat(text: str, source: str = "<markers>") -> dict[int, MarkerPose]:
         if not m:
             raise MarkerMapError(f"{source}:{lineno}: expected '<id>: [x, y, z]:[rx, ry, rz]'")
         try:
-            mid = int(m.group(1))
-            pose = MarkerPose(mid, _triple(m.group(2), "position"), _triple(m.group(3), "rotation"))
+            mid = _marker_id(m.group(1))
+            pose = _pose(mid, m.group(2), m.group(3), "rotation")
         except ValueError as e:
             raise MarkerMapError(f"{source}:{lineno}: {e}") from None
         if mid in out:
@@ -80,9 +92,8 @@ def parse_yaml_obj(obj: object, source: str = "<markers.yaml>") -> dict[int, Mar
     out: dict[int, MarkerPose] = {}
     for i, it in enumerate(items):
         try:
-            mid = int(it["id"])
-            pose = MarkerPose(mid, _triple(json.dumps(it["position"]), "position"),
-                              _triple(json.dumps(it["rotation_xyz"]), "rotation_xyz"))
+            mid = _marker_id(it["id"])
+            pose = _pose(mid, it["position"], it["rotation_xyz"], "rotation_xyz")
         except (KeyError, TypeError, ValueError) as e:
             raise MarkerMapError(f"{source}: markers[{i}]: needs id, position [x,y,z], rotation_xyz [rx,ry,rz] ({e})") from None
         if mid in out:
@@ -94,15 +105,11 @@ def parse_yaml_obj(obj: object, source: str = "<markers.yaml>") -> dict[int, Mar
 def read_marker_map(path: str | Path) -> dict[int, MarkerPose]:
     """Either form, chosen by extension (.yaml/.yml -> YAML, anything else -> .dat)."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise MarkerMapError(f"cannot read marker map {path}: {e.strerror}") from None
     if path.suffix.lower() in (".yaml", ".yml"):
-        import yaml
+        from ble_groundtruth.safe_yaml import YamlError, load_file
 
         try:
-            return parse_yaml_obj(yaml.safe_load(text), str(path))
-        except yaml.YAMLError as e:
-            raise MarkerMapError(f"{path}: not valid YAML ({e})") from None
-    return parse_dat(text, str(path))
+            return parse_yaml_obj(load_file(path), str(path))
+        except YamlError as e:
+            raise MarkerMapError(f"marker map: {e}") from None
+    return parse_dat(read_text(path, MarkerMapError, "marker map"), str(path))

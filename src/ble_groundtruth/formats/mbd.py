@@ -7,11 +7,18 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from ble_groundtruth.formats._textio import iter_lines
 from ble_groundtruth.wire import WireError, format_ts, normalize_mac, parse_ts
 
 
 class MbdError(ValueError):
     """A malformed mbd file; the message names the file and line."""
+
+
+# What a row may hold: an RSSI that fits the int8 of the wire format (plausibility, e.g. the
+# +42 dBm of a published file, is for the reader to judge) and a Unix time in 1970..2100.
+RSSI_LO, RSSI_HI = -128, 127
+T_NS_LO, T_NS_HI = 0, 4_102_444_800 * 10**9
 
 
 @dataclass(frozen=True, slots=True)
@@ -28,10 +35,17 @@ def parse_line(line: str) -> MbdRow:
     if len(parts) < 4:
         raise ValueError(f"expected at least 4 comma-separated fields, got {len(parts)}")
     try:
-        return MbdRow(parse_ts(parts[0]), normalize_mac(parts[1]), normalize_mac(parts[2]),
-                      int(parts[3]), tuple(p.strip() for p in parts[4:]))
+        row = MbdRow(parse_ts(parts[0]), normalize_mac(parts[1]), normalize_mac(parts[2]),
+                     int(parts[3]), tuple(p.strip() for p in parts[4:]))
     except WireError as e:
         raise ValueError(str(e)) from None
+    except ValueError:
+        raise ValueError(f"RSSI {parts[3].strip()[:40]!r} is not an integer") from None
+    if not T_NS_LO <= row.t_ns < T_NS_HI:
+        raise ValueError(f"timestamp {parts[0].strip()[:40]} is outside 1970..2100")
+    if not RSSI_LO <= row.rssi <= RSSI_HI:
+        raise ValueError(f"RSSI {row.rssi} is outside {RSSI_LO}..{RSSI_HI} dBm")
+    return row
 
 
 def format_row(t_ns: int, sensor: str, beacon: str, rssi: int) -> str:
@@ -42,14 +56,13 @@ def format_row(t_ns: int, sensor: str, beacon: str, rssi: int) -> str:
 def iter_rows(path: str | Path) -> Iterator[MbdRow]:
     """Rows of one file, in file order; blank lines skipped, anything else malformed is an error."""
     path = Path(path)
-    with path.open(encoding="utf-8") as f:
-        for lineno, line in enumerate(f, 1):
-            if not line.strip():
-                continue
-            try:
-                yield parse_line(line)
-            except ValueError as e:
-                raise MbdError(f"{path}:{lineno}: {e}") from None
+    for lineno, line in iter_lines(path, MbdError):
+        if not line.strip():
+            continue
+        try:
+            yield parse_line(line)
+        except ValueError as e:
+            raise MbdError(f"{path}:{lineno}: {e}") from None
 
 
 def read_rows(paths: Iterable[str | Path]) -> list[MbdRow]:
@@ -61,4 +74,3 @@ def read_rows(paths: Iterable[str | Path]) -> list[MbdRow]:
 
 TRACK_COLUMNS = ["ts", "sensor", "beacon", "rssi", "x", "y", "z",
                  "r11", "r12", "r13", "r21", "r22", "r23", "r31", "r32", "r33"]
-FINGERPRINT_COLUMNS = TRACK_COLUMNS[:4]

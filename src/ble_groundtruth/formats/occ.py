@@ -5,12 +5,11 @@ docs/formats.md."""
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from ble_groundtruth.formats._textio import write_text_atomic
+from ble_groundtruth.formats._textio import finite, json_loads, read_text, write_text_atomic
 
 Limits = tuple[tuple[float, float], tuple[float, float]]  # ((x0, y0), (x1, y1)) metres
 Cell = tuple[float, float]  # lower-left corner of a grid cell, metres
@@ -44,9 +43,9 @@ def grid_corners(limits: Limits, cell: float) -> tuple[list[float], list[float]]
 
 
 def parse_limits(text: str) -> Limits:
-    v = json.loads(text)
+    v = json_loads(text)
     (x0, y0), (x1, y1) = v
-    lim = ((float(x0), float(y0)), (float(x1), float(y1)))
+    lim = ((finite(x0, "x0"), finite(y0, "y0")), (finite(x1, "x1"), finite(y1, "y1")))
     if not (lim[1][0] > lim[0][0] and lim[1][1] > lim[0][1]):
         raise ValueError("limits must be [[x0, y0], [x1, y1]] with x1 > x0 and y1 > y0")
     return lim
@@ -58,10 +57,10 @@ def format_limits(limits: Limits) -> str:
 
 
 def parse_cell_key(text: str) -> Cell:
-    v = json.loads(text)
+    v = json_loads(text)
     if not (isinstance(v, list) and len(v) == 2):
         raise ValueError("expected [gx, gy]")
-    return (float(v[0]), float(v[1]))
+    return (finite(v[0], "gx"), finite(v[1], "gy"))
 
 
 def format_cell_key(c: Cell) -> str:
@@ -88,7 +87,7 @@ def parse_occ(text: str, source: str = "<occ>") -> Occupancy:
     try:
         lim_text, cell_text = lines[header_no].split("::")
         limits, cell = parse_limits(lim_text), check_cell(float(cell_text))
-    except (ValueError, TypeError) as e:
+    except (ValueError, TypeError, OverflowError) as e:
         raise GridFormatError(f"{source}:{header_no + 1}: expected '[[x0, y0], [x1, y1]]::<cell>' ({e})") from None
     cells: dict[Cell, int] = {}
     for lineno, line in enumerate(lines[header_no + 1:], header_no + 2):
@@ -107,11 +106,7 @@ def parse_occ(text: str, source: str = "<occ>") -> Occupancy:
 
 def read_occ(path: str | Path) -> Occupancy:
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise GridFormatError(f"cannot read {path}: {e.strerror}") from None
-    return parse_occ(text, str(path))
+    return parse_occ(read_text(path, GridFormatError), str(path))
 
 
 def format_occ(occ: Occupancy) -> str:

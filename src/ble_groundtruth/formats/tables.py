@@ -64,9 +64,13 @@ def load_mbd(paths: str | Path | Iterable[str | Path]) -> pd.DataFrame:
                     raise MbdError(f"{path}: row {n}: expected 4 or {len(TRACK_COLUMNS)} fields, "
                                    f"got {4 + len(row.rest)}")
                 try:
-                    poses.append(tuple(float(v) for v in row.rest))
+                    pose = tuple(float(v) for v in row.rest)
                 except ValueError:
                     raise MbdError(f"{path}: row {n}: pose fields must be numbers") from None
+                if not all(map(math.isfinite, pose)):
+                    # a track row always carries a pose (writers skip rows without one)
+                    raise MbdError(f"{path}: row {n}: pose fields must be finite numbers")
+                poses.append(pose)
                 any_pose = True
         except OSError as e:
             raise MbdError(f"cannot read {path}: {e.strerror}") from None
@@ -80,9 +84,9 @@ def load_mbd(paths: str | Path | Iterable[str | Path]) -> pd.DataFrame:
     })
     if any_pose:
         nan_row = (math.nan,) * len(POSE_COLUMNS)
-        pose = np.array([p if p is not None else nan_row for p in poses], dtype=float)
+        pose_arr = np.array([p if p is not None else nan_row for p in poses], dtype=float)
         for i, name in enumerate(POSE_COLUMNS):
-            df[name] = pose[:, i]
+            df[name] = pose_arr[:, i]
     return df
 
 

@@ -9,7 +9,6 @@ from ble_groundtruth.wire import Eddystone, IBeacon
 
 APPLE_COMPANY_ID = 0x004C
 IBEACON_PREFIX = b"\x02\x15"  # type 0x02, length 0x15 (21 bytes follow)
-EDDYSTONE_UUID16 = 0xFEAA
 EDDYSTONE_UUID128 = "0000feaa-0000-1000-8000-00805f9b34fb"
 
 _URL_SCHEMES = ("http://www.", "https://www.", "http://", "https://")

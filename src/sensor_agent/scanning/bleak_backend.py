@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from bleak import BleakScanner
-from bleak.args.bluez import OrPattern
+from bleak.args.bluez import BlueZScannerArgs, OrPattern
 from bleak.assigned_numbers import AdvertisementDataType
 from bleak.backends.device import BLEDevice
 from bleak.backends.scanner import AdvertisementData
@@ -25,7 +25,7 @@ from dbus_fast import BusType, Message, MessageType, Variant
 from dbus_fast.aio import MessageBus
 from dbus_fast.errors import DBusError
 
-from ble_groundtruth.wire import RSSI_MAX, RSSI_MIN, Reading, WireError, normalize_mac
+from ble_groundtruth.wire import Reading, WireError, normalize_mac
 from sensor_agent.errors import BackendError
 from sensor_agent.scanning.adverts import parse_eddystone, parse_ibeacon
 from sensor_agent.scanning.base import AdapterInfo, AdvertSink, Clocks, ScannerBackend
@@ -41,7 +41,7 @@ NO_BLUEZ = "D-Bus service org.bluez not found; is bluetoothd running?"
 # Passive scanning only reports advertisements matching a monitor pattern. Almost every LE
 # advertiser sends a Flags field; these three values cover general/limited discoverable and
 # LE-only devices (the same choice Home Assistant's scanner makes), plus Apple's iBeacon prefix.
-PASSIVE_OR_PATTERNS = [
+PASSIVE_OR_PATTERNS: list[OrPattern | tuple[int, AdvertisementDataType, bytes]] = [
     OrPattern(0, AdvertisementDataType.FLAGS, b"\x02"),
     OrPattern(0, AdvertisementDataType.FLAGS, b"\x06"),
     OrPattern(0, AdvertisementDataType.FLAGS, b"\x1a"),
@@ -143,13 +143,13 @@ class _AdapterScanner:
         self.silent_restarts = 0  # restarts since the last advertisement
 
     def _new_scanner(self) -> BleakScanner:
-        bluez: dict = {"adapter": self.adapter.name}
+        bluez: BlueZScannerArgs = {"adapter": self.adapter.name}
         if self.mode == "passive":
             bluez["or_patterns"] = PASSIVE_OR_PATTERNS
-        else:
-            # DuplicateData: report every advertisement, not only changes (one reading per advert).
-            bluez["filters"] = {"DuplicateData": True}
-        return BleakScanner(self.callback, None, self.mode, bluez=bluez)
+            return BleakScanner(self.callback, None, "passive", bluez=bluez)
+        # DuplicateData: report every advertisement, not only changes (one reading per advert).
+        bluez["filters"] = {"DuplicateData": True}
+        return BleakScanner(self.callback, None, "active", bluez=bluez)
 
     async def start(self) -> None:
         self.scanner = self._new_scanner()
@@ -232,8 +232,9 @@ class BleakBackend(ScannerBackend):
             beacon = normalize_mac(device.address)
         except WireError:
             return  # not a MAC-shaped address (should not happen with BlueZ)
-        rssi = max(RSSI_MIN, min(RSSI_MAX, int(adv.rssi)))
-        reading = Reading(t_ns, beacon, rssi, mono, parse_ibeacon(adv.manufacturer_data),
+        # Passed on as BlueZ reports it: the agent skips and counts an implausible value (BlueZ
+        # says 127 for "unknown") instead of a clamp turning it into a plausible-looking one.
+        reading = Reading(t_ns, beacon, int(adv.rssi), mono, parse_ibeacon(adv.manufacturer_data),
                           parse_eddystone(adv.service_data))
         if self._sink is not None:
             self._sink(s.adapter.address, reading)

@@ -34,8 +34,18 @@ class _Row(NamedTuple):
     rssi: int
 
 
-def _rows(path: Path) -> Iterator[_Row]:
-    """Rows of one file (extra columns dropped); raises BackendError naming file and line."""
+class _Skipped:
+    """Readings of one file left out for an implausible value: how many, and the first one."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.first = ""
+
+
+def _rows(path: Path, skipped: _Skipped | None = None) -> Iterator[_Row]:
+    """Rows of one file (extra columns dropped); a malformed line raises BackendError naming file
+    and line. A reading with an implausible RSSI (the dataset holds a +42 dBm) is skipped and
+    counted in ``skipped``: one absurd value must not stop the replay of all the others."""
     try:
         f = path.open(encoding="utf-8")
     except OSError as e:
@@ -49,7 +59,10 @@ def _rows(path: Path) -> Iterator[_Row]:
             except ValueError as e:
                 raise BackendError(f"{path}:{lineno}: {e}") from None
             if not RSSI_MIN <= r.rssi <= RSSI_MAX:
-                raise BackendError(f"{path}:{lineno}: RSSI {r.rssi} dBm out of range")
+                if skipped is not None:
+                    skipped.count += 1
+                    skipped.first = skipped.first or f"{path}:{lineno}: RSSI {r.rssi} dBm out of range"
+                continue
             yield _Row(r.t_ns, r.sensor, r.beacon, r.rssi)
 
 
@@ -71,6 +84,7 @@ class ReplayBackend(ScannerBackend):
         self.granule_s = granule_s
         self.rows_total = 0
         self.rows_delivered = 0
+        self.rows_skipped = 0  # implausible readings left out (see check)
         self._adapters: tuple[AdapterInfo, ...] = ()
         self._checked = False
         self._task: asyncio.Task[None] | None = None
@@ -84,21 +98,28 @@ class ReplayBackend(ScannerBackend):
         """Read every file once: validate all rows and learn the sensors (before anything is sent)."""
         sensors: dict[str, None] = {}
         total = 0
+        skipped_total = 0
         for p in self.paths:
             if not p.is_file():
                 raise BackendError(f"{p}: no such replay file")
-            for r in _rows(p):
+            skipped = _Skipped()
+            for r in _rows(p, skipped):
                 sensors.setdefault(r.sensor, None)
                 total += 1
                 if self.keep_time and not T_NS_MIN <= r.t_ns <= T_NS_MAX:
                     raise BackendError(f"{p}: timestamp {r.t_ns} ns is not a plausible Unix time "
                                        "(use shifted time, not --replay-keep-time)")
+            if skipped.count:
+                log.warning("replay: skipped %d implausible reading(s) of %s (first: %s); "
+                            "the rest are replayed", skipped.count, p.name, skipped.first)
+            skipped_total += skipped.count
         self.rows_total = total
+        self.rows_skipped = skipped_total
         self._checked = True
         self._adapters = tuple(AdapterInfo(f"replay-{mac}", mac, "replay", "replay")
                                for mac in sensors)
-        log.info("replay: %d rows from %d file(s), %d sensor(s)", total, len(self.paths),
-                 len(sensors))
+        log.info("replay: %d rows from %d file(s), %d sensor(s)%s", total, len(self.paths),
+                 len(sensors), f", {skipped_total} implausible skipped" if skipped_total else "")
 
     async def start(self, sink: AdvertSink) -> None:
         if not self._checked:
