@@ -1,0 +1,47 @@
+"""The test bed's probe: where the machine cannot boot containers it names what is missing in one
+line (the boot test then skips with that line)."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def tb():
+    spec = importlib.util.spec_from_file_location(
+        "bgt_testbed_probe", REPO / "deploy/testbed/bgt_testbed.py"
+    )
+    assert spec is not None
+    assert spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["bgt_testbed_probe"] = mod
+    spec.loader.exec_module(mod)
+    yield mod
+    del sys.modules["bgt_testbed_probe"]
+
+
+def test_probe_names_a_missing_tool_and_its_package(tb, monkeypatch: pytest.MonkeyPatch) -> None:
+    if os.geteuid() != 0:
+        assert tb.missing_capability().startswith("not root")
+        return
+    real = shutil.which
+    monkeypatch.setattr(
+        tb.shutil, "which", lambda name: None if name == "systemd-nspawn" else real(name)
+    )
+    why = tb.missing_capability()
+    assert why == "no systemd-nspawn (Debian package systemd-container)"
+
+
+def test_probe_names_a_missing_apt_source(tb, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("BGT_TESTBED_MIRROR", raising=False)
+    monkeypatch.setattr(tb, "_sources_entries", lambda: [])
+    with pytest.raises(tb.TestbedError, match=r"no apt source for Debian bookworm main"):
+        tb.apt_source()
