@@ -31,8 +31,8 @@ class SmootherSettings:
     rot_gate_deg: float = 3.0  # a rotation this far from its neighbours' fit is an outlier
     # The track is re-anchored on the measurements when more than this many in a row, over more
     # than reset_after_s, all fail the gate (the filter, not the camera, is lost).
-    reset_after: int = 6
-    reset_after_s: float = 0.15
+    reset_after: int = 15
+    reset_after_s: float = 0.3
 
 
 JUMP = np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 1.0])  # a re-anchoring step's process noise: m^2, (m/s)^2
