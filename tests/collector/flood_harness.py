@@ -187,9 +187,12 @@ class FloodOutcome:
     settled: bool  # every honest batch was acknowledged before the drain deadline
     extra: dict = field(default_factory=dict)
 
-    @property
-    def rss_peak_mib(self) -> float:
-        return round(max(self.rss_peak_kib, self.hwm_kib) / 1024, 1)
+    def summary(self) -> str:
+        """One line of figures: what the tests print (run them with -s) and the bench expands on."""
+        honest = ", ".join(f"{a} {h.readings} readings lost {h.lost} dup {h.dup}" for a, h in self.honest.items())
+        return (f"{self.kind}: {self.flood}; RSS peak {self.rss_peak_kib / 1024:.1f} MiB "
+                f"(VmHWM {self.hwm_kib / 1024:.1f}); {honest}; drain {self.drain_s} s; "
+                f"stop {self.stop_s} s; exit {self.shutdown_s} s; refused {self.status['refused_streams']}")
 
 
 def _wait_reachable(ep: str, proc: subprocess.Popen, tls: TlsFiles | None, timeout: float = 30) -> None:

@@ -205,6 +205,7 @@ def flood_pki(tmp_path_factory) -> Path:
 
 
 def _honest_complete(r: FloodOutcome) -> None:
+    print(r.summary())  # the figures, with -s
     assert r.returncode == 0, r.stderr  # SIGINT after `stop`: a clean exit
     assert "Traceback" not in r.stderr
     assert r.settled, f"honest batches still unacknowledged {r.drain_s} s after the flood"
