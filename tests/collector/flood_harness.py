@@ -165,6 +165,8 @@ class HonestOutcome:
     lost: int  # of those, missing from its run file
     dup: int  # extra copies in its run file
     foreign: int  # rows in its run file that it never published
+    batches: int  # batches published
+    acked: int  # highest seq acknowledged (batches - 1 when settled)
 
 
 @dataclass
@@ -316,7 +318,8 @@ def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20
         sent = set(h.rows)
         outcomes[h.agent] = HonestOutcome(len(h.rows), len(sent - got.keys()),
                                           sum(c - 1 for c in got.values() if c > 1),
-                                          sum(c for k, c in got.items() if k not in sent))
+                                          sum(c for k, c in got.items() if k not in sent),
+                                          len(h.batches), h.acked)
     flood_dir = run_dir / "rssi" / FLOODER
     return FloodOutcome(kind, flood, round(t_end - t_flood, 2), round(drain_s, 2), round(stop_s, 2),
                         round(shutdown_s, 2), peak[0], hwm[0], proc.returncode, err, outcomes, st,

@@ -208,7 +208,8 @@ def _honest_complete(r: FloodOutcome) -> None:
     print(r.summary())  # the figures, with -s
     assert r.returncode == 0, r.stderr  # SIGINT after `stop`: a clean exit
     assert "Traceback" not in r.stderr
-    assert r.settled, f"honest batches still unacknowledged {r.drain_s} s after the flood"
+    assert r.settled, (f"honest batches still unacknowledged {r.drain_s} s after the flood: "
+                       f"{r.honest}, status {r.status}")
     assert set(r.honest) == {"pi-01", "pi-02"}
     for agent, h in r.honest.items():
         assert h.readings >= 50, (agent, h)  # it published throughout (10 readings every 0.1 s)
