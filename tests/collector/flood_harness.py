@@ -239,7 +239,10 @@ def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20
         if nofile:
             resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
 
-    proc = subprocess.Popen([sys.executable, "-m", "collector.cli", "serve", "--config", str(cfg)],
+    # -X faulthandler: a collector that does not exit is sent SIGABRT below and prints every
+    # thread's stack to stderr, which the outcome carries.
+    proc = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "collector.cli", "serve",
+                             "--config", str(cfg)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             preexec_fn=limit_fds)
     peak, hwm = [0], [0]
@@ -303,11 +306,16 @@ def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20
         t0 = time.monotonic()
         proc.send_signal(signal.SIGINT)
         try:
-            _out, err = proc.communicate(timeout=120)
+            _out, err = proc.communicate(timeout=60)
             shutdown_s = time.monotonic() - t0
         except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate()
+            proc.send_signal(signal.SIGABRT)
+            try:
+                _out, err = proc.communicate(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                _out, err = proc.communicate()
+            err = f"collector serve still running 60 s after SIGINT; its threads:\n{err}"
         sampling.set()
         sampler.join()
     run_dir = Path(stopped["run_dir"])
