@@ -567,7 +567,9 @@ def solve(prob: Problem, settings: RefineSettings | None = None,
     cov = lm.static_covariance(Hpp, Hps, Hss)
     has_prior = np.isfinite(prob.marker_sigma[:, 1]) & ~lm.skip
     gated = _gate(x, cov, layout, s, has_prior)
+    held = np.zeros(layout.n_static)  # the corrections the data asked for and that were not applied
     if gated:
+        held[gated] = x[layout.n_pose + np.array(gated)]
         # Hold those at the prior and let the rest settle without them.
         x[layout.n_pose + np.array(gated)] = 0.0
         lm.prec[gated] = 1e12
@@ -577,6 +579,10 @@ def solve(prob: Problem, settings: RefineSettings | None = None,
         _, uv = lm.cost(x)
         Hpp, _, Hps, Hss, _ = lm.normal_equations(x, uv)
         cov = lm.static_covariance(Hpp, Hps, Hss)
+        # A held block is not at its posterior mean but at its prior: its error is the posterior
+        # spread plus the correction it was denied (mean square error = P + d d^T). Without this the
+        # held blocks claim the data's precision while keeping the survey's error (over-confident).
+        cov = cov + np.outer(held, held)
     _, uv = lm.cost(x)
     v = lm.model.static_values(x)
     u = lm.model.unpack(x)

@@ -29,6 +29,13 @@ class SmootherSettings:
     gate_chi2: float = CHI2_3DOF_999
     rot_bandwidth_s: float = 0.08  # Gaussian kernel sigma of the rotation fit
     rot_gate_deg: float = 3.0  # a rotation this far from its neighbours' fit is an outlier
+    # The track is re-anchored on the measurements when more than this many in a row, over more
+    # than reset_after_s, all fail the gate (the filter, not the camera, is lost).
+    reset_after: int = 15
+    reset_after_s: float = 0.3
+
+
+JUMP = np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 1.0])  # a re-anchoring step's process noise: m^2, (m/s)^2
 
 
 def _segments(t: np.ndarray, max_gap: float) -> list[tuple[int, int]]:
@@ -80,12 +87,17 @@ def smooth_positions(t_meas: np.ndarray, z: np.ndarray, cov: np.ndarray, t_out: 
         Xs, Ps = np.zeros((n, 6)), np.zeros((n, 6, 6))
         Fs, Qs = np.zeros((n, 6, 6)), np.zeros((n, 6, 6))
         Fs[0] = np.eye(6)
-        prev = times[0]
-        for k in range(n):
-            F, Q = _cv_model(times[k] - prev, s.accel_psd)
-            prev = times[k]
+        streak, last_ok = 0, 0  # rejections in a row; grid index of the last accepted measurement
+        jump_at = -1
+        k = 0
+        while k < n:
+            F, Q = _cv_model(times[k] - times[max(k - 1, 0)], s.accel_psd)
             if k > 0:
                 x, P = predict(x, P, F, Q)
+                if k == jump_at:
+                    # A jump in the process (in the model too, so the backward pass agrees).
+                    Q = Q + JUMP
+                    P = P + JUMP
                 Fs[k - 1], Qs[k - 1] = F, Q  # module rts_smoother: Fs[k] takes step k to k+1
             if kind[k] == 0:
                 i = ref[k]
@@ -94,10 +106,24 @@ def smooth_positions(t_meas: np.ndarray, z: np.ndarray, cov: np.ndarray, t_out: 
                 S = H @ P @ H.T + R
                 d2 = float(y @ np.linalg.solve(S, y))
                 # The first measurement of a run cannot be judged against a 1 m prior; accept it.
-                if d2 <= s.gate_chi2 or k == 0:
+                if d2 <= s.gate_chi2 or k == 0 or k == jump_at:
                     x, P = update(x, P, z[i], R, H)
                     accepted[i] = True
+                    streak, last_ok = 0, k
+                else:
+                    streak += 1
+                    if streak > s.reset_after and times[k] - times[last_ok] > s.reset_after_s:
+                        # Every measurement for a while disagrees with the prediction: the filter
+                        # (a bad start after a gap), not the camera, lost the track. Go back to the
+                        # first rejected measurement and let the state jump there.
+                        k = last_ok + 1
+                        while kind[k] != 0:
+                            k += 1
+                        jump_at, streak = k, 0
+                        x, P = Xs[k - 1], Ps[k - 1]
+                        continue
             Xs[k], Ps[k] = x, P
+            k += 1
         Xs, Ps, _, _ = rts_smoother(Xs, Ps, Fs, Qs)
         q_rows = kind == 1
         out[ref[q_rows]] = Xs[q_rows, :3]

@@ -260,13 +260,14 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "ble-groundtruth-field-videos",
                     help="rendered videos, keyed by their render arguments (default: in the temp folder)")
     ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
+    ap.add_argument("--default-only", action="store_true", help="track with the default refinement only")
     args = ap.parse_args()
     names = [c.strip() for c in args.conditions.split(",") if c.strip()]
     unknown = [n for n in names if n not in CONDITIONS]
     if unknown:
         raise SystemExit(f"--conditions: unknown {', '.join(unknown)} (known: {', '.join(CONDITIONS)})")
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    modes = refine_modes()
+    modes = [None] if args.default_only else refine_modes()
     print(f"walk {args.duration:g} s, {args.width}x{args.height}, two cameras; refine modes: "
           f"{', '.join(m or 'default' for m in modes)}", flush=True)
     args.cache.mkdir(parents=True, exist_ok=True)

@@ -211,3 +211,21 @@ def test_field_errors_end_to_end(tmp_path):
         assert cam["rms_px_after"] < 0.5 * cam["rms_px_before"]
         assert 0.005 < cam["readout_s"] < 0.025  # rendered with 15 ms, written as 0
     assert (tmp_path / "all" / "refined" / "marker_positions.dat").is_file()
+
+
+def test_held_block_carries_the_correction_it_was_denied():
+    """A block the gate holds at its prior keeps the prior's error: its covariance is the posterior
+    spread plus the correction the data asked for, not the posterior alone (over-confident)."""
+    truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=5, survey=(0.002, 0.1), rig=(0, 0),
+                                                                   focal_rel=0.0005)
+    prob, held = _solve(survey_map, cams, keyframes, length)
+    _, free = _solve(survey_map, cams, keyframes, length, gate_sigma=0)
+    for c, cam in enumerate(cams):
+        assert np.allclose(held.cameras[c].K, cam.K)  # within noise of the calibration: held
+        d = free.cameras[c].K[0, 0] - cam.K[0, 0]  # the correction the data asked for
+        var_free = free.covariance.intrinsics[cam.name][0, 0]
+        var_held = held.covariance.intrinsics[cam.name][0, 0]
+        assert d * d > 0.2 * var_free  # the scene makes the difference visible
+        assert var_held == pytest.approx(var_free + d * d, rel=0.1)
+        # ... and that sigma covers the focal error the held calibration keeps.
+        assert abs(cam.K[0, 0] - true_cams[c].K[0, 0]) < 3 * np.sqrt(var_held)

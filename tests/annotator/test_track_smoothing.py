@@ -96,3 +96,19 @@ def test_rotation_far_from_any_measurement_is_none():
     out, _ = smooth_rotations(t, Rotation.identity(3), np.full(3, 1e-6), np.array([0.1, 5.0]))
     assert np.isfinite(out[0]).all()
     assert np.isnan(out[1]).all()
+
+
+def test_a_bad_start_after_a_gap_does_not_lose_the_track():
+    """The first poses after a gap set the filter's velocity; if they are off, every later
+    measurement fails the gate. The filter re-anchors on the measurements instead of coasting away."""
+    rng = np.random.default_rng(2)
+    t, truth = make_walk(120, 1 / 60)
+    z = truth + rng.normal(0, 0.002, truth.shape)
+    z[0] += [0.0, 0.04, 0.0]
+    z[1] += [0.0, -0.03, 0.0]  # two poor poses: a velocity of -4 m/s
+    cov = np.repeat((0.002 ** 2 * np.eye(3))[None], len(t), 0)
+    out, _, ok = smooth_positions(t, z, cov, t)
+    err = np.linalg.norm(out - truth, axis=1)
+    assert ok[10:].all()
+    assert err[10:].max() < 0.01
+    assert err.max() < 0.05
