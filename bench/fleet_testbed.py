@@ -12,7 +12,6 @@ of this machine's own sources).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import shutil
 import sys
 import tempfile
@@ -20,18 +19,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def load_testbed():
-    spec = importlib.util.spec_from_file_location(
-        "bgt_testbed", REPO / "deploy/testbed/bgt_testbed.py"
-    )
-    assert spec is not None
-    assert spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bgt_testbed"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+sys.path.insert(0, str(REPO / "tests" / "support"))
+from testbed_loader import load_testbed  # noqa: E402
 
 
 def main() -> int:

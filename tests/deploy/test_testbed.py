@@ -12,7 +12,6 @@ with -s.
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import os
 import re
 import shutil
@@ -29,24 +28,15 @@ import pytest
 
 from bgt_core import wire
 from bgt_core.formats.mbd import format_row
+from testbed_loader import load_testbed
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
 
 
-def _load_testbed():
-    spec = importlib.util.spec_from_file_location(
-        "bgt_testbed", REPO / "deploy/testbed/bgt_testbed.py"
-    )
-    assert spec is not None
-    assert spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bgt_testbed"] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
-tb = _load_testbed()
+tb = load_testbed()
 COLLECTOR = tb.host("bgt-collector")
 AGENTS = [h for h in tb.HOSTS if h.role == "agent"]
 STATE_DIR = Path("/var/lib/ble-groundtruth")

@@ -3,7 +3,6 @@ line (the boot test then skips with that line)."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import shutil
 import sys
@@ -11,19 +10,14 @@ from pathlib import Path
 
 import pytest
 
+from testbed_loader import load_testbed
+
 REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture
 def tb():
-    spec = importlib.util.spec_from_file_location(
-        "bgt_testbed_probe", REPO / "deploy/testbed/bgt_testbed.py"
-    )
-    assert spec is not None
-    assert spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bgt_testbed_probe"] = mod
-    spec.loader.exec_module(mod)
+    mod = load_testbed("bgt_testbed_probe")
     yield mod
     del sys.modules["bgt_testbed_probe"]
 
