@@ -33,9 +33,6 @@ from testbed_loader import load_testbed
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
 
-
-
-
 tb = load_testbed()
 COLLECTOR = tb.host("bgt-collector")
 AGENTS = [h for h in tb.HOSTS if h.role == "agent"]
