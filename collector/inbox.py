@@ -96,6 +96,10 @@ class Inbox:
         self.overflow = 0  # batches dropped (unacknowledged) because the queue stayed full
         self._overflow_log = -1e9
         self._quarantine_dropped = 0
+        # Set at shutdown: samples still delivered are dropped unread (unacknowledged, so agents
+        # re-send them) instead of waiting for room the stopped writer will never make.
+        self.shutting = threading.Event()
+        self.dropped_at_shutdown = 0
 
     @property
     def quarantine_dropped(self) -> int:
@@ -111,13 +115,23 @@ class Inbox:
             self._quarantine_dropped = 0
 
     def receive_loop(self, handler: Any) -> None:
-        """Take samples from the subscriber's channel until it is undeclared."""
+        """Take samples from the subscriber's channel until it is undeclared. Once ``shutting``
+        is set the channel is still drained, but at once: a Zenoh thread blocked on the full
+        channel must finish, since undeclare and session close wait for it."""
         while True:
             try:
                 sample = handler.recv()
             except Exception:  # noqa: BLE001 - the channel is closed: the subscriber is gone
-                return
+                break
+            if self.shutting.is_set():
+                self.dropped_at_shutdown += 1
+                continue
             self.on_sample(sample)
+        if self.dropped_at_shutdown:
+            log.info(
+                "%d batches arriving during shutdown dropped unacknowledged (agents re-send them)",
+                self.dropped_at_shutdown,
+            )
 
     def on_sample(self, sample: Any) -> None:
         """Handle one data sample (anything with ``key_expr`` and ``payload.to_bytes()``)."""
@@ -164,7 +178,8 @@ class Inbox:
             )
         batch = self._drop_future_readings(batch, key, payload)
         # Waiting here is the back-pressure: Zenoh (BLOCK congestion control) slows the senders.
-        if not self.data.put(batch, batch_cost(batch), timeout=QUEUE_WAIT_S):
+        wait = 0.0 if self.shutting.is_set() else QUEUE_WAIT_S
+        if not self.data.put(batch, batch_cost(batch), timeout=wait):
             # Not handled, so never acknowledged: the agent's spool sends it again later.
             now = self._mono()
             with self._lock:

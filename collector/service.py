@@ -312,6 +312,11 @@ class Collector:
         self._shut_down()
 
     def _shut_down(self) -> None:
+        # Nothing is recorded past this point. Without this the writer may end (closing and
+        # idle) while Zenoh still delivers samples: each then waited QUEUE_WAIT_S for room in a
+        # queue nobody drains, a Zenoh thread stayed blocked on the full FIFO, and undeclare /
+        # session close (which wait for it) or the process exit could hang.
+        self.inbox.shutting.set()
         for d in self._decls:
             d.undeclare()
         self._decls.clear()

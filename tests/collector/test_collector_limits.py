@@ -4,6 +4,8 @@ messages) must not hurt the others. Bounded collector resources, on loopback Zen
 from __future__ import annotations
 
 import json
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -44,6 +46,51 @@ def test_byte_queue_bounds_bytes_not_items() -> None:
     assert q.get(timeout=0) is None
     assert q.bytes == 0
     assert q.put("huge", 10_000, timeout=0)  # alone, even an item over the bound passes
+
+
+def test_shutdown_drains_a_full_channel_at_once_while_the_queue_is_full(endpoint) -> None:
+    """At shutdown the writer is gone and its queue full; samples Zenoh still holds in the
+    subscriber's FIFO must be dropped at once, not wait QUEUE_WAIT_S each for room nobody makes:
+    the publisher blocked on the full FIFO is released and the receive loop ends when undeclared
+    (before the fix: 16+ samples x 0.5 s, and a Zenoh thread left blocked on the channel)."""
+    from bgt_core.zenoh_config import SessionSpec, build_config
+    from collector.inbox import QUEUE_WAIT_S, Inbox
+    from collector.service import SUB_CHANNEL
+
+    inbox = Inbox(queue_bytes=1, clock=time.time_ns, monotonic=lambda: 0.0)
+    assert inbox.data.put("held", 1, timeout=0)  # full, and no writer will take it
+    s = zenoh.open(build_config(SessionSpec(mode="peer", listen=[endpoint])))
+    try:
+        sub = s.declare_subscriber(wire.data_selector("default"), zenoh.handlers.FifoChannel(SUB_CHANNEL))
+        n = 3 * SUB_CHANNEL
+        payload = wire.to_wire(make_batch(0))
+        sent = threading.Event()
+
+        def publish() -> None:  # blocks once the FIFO holds SUB_CHANNEL samples
+            for _ in range(n):
+                s.put(wire.data_key("default", "pi-01", "b827eb4521b4"), payload)
+            sent.set()
+
+        pub = threading.Thread(target=publish, daemon=True)
+        pub.start()
+        time.sleep(0.3)  # the FIFO fills and the publisher blocks on it
+        assert not sent.is_set()
+        inbox.shutting.set()
+        recv = threading.Thread(target=inbox.receive_loop, args=(sub.handler,), daemon=True)
+        t0 = time.monotonic()
+        recv.start()
+        assert sent.wait(10), "the publisher stayed blocked on the full FIFO"
+        sub.undeclare()
+        recv.join(10)
+        took = time.monotonic() - t0
+        assert not recv.is_alive(), "the receive loop did not end when its subscriber was undeclared"
+        assert inbox.dropped_at_shutdown == n  # every sample was taken from the channel, none kept
+        assert inbox.data.qsize() == 1
+        assert inbox.overflow == 0
+        # generous for a busy machine, yet far under the n * QUEUE_WAIT_S waiting used to cost
+        assert took < n * QUEUE_WAIT_S / 4, took
+    finally:
+        s.close()
 
 
 def test_run_writer_keeps_at_most_open_files_descriptors(tmp_path) -> None:
