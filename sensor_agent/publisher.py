@@ -261,6 +261,8 @@ class Publisher:
                 a = self._acked.get(s.sensor, -1)
                 ring = [(q, p) for q, p in s.ring if q > a]
             for _q, p in ring:
+                if self._closing:  # close() waits for this pass: end it, as the spool loop does
+                    return sent
                 if self._put(s.sensor, p):
                     sent += 1
         done = self.mono_ns()
