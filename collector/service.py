@@ -300,8 +300,14 @@ class Collector:
             self.stop_run(reason="shutdown", missing_ok=True)
         except CollectorError as e:
             log.warning("while stopping the run at shutdown: %s", e)
-        self._shut_down()
-        self._notifier.close()
+        except TimeoutError:  # the writer never answered: still end the threads and the session
+            log.error(  # noqa: TRY400 - one line, no traceback
+                "the active run did not stop in time at shutdown; left unfinished, it is "
+                "resumed at the next start"
+            )
+        finally:
+            self._shut_down()
+            self._notifier.close()
 
     def abandon(self) -> None:
         """Stop serving the way a killed process does: the session and threads end, the active
