@@ -7,6 +7,7 @@ import json
 import logging
 import signal
 import threading
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -61,7 +62,13 @@ def _wait_for_signal(seconds: float | None = None) -> None:
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
-    done.wait(seconds)
+    # Short waits, never one long one: Python runs a signal's handler on the main thread only
+    # when that thread runs bytecode. The kernel may deliver the signal to any thread (Zenoh's
+    # included), and then nothing wakes a main thread parked in an untimed wait: SIGINT was lost.
+    end = None if seconds is None else time.monotonic() + seconds
+    while end is None or (left := end - time.monotonic()) > 0:
+        if done.wait(0.2 if end is None else min(0.2, left)):
+            return
 
 
 @app.command()
