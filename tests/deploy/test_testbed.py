@@ -407,8 +407,9 @@ def test_missing_certificate_stops_the_playbook_naming_it(fleet: Fleet, tmp_path
 def test_upgrade_with_a_newer_wheel_keeps_spool_and_runs(fleet: Fleet, tmp_path: Path) -> None:
     assert fleet.run_dir is not None, "needs the capture test's run"
     src = tmp_path / "src-next"
-    for part in ("src", "systemd"):
-        shutil.copytree(REPO / part, src / part, ignore=shutil.ignore_patterns("__pycache__"))
+    skip = shutil.ignore_patterns("__pycache__", "*.egg-info", "build", "pki")
+    for part in ("sensor_agent", "collector", "annotator", "bgt_core", "deploy", "systemd"):
+        shutil.copytree(REPO / part, src / part, ignore=skip)
     shutil.copy(REPO / "README.md", src / "README.md")
     py = (REPO / "pyproject.toml").read_text(encoding="utf-8")
     old = re.search(r'^version = "([^"]+)"', py, re.M)[1]
