@@ -43,6 +43,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -103,28 +104,37 @@ def video_key(args: dict[str, object]) -> str:
     return hashlib.sha256(json.dumps(args, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def cached_video(cache: Path, video: dict[str, object], duration: float, seed: int, width: int, height: int,
-                 jobs: int) -> Path:
-    """Folder holding front.mp4, back.mp4 and truth.csv of this video, rendered if not cached."""
-    args = {**CLEAN_VIDEO, **video, "duration": duration, "seed": seed, "width": width, "height": height,
-            "t0": T0, "start_offset": START_OFFSET, "renderer": renderer_digest()}
+def render_once(cache: Path, args: dict[str, object], render: Callable[[Path], None], what: str) -> Path:
+    """Folder keyed by `args`: `render(folder)` fills it once (into a .part folder, renamed when
+    complete), later calls find it done."""
     folder = cache / video_key(args)
     if (folder / "done.json").is_file():
         return folder
     tmp = folder.with_name(folder.name + ".part")
     shutil.rmtree(tmp, ignore_errors=True)
     t = time.perf_counter()
-    traj = LoopTrajectory(t0=T0)
-    render_experiment(tmp, traj, (T0, T0 + duration), width=width, height=height, start_offset=START_OFFSET,
-                      seed=seed, exposure=float(video.get("exposure", 0.0)), lens=str(video.get("lens", "mild")),
-                      readout=float(video.get("readout", 0.0)), flicker=float(video.get("flicker", 0.0)),
-                      jobs=jobs)
+    render(tmp)
     (tmp / "done.json").write_text(json.dumps(args, indent=1), encoding="utf-8")
     shutil.rmtree(folder, ignore_errors=True)
     tmp.rename(folder)
-    print(f"rendered {duration:g} s ({', '.join(f'{k}={v}' for k, v in video.items()) or 'clean'}, seed {seed}) "
-          f"in {time.perf_counter() - t:.0f} s", flush=True)
+    print(f"rendered {what} in {time.perf_counter() - t:.0f} s", flush=True)
     return folder
+
+
+def cached_video(cache: Path, video: dict[str, object], duration: float, seed: int, width: int, height: int,
+                 jobs: int) -> Path:
+    """Folder holding front.mp4, back.mp4 and truth.csv of this video, rendered if not cached."""
+    args = {**CLEAN_VIDEO, **video, "duration": duration, "seed": seed, "width": width, "height": height,
+            "t0": T0, "start_offset": START_OFFSET, "renderer": renderer_digest()}
+
+    def render(tmp: Path) -> None:
+        render_experiment(tmp, LoopTrajectory(t0=T0), (T0, T0 + duration), width=width, height=height,
+                          start_offset=START_OFFSET, seed=seed, exposure=float(video.get("exposure", 0.0)),
+                          lens=str(video.get("lens", "mild")), readout=float(video.get("readout", 0.0)),
+                          flicker=float(video.get("flicker", 0.0)), jobs=jobs)
+
+    what = ", ".join(f"{k}={v}" for k, v in video.items()) or "clean"
+    return render_once(cache, args, render, f"{duration:g} s ({what}, seed {seed})")
 
 
 def link(src: Path, dst: Path) -> None:

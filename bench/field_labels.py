@@ -28,7 +28,6 @@ same default folder as bench/field_accuracy.py, keyed by everything that shapes 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shutil
 import sys
@@ -39,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from field_accuracy import FIELD, FILE_KEYS, VIDEO_KEYS, link, renderer_digest  # noqa: E402
+from field_accuracy import FIELD, FILE_KEYS, VIDEO_KEYS, link, render_once, renderer_digest  # noqa: E402
 
 from annotator import demo  # noqa: E402
 from annotator.render import default_cameras, render_experiment  # noqa: E402
@@ -65,23 +64,16 @@ def cached_video(cache: Path, video: dict[str, object], settings: demo.DemoSetti
     args = {**CLEAN_VIDEO, **video, "scenario": "demo-walk", "duration": settings.duration_s,
             "seed": settings.seed, "covers": settings.covers(), "t0": T0, "start_offset": START_OFFSET,
             "renderer": renderer_digest()}
-    folder = cache / hashlib.sha256(json.dumps(args, sort_keys=True).encode()).hexdigest()[:16]
-    if (folder / "done.json").is_file():
-        return folder
-    tmp = folder.with_name(folder.name + ".part")
-    shutil.rmtree(tmp, ignore_errors=True)
-    t = time.perf_counter()
-    render_experiment(tmp, demo.bundle_pose_at(demo.demo_path(settings.speed_mps), T0),
-                      (T0, T0 + settings.duration_s), width=960, height=540, start_offset=START_OFFSET,
-                      covers=settings.covers(), seed=settings.seed, exposure=float(args["exposure"]),
-                      lens=str(args["lens"]), readout=float(args["readout"]), flicker=float(args["flicker"]),
-                      jobs=jobs)
-    (tmp / "done.json").write_text(json.dumps(args, indent=1), encoding="utf-8")
-    shutil.rmtree(folder, ignore_errors=True)
-    tmp.rename(folder)
-    print(f"rendered {settings.duration_s:g} s (seed {settings.seed}, {video or 'clean'}) "
-          f"in {time.perf_counter() - t:.0f} s", flush=True)
-    return folder
+
+    def render(tmp: Path) -> None:
+        render_experiment(tmp, demo.bundle_pose_at(demo.demo_path(settings.speed_mps), T0),
+                          (T0, T0 + settings.duration_s), width=960, height=540, start_offset=START_OFFSET,
+                          covers=settings.covers(), seed=settings.seed, exposure=float(args["exposure"]),
+                          lens=str(args["lens"]), readout=float(args["readout"]),
+                          flicker=float(args["flicker"]), jobs=jobs)
+
+    what = "clean" if not video else ", ".join(f"{k}={v}" for k, v in video.items())
+    return render_once(cache, args, render, f"{settings.duration_s:g} s (seed {settings.seed}, {what})")
 
 
 def write_readings(run_dir: Path, settings: demo.DemoSettings) -> int:
