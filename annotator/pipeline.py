@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import queue
+import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
@@ -436,14 +437,19 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
     refinement = None
     given = exp
     rounds = 2 if settings.refine != "none" else 0
+    clock = {"solve": 0.0, "retrack": 0.0, "rounds": 0}  # what the self-calibration cost, s
     while rounds:
         rounds -= 1
         initial = None if refinement is None else _mapped_poses(refinement)
+        t0 = time.perf_counter()
         again = refine_capture(frames, given, t_out, pos, R,
                                RefineSettings(mode=settings.refine, exposure_s=settings.exposure_s), initial)
+        clock["solve"] += time.perf_counter() - t0
         if again is None:
             break
-        refinement = again
+        refinement, t0 = again, time.perf_counter()
+        clock["rounds"] += 1
+        refinement.report["timing"] = clock
         # Track again with the refined map, rig and lenses; the last pass gives the motion.
         exp = refinement.experiment
         room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
@@ -451,6 +457,7 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
                                                        resolve_singles=True), s.max_gap_s)
         meas = _stack(joint)
         pos, R, sig = smooth(meas, t_out, s, pool)
+        clock["retrack"] += time.perf_counter() - t0
         if not refinement.mapped:
             break  # a second round only helps when markers were mapped from a trajectory with gaps
     posterior = params if params is not None else (refinement.covariance if refinement is not None else None)
