@@ -520,6 +520,17 @@ def _rms_per_camera(uv: np.ndarray, obs: Observations, cameras: list[CameraParam
 
 def solve(prob: Problem, settings: RefineSettings | None = None,
           starts: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> Solution:
+    """`_solve` on one BLAS thread: its dense systems are a few hundred wide, where OpenBLAS's
+    threads gain little alone and, on a busy machine, spin against each other and other work
+    (2.6x slower solves measured with two threads on two loaded cores; bench/refine_timing.py)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _solve(prob, settings, starts)
+
+
+def _solve(prob: Problem, settings: RefineSettings | None = None,
+           starts: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> Solution:
     """Refine the problem's parameters; the marker, rig and lens values in the result are final.
 
     ``starts``: start poses of markers that differ from their prior mean (see build_problem).

@@ -211,6 +211,12 @@ def test_field_errors_end_to_end(tmp_path):
         assert cam["rms_px_after"] < 0.5 * cam["rms_px_before"]
         assert 0.005 < cam["readout_s"] < 0.025  # rendered with 15 ms, written as 0
     assert (tmp_path / "all" / "refined" / "marker_positions.dat").is_file()
+    # What the refinement cost: every round's solve (the report's seconds are the last round's)
+    # and the re-tracking with the refined files.
+    timing = rep["timing"]
+    assert timing["rounds"] in (1, 2)
+    assert timing["solve"] >= rep["seconds"] - 0.01 > 0
+    assert timing["retrack"] > 0
 
 
 def test_held_block_carries_the_correction_it_was_denied():
