@@ -905,19 +905,26 @@ def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: 
     focal = [float(np.sqrt(c.calibration.camera_matrix[0, 0] * c.calibration.camera_matrix[1, 1])) for c in cams]
     Rk, pk, om, vel, ok = motion_at(base.t, t_grid, pos, R)
     counts = np.array([len(d.ids) for d in base.detections])
-    partner: list[list[tuple[int, int]]] = []
-    for k, t in enumerate(base.t):
-        views = [(0, k)]
-        for ci, cf in enumerate(frames[1:], 1):
-            if len(cf.t):
-                j = int(np.argmin(np.abs(cf.t - t)))
-                if abs(cf.t[j] - t) <= 0.5 * base.frame_interval:
-                    views.append((ci, j))
-                    counts[k] += len(cf.detections[j].ids)
-        partner.append(views)
+    partner: list[list[tuple[int, int]]] = [[(0, k)] for k in range(len(base.t))]
+    for ci, cf in enumerate(frames[1:], 1):
+        if not len(cf.t):
+            continue
+        order = np.argsort(cf.t, kind="stable")  # each base frame's nearest frame of this camera
+        ts = cf.t[order]
+        i = np.searchsorted(ts, base.t).clip(0, len(ts) - 1)
+        left = (i - 1).clip(0)
+        i = np.where(np.abs(ts[left] - base.t) <= np.abs(ts[i] - base.t), left, i)
+        for k in np.flatnonzero(np.abs(ts[i] - base.t) <= 0.5 * base.frame_interval):
+            j = int(order[i[k]])
+            partner[k].append((ci, j))
+            counts[k] += len(cf.detections[j].ids)
     cand = np.flatnonzero(ok & (counts >= settings.min_markers))
     if not len(cand):
         return []
+    # The keyframes are spread over the whole capture: scoring the blur of an evenly spread subset
+    # of 8 candidates per keyframe keeps a long capture's cost flat and still leaves sharp ones.
+    if len(cand) > 8 * settings.max_keyframes:
+        cand = cand[np.unique(np.linspace(0, len(cand) - 1, 8 * settings.max_keyframes).round().astype(int))]
     # Prefer sharp frames: drop the candidates whose predicted smear is too large.
     room_centres = {int(m): np.asarray(p.position, float) for m, p in exp.markers.markers.items()}
     sharp = []

@@ -3,6 +3,7 @@
     python bench/refine_timing.py                          # one 600 s two-camera 1080p capture
     python bench/refine_timing.py --durations 20,120,300   # how the costs grow with the capture
     python bench/refine_timing.py --durations 20 --also-none   # plus a --refine none run to compare
+    python bench/refine_timing.py --prefixes 20,120,300    # the first 20/120/300 s of the 600 s render
 
 Each duration renders the default loop walk through the tetam room with `annotator simulate
 --errors field` (every real-world error on: survey, rig, intrinsics, wide lens, rolling shutter,
@@ -83,14 +84,16 @@ def timed(cmd: list[str], log: Path) -> tuple[float, float, float, int]:
     return wall, ru.ru_utime + ru.ru_stime, ru.ru_maxrss / 1024, proc.returncode
 
 
-def track_once(folder: Path, out: Path, refine: str, jobs: int, log: Path) -> dict[str, object]:
+def track_once(folder: Path, out: Path, refine: str, jobs: int, log: Path,
+               max_frames: int | None = None) -> dict[str, object]:
     cmd = [*CLI, "track", str(folder / "experiment.yaml"), "--out", str(out), "--refine", refine,
-           "--jobs", str(jobs)]
+           "--jobs", str(jobs)] + ([] if max_frames is None else ["--max-frames", str(max_frames)])
     load0 = os.getloadavg()[0]
     wall, cpu, peak_mb, code = timed(cmd, log)
     if code != 0:
         raise SystemExit(f"annotator track failed (exit {code}); see {log}")
-    n_frames = sum(video_info(folder / f"{cam}.mp4").frame_count for cam in ("front", "back"))
+    n_frames = sum(min(video_info(folder / f"{cam}.mp4").frame_count, max_frames or 1 << 62)
+                   for cam in ("front", "back"))
     traj = read_trajectory(out / "trajectory.csv")
     truth = read_trajectory(folder / "truth.csv")
     cmp = compare_to_truth(traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation)
@@ -122,6 +125,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=2, help="worker processes of the render and the tracking")
     ap.add_argument("--also-none", action="store_true", help="also track with --refine none, for comparison")
+    ap.add_argument("--prefixes", help="comma-separated lengths, s: track only the first this many seconds of "
+                                       "each capture (annotator track --max-frames) instead of the whole")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "bgt-refine-timing",
                     help="render cache and track outputs (outside the repository: 10 min of 1080p is GBs)")
     ap.add_argument("--json", type=Path, help="also write the rows here")
@@ -135,10 +140,14 @@ def main() -> None:
     for d in durations:
         folder = cached_capture(args.cache / "renders", d, args.width, args.height, args.fps, args.seed,
                                 args.jobs, log)
-        for refine in ("all", "none") if args.also_none else ("all",):
-            print(f"[{time.strftime('%H:%M:%S')}] track {d:g} s --refine {refine} ...", flush=True)
-            row = track_once(folder, args.cache / "tracks" / f"{folder.name}-{refine}", refine, args.jobs, log)
-            row["duration_s"] = d
+        lengths = [float(p) for p in args.prefixes.split(",")] if args.prefixes else [d]
+        for length, refine in [(n, r) for n in lengths for r in (("all", "none") if args.also_none else ("all",))]:
+            cut = None if length >= d else round(length * args.fps)
+            print(f"[{time.strftime('%H:%M:%S')}] track {length:g} s" + (f" (of {d:g} s)" if cut else "")
+                  + f" --refine {refine} ...", flush=True)
+            row = track_once(folder, args.cache / "tracks" / f"{folder.name}-{refine}-{length:g}", refine,
+                             args.jobs, log, cut)
+            row["duration_s"] = length
             rows.append(row)
             print("  " + json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}),
                   flush=True)
