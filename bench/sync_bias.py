@@ -1,0 +1,185 @@
+"""Is the automatic sync biased? Every edge and every fitted video start against known truth, over
+seeds of the `annotator demo` scenario.
+
+    python bench/sync_bias.py                          # 20 seeds, 12 s and 30 s captures
+    python bench/sync_bias.py --seeds 200 --durations 30
+    python bench/sync_bias.py --width 960 --height 540 # the demo's own video size (slower render)
+
+Per duration, the demo's walk is rendered once with `annotator.render.render_experiment` (both
+cameras, the back one 0.35 s late, the demo's hands-cover events: the hands close in 0.15 s and the
+radio sees the cover from the middle of that ramp to the middle of the opening one). Per seed, the
+three simulated agents' readings are generated exactly as `annotator demo`'s agents make them
+(`Simulation`, seed*10+i, 10 adverts/s, -20 dB and 60 % loss while covered). `annotator.sync`
+finds the events on both sides and fits each camera's clock map, as `annotator run` does.
+
+Printed:
+- RSSI edges: signed error against the true edge per edge kind (mean +- its standard error, sd),
+  the mean reported sigma and the share within 1 and 2 sigma; the "common" row is the mean of an
+  event's cover and release error, which is what the video start inherits (a widening or narrowing
+  of the interval cancels between cover and release; a lag does not).
+- the oracle: the middle of the gap between the last advert heard before a true edge and the
+  first after it (no detector knows more than that), and the length of that gap.
+- video edges of the render (PTS against the truth): the picture darkens before the hand is
+  halfway closed, so the interval widens symmetrically; that too cancels.
+- the video start per camera over seeds: mean +- standard error, sd, median reported sigma and
+  coverage of the 1- and 2-sigma intervals (68 % / 95 % for an honest sigma), at the first and at
+  the last frame.
+- seed 0, the demo's default, edge by edge.
+- a check of the check: the same fits with every RSSI timestamp delayed by --lag-ms (13 ms by
+  default, the demo's seed-0 error), which a real detector lag would look like.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from sync_accuracy import T0, demo_readings
+
+from annotator import demo
+from annotator.render import render_experiment
+from annotator.sync import CoverEvent, detect_rssi_events, detect_video_events, fit_clock_map
+from annotator.sync_io import brightness_series
+
+CAMERAS = {"front": 0.0, "back": demo.DemoSettings(out=None).start_offset_s}  # type: ignore[arg-type]
+
+
+def stats(x: np.ndarray) -> str:
+    x = np.asarray(x, float) * 1e3
+    sem = x.std(ddof=1) / math.sqrt(x.size) if x.size > 1 else math.nan
+    return f"mean {x.mean():+6.2f} +- {sem:4.2f} ms   sd {x.std(ddof=1) if x.size > 1 else 0.0:5.2f} ms"
+
+
+def coverage(err: np.ndarray, sig: np.ndarray) -> str:
+    z = np.abs(err) / sig
+    return (f"median sigma {1e3 * np.median(sig):5.2f} ms   within 1 sigma {100 * np.mean(z <= 1):5.1f} %   "
+            f"within 2 sigma {100 * np.mean(z <= 2):5.1f} %")
+
+
+def true_edges(settings: demo.DemoSettings) -> list[tuple[float, float]]:
+    """(cover, release) in seconds after t0: when the radio sees the hands (mid-ramp to mid-ramp)."""
+    return [(e.start_s, e.start_s + e.duration_s) for e in demo.rssi_events(settings)]
+
+
+def render_video(settings: demo.DemoSettings, width: int, height: int, work: Path) -> dict[str, list[CoverEvent]]:
+    """Cover events found in each camera of one render of the demo walk (PTS seconds)."""
+    out = work / f"render-{settings.duration_s:g}"
+    render_experiment(out, demo.bundle_pose_at(demo.demo_path(settings.speed_mps), T0),
+                      (T0, T0 + settings.duration_s), width=width, height=height,
+                      start_offset=settings.start_offset_s, covers=settings.covers(), seed=0, jobs=1)
+    return {cam: detect_video_events(*brightness_series(out / f"{cam}.mp4"), name=cam) for cam in CAMERAS}
+
+
+def one_duration(duration: float, seeds: int, width: int, height: int, lag: float, work: Path) -> None:
+    settings = demo.DemoSettings(out=None, duration_s=duration)  # type: ignore[arg-type]
+    truth = true_edges(settings)
+    t_render = time.perf_counter()
+    video = render_video(settings, width, height, work)
+    t_render = time.perf_counter() - t_render
+    print(f"\n=== {duration:g} s captures, {len(truth)} cover event(s), {seeds} seeds "
+          f"(render {width}x{height} in {t_render:.0f} s) ===")
+
+    kinds = [f"{k} {i + 1}" for i in range(len(truth)) for k in ("cover", "release")]
+    r_err: dict[str, list[float]] = {k: [] for k in kinds}
+    r_sig: dict[str, list[float]] = {k: [] for k in kinds}
+    o_err: dict[str, list[float]] = {k: [] for k in kinds}
+    gaps: list[float] = []
+    common: list[float] = []
+    start_err = {c: [] for c in CAMERAS}
+    start_sig = {c: [] for c in CAMERAS}
+    end_err = {c: [] for c in CAMERAS}
+    end_sig = {c: [] for c in CAMERAS}
+    lag_err: list[float] = []
+    seed0: list[str] = []
+    for seed in range(seeds):
+        (t, r, s), _ = demo_readings(seed, duration)
+        found = detect_rssi_events(t, r, s)
+        adverts = np.unique(t) - T0
+        if len(found) != len(truth):
+            print(f"  seed {seed}: {len(found)} RSSI events found, {len(truth)} true; skipped")
+            continue
+        for i, (ev, (c, rel)) in enumerate(zip(found, truth, strict=True)):
+            errs = []
+            for kind, got, sig, true in (("cover", ev.cover, ev.cover_sigma, c),
+                                         ("release", ev.release, ev.release_sigma, rel)):
+                key = f"{kind} {i + 1}"
+                before, after = adverts[adverts < true].max(), adverts[adverts >= true].min()
+                r_err[key].append(got - T0 - true)
+                r_sig[key].append(sig)
+                o_err[key].append(0.5 * (before + after) - true)
+                gaps.append(after - before)
+                errs.append(got - T0 - true)
+                if seed == 0:
+                    seed0.append(f"    RSSI {key:<9} error {1e3 * (got - T0 - true):+7.1f} ms (sigma "
+                                 f"{1e3 * sig:5.1f})   adverts heard {1e3 * (before - true):+6.1f} / "
+                                 f"{1e3 * (after - true):+6.1f} ms around the true edge")
+            common.append(float(np.mean(errs)))
+        for cam, offset in CAMERAS.items():
+            cm = fit_clock_map(video[cam], found, name=cam)
+            last = duration - offset  # PTS of (about) the last frame
+            start_err[cam].append(cm.video_start - T0 - offset)
+            start_sig[cam].append(cm.video_start_sigma)
+            end_err[cam].append(float(cm.to_rssi(last)) - T0 - offset - last)
+            end_sig[cam].append(float(cm.sigma_at(last)))
+            if seed == 0:
+                seed0.append(f"    {cam} video start error {1e3 * start_err[cam][-1]:+6.1f} ms (sigma "
+                             f"{1e3 * cm.video_start_sigma:4.1f}), drift {cm.drift:+.1e}, "
+                             f"edge bias {1e3 * cm.edge_bias:+5.1f} ms")
+        if lag > 0:
+            lagged = detect_rssi_events(t + lag, r, s)
+            lag_err.append(fit_clock_map(video["front"], lagged).video_start - T0)
+
+    print("RSSI edges against the truth (seconds after t0 when the hands are halfway over the beacon):")
+    for k in kinds:
+        e, sg = np.array(r_err[k]), np.array(r_sig[k])
+        print(f"  {k:<10} {stats(e)}   {coverage(e, sg)}")
+    print(f"  {'common':<10} {stats(np.array(common))}   (what the video start inherits)")
+    oracle = np.concatenate([o_err[k] for k in kinds])
+    print(f"  oracle gap middle: {stats(oracle)}; gap round a true edge: median {1e3 * np.median(gaps):.0f} ms, "
+          f"p95 {1e3 * np.percentile(gaps, 95):.0f} ms, max {1e3 * np.max(gaps):.0f} ms")
+    print("video edges of the render against the truth (PTS):")
+    for cam, offset in CAMERAS.items():
+        parts = []
+        for ev in video[cam]:
+            c, rel = min(truth, key=lambda cr, ev=ev: abs(cr[0] - offset - ev.cover) if math.isfinite(ev.cover)
+                         else abs(cr[1] - offset - ev.release))
+            parts.append(f"cover {1e3 * (ev.cover - (c - offset)):+6.1f} / release "
+                         f"{1e3 * (ev.release - (rel - offset)):+6.1f} ms (sigma {1e3 * ev.cover_sigma:.1f})")
+        print(f"  {cam:<6} " + ";  ".join(parts))
+    print("video start (clock offset) over seeds:")
+    for cam in CAMERAS:
+        e, sg = np.array(start_err[cam]), np.array(start_sig[cam])
+        print(f"  {cam:<6} first frame {stats(e)}   {coverage(e, sg)}")
+        e, sg = np.array(end_err[cam]), np.array(end_sig[cam])
+        print(f"  {cam:<6} last frame  {stats(e)}   {coverage(e, sg)}")
+    print("seed 0 (the demo's default):")
+    print("\n".join(seed0))
+    if lag_err:
+        print(f"check: every RSSI timestamp {1e3 * lag:g} ms late -> front start {stats(np.array(lag_err))}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--durations", default="12,30", help="comma-separated capture lengths, s (default 12,30)")
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=180)
+    ap.add_argument("--lag-ms", type=float, default=13.0, help="the check's RSSI delay (0: skip the check)")
+    args = ap.parse_args()
+    t_start = time.perf_counter()
+    work = Path(tempfile.mkdtemp(prefix="sync-bias-"))
+    try:
+        for d in (float(x) for x in args.durations.split(",") if x.strip()):
+            one_duration(d, args.seeds, args.width, args.height, args.lag_ms / 1e3, work)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    print(f"({time.perf_counter() - t_start:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
