@@ -18,7 +18,9 @@ Printed:
   event's cover and release error, which is what the video start inherits (a widening or narrowing
   of the interval cancels between cover and release; a lag does not).
 - the oracle: the middle of the gap between the last advert heard before a true edge and the
-  first after it (no detector knows more than that), and the length of that gap.
+  first after it (no detector knows more than that), and the length of that gap; and a second
+  oracle that also knows every advert the agents sent, lost or not (a lossless twin of the
+  simulation: the simulator draws the same random numbers whatever survives).
 - video edges of the render (PTS against the truth): the picture darkens before the hand is
   halfway closed, so the interval widens symmetrically; that too cancels.
 - the video start per camera over seeds: mean +- standard error, sd, median reported sigma and
@@ -66,6 +68,21 @@ def true_edges(settings: demo.DemoSettings) -> list[tuple[float, float]]:
     return [(e.start_s, e.start_s + e.duration_s) for e in demo.rssi_events(settings)]
 
 
+def sent_adverts(seed: int, duration: float) -> np.ndarray:
+    """Times (s after t0) of every advert the demo's agents sent with this seed, heard or lost."""
+    from sensor_agent.scanning.simulated import RadioModel, Simulation, load_site, pick_sensors
+
+    devices = load_site("tetam")
+    out = []
+    for i, sensors in enumerate(demo.split_sensors()):
+        sim = Simulation(pick_sensors(devices, sensors), tuple(devices.beacons), demo.demo_path(),
+                         round(T0 * 1e9), seed=seed * 10 + i, rate_hz=10,
+                         radio=RadioModel(drop_prob=0.0, floor_dbm=-1000.0))
+        sim.skip_to(-5.0)
+        out.append([r.t_ns / 1e9 - T0 for _, r in sim.generate(duration + 1.0)])
+    return np.unique(np.concatenate(out))
+
+
 def render_video(settings: demo.DemoSettings, width: int, height: int, work: Path) -> dict[str, list[CoverEvent]]:
     """Cover events found in each camera of one render of the demo walk (PTS seconds)."""
     out = work / f"render-{settings.duration_s:g}"
@@ -88,6 +105,7 @@ def one_duration(duration: float, seeds: int, width: int, height: int, lag: floa
     r_err: dict[str, list[float]] = {k: [] for k in kinds}
     r_sig: dict[str, list[float]] = {k: [] for k in kinds}
     o_err: dict[str, list[float]] = {k: [] for k in kinds}
+    sent_err: list[float] = []
     gaps: list[float] = []
     common: list[float] = []
     start_err = {c: [] for c in CAMERAS}
@@ -100,6 +118,7 @@ def one_duration(duration: float, seeds: int, width: int, height: int, lag: floa
         (t, r, s), _ = demo_readings(seed, duration)
         found = detect_rssi_events(t, r, s)
         adverts = np.unique(t) - T0
+        sent = sent_adverts(seed, duration)
         if len(found) != len(truth):
             print(f"  seed {seed}: {len(found)} RSSI events found, {len(truth)} true; skipped")
             continue
@@ -112,6 +131,7 @@ def one_duration(duration: float, seeds: int, width: int, height: int, lag: floa
                 r_err[key].append(got - T0 - true)
                 r_sig[key].append(sig)
                 o_err[key].append(0.5 * (before + after) - true)
+                sent_err.append(0.5 * (sent[sent < true].max() + sent[sent >= true].min()) - true)
                 gaps.append(after - before)
                 errs.append(got - T0 - true)
                 if seed == 0:
@@ -142,6 +162,7 @@ def one_duration(duration: float, seeds: int, width: int, height: int, lag: floa
     oracle = np.concatenate([o_err[k] for k in kinds])
     print(f"  oracle gap middle: {stats(oracle)}; gap round a true edge: median {1e3 * np.median(gaps):.0f} ms, "
           f"p95 {1e3 * np.percentile(gaps, 95):.0f} ms, max {1e3 * np.max(gaps):.0f} ms")
+    print(f"  oracle knowing every advert sent: {stats(np.array(sent_err))}")
     print("video edges of the render against the truth (PTS):")
     for cam, offset in CAMERAS.items():
         parts = []
