@@ -9,8 +9,15 @@ import pytest
 from _track_helpers import make_path, make_rig, make_room, project
 from scipy.spatial.transform import Rotation
 
-from annotator.priors import MarkerPrior, Priors
-from annotator.refine import CameraParams, FrameView, Keyframe, RefineSettings, build_problem, solve
+from annotator.core.priors import MarkerPrior, Priors
+from annotator.core.refine import (
+    CameraParams,
+    FrameView,
+    Keyframe,
+    RefineSettings,
+    build_problem,
+    solve,
+)
 
 N_KF = 60
 
@@ -183,7 +190,7 @@ def test_field_errors_end_to_end(tmp_path):
     from typer.testing import CliRunner
 
     from annotator.cli import app
-    from annotator.trajectory_io import read_trajectory
+    from annotator.io.trajectory import read_trajectory
 
     exp = tmp_path / "exp"
     res = CliRunner().invoke(app, ["simulate", "--out", str(exp), "--duration", "12", "--seed", "3",

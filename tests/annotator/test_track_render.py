@@ -13,7 +13,7 @@ from _track_helpers import errors_against_truth
 from typer.testing import CliRunner
 
 from annotator.cli import app
-from annotator.trajectory_io import read_trajectory
+from annotator.io.trajectory import read_trajectory
 
 pytestmark = pytest.mark.slow
 T0 = 1_700_000_000.0

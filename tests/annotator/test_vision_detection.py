@@ -8,7 +8,7 @@ import pytest
 from _track_helpers import make_room
 from scipy.spatial.transform import Rotation
 
-from annotator.experiment import CameraCalibration
+from annotator.io.experiment import CameraCalibration
 from annotator.vision.detection import DetectorSettings, MarkerDetector, auto_downscale
 
 W, H = 960, 540
