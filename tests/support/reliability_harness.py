@@ -2,7 +2,7 @@
 `sensor-agent run` processes on loopback Zenoh, faults injected from outside, and a checker
 that compares a run's rssi/<agent>/*.mbd files with the exact readings the agents were given.
 
-Both tests/reliability/test_*.py and bench/reliability_scenarios.py drive the scenarios below;
+Both tests/system/test_reliability_scenarios.py and bench/reliability_scenarios.py drive the scenarios below;
 the tests assert zero lost / zero duplicated, the bench prints the counts at a larger scale.
 """
 
