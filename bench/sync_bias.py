@@ -9,7 +9,7 @@ Per duration, the demo's walk is rendered once with `annotator.render.render_exp
 cameras, the back one 0.35 s late, the demo's hands-cover events: the hands close in 0.15 s and the
 radio sees the cover from the middle of that ramp to the middle of the opening one). Per seed, the
 three simulated agents' readings are generated exactly as `annotator demo`'s agents make them
-(`Simulation`, seed*10+i, 10 adverts/s, -20 dB and 60 % loss while covered). `annotator.sync`
+(`Simulation`, seed*10+i, 10 adverts/s, -20 dB and 60 % loss while covered). `annotator.core.sync`
 finds the events on both sides and fits each camera's clock map, as `annotator run` does.
 
 Printed:
@@ -44,9 +44,9 @@ import numpy as np
 from sync_accuracy import T0, demo_readings
 
 from annotator import demo
+from annotator.core.sync import CoverEvent, detect_rssi_events, detect_video_events, fit_clock_map
+from annotator.io.sync import brightness_series
 from annotator.render import render_experiment
-from annotator.sync import CoverEvent, detect_rssi_events, detect_video_events, fit_clock_map
-from annotator.sync_io import brightness_series
 
 CAMERAS = {"front": 0.0, "back": demo.DemoSettings(out=None).start_offset_s}  # type: ignore[arg-type]
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from annotator import demo
+from annotator.core.sync import detect_rssi_events, detect_video_events, fit_clock_map
+from annotator.io.sync import brightness_series
 from annotator.render import render_experiment
-from annotator.sync import detect_rssi_events, detect_video_events, fit_clock_map
-from annotator.sync_io import brightness_series
 from sensor_agent.scanning.simulated import Simulation, load_site, pick_sensors
 
 T0 = 1_700_000_000.0
