@@ -469,18 +469,59 @@ def _match_events(video: list[CoverEvent], rssi: list[CoverEvent], approx_start:
     return [] if best is None else best[1]
 
 
+# A camera's clock runs off the RSSI clock by its crystal's error (tens of ppm; 100 ppm as one
+# sigma is generous), unless its timestamps follow a nominal frame rate (30 fps stamped on a
+# sensor that runs at 29.97: 1000 ppm). Which case a camera is, is not known: the prior on the
+# drift is an even mixture of the two, as (weight, sigma). Two events 25 s apart measure the drift
+# only to ~650 ppm; the crystal case then keeps that noise out of the clock map, and the wide one
+# lets a large drift through when the data show it (docs/annotator_run.md has the trade-off).
+DRIFT_PRIOR: tuple[tuple[float, float], ...] = ((0.5, 1e-4), (0.5, 3e-3))
+
+
+def _drift_mixture_posterior(aw: np.ndarray, bw: np.ndarray, k: int,
+                             prior: tuple[tuple[float, float], ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and covariance of the unknowns of the whitened system ``aw x = bw`` when unknown ``k``
+    has a Gaussian-mixture prior [(weight, sigma), ...] and the others a flat one.
+
+    Each component's posterior is Gaussian; its weight is the prior weight times its evidence,
+    ``exp(-chi2 / 2) / (sigma sqrt(det H))`` (chi2 with the prior term, H the posterior precision).
+    The mixture is returned as one Gaussian with the same mean and covariance.
+    """
+    h0 = aw.T @ aw
+    g = aw.T @ bw
+    logs, means, covs = [], [], []
+    for weight, sigma in prior:
+        h = h0.copy()
+        h[k, k] += 1.0 / sigma**2
+        c = np.linalg.inv(h)
+        mu = c @ g
+        r = bw - aw @ mu
+        chi2 = float(r @ r) + float(mu[k]) ** 2 / sigma**2
+        logs.append(math.log(weight) - math.log(sigma) - 0.5 * chi2 - 0.5 * np.linalg.slogdet(h)[1])
+        means.append(mu)
+        covs.append(c)
+    p = np.exp(np.asarray(logs) - max(logs))
+    p /= p.sum()
+    mean = np.sum([pi * m for pi, m in zip(p, means, strict=True)], axis=0)
+    cov = np.sum([pi * (c + np.outer(m - mean, m - mean)) for pi, m, c in zip(p, means, covs, strict=True)],
+                 axis=0)
+    return mean, cov
+
+
 def fit_clock_map(video_events: list[CoverEvent], rssi_events: list[CoverEvent], *, name: str = "video",
                   approx_start: float | None = None, max_start_error: float = math.inf,
                   fit_drift: bool | None = None, min_drift_span: float = 10.0,
                   match_tol: float = 0.75, lone_edge_sigma: float = 0.03,
-                  method: str = "auto") -> ClockMap:
+                  method: str = "auto",
+                  drift_prior: tuple[tuple[float, float], ...] | None = DRIFT_PRIOR) -> ClockMap:
     """Map a video's PTS onto the RSSI clock from matched cover events.
 
     Each edge seen on both sides is one equation ``t_rssi = start + pts (1 + drift)``, weighted by
     both edges' sigmas; using cover *and* release cancels a detector that widens (or narrows) the
     interval on one side. Drift is fitted when edges span at least ``min_drift_span`` seconds of
-    video (i.e. a second event), unless ``fit_drift`` says otherwise. The uncertainties come from
-    the weighted least-squares covariance, scaled up when the residuals are larger than the sigmas.
+    video (i.e. a second event), unless ``fit_drift`` says otherwise, under the mixture prior
+    ``drift_prior`` (None: a flat prior, the plain least-squares fit). The uncertainties come from
+    the posterior covariance, scaled up when the residuals are larger than the sigmas.
 
     A gradual cover shifts the two signals' edges in opposite directions (brightness and RSSI do
     not fade alike), by up to about half the closing time. A cover/release pair cancels that; an
@@ -534,9 +575,13 @@ def fit_clock_map(video_events: list[CoverEvent], rssi_events: list[CoverEvent],
     Aw = A * np.sqrt(wts)[:, None]
     coef, *_ = np.linalg.lstsq(Aw, yd * np.sqrt(wts), rcond=None)
     cov = np.linalg.inv(Aw.T @ Aw)
+    n_par = float(A.shape[1])
+    if drift and drift_prior:
+        coef, cov = _drift_mixture_posterior(Aw, yd * np.sqrt(wts), A.shape[1] - 1, drift_prior)
+        n_par = float(np.trace(Aw.T @ Aw @ cov))  # a drift the prior holds is not a free unknown
     resid = yd - A @ coef
-    dof = xa.size - A.shape[1]
-    if dof > 0:
+    dof = xa.size - n_par
+    if dof > 0.5:
         chi2 = float(np.sum(wts * resid**2)) / dof
         cov = cov * max(1.0, chi2)
     k = A.shape[1] - 1  # drift is the last column when fitted
