@@ -26,6 +26,8 @@ Printed:
 - the video start per camera over seeds: mean +- standard error, sd, median reported sigma and
   coverage of the 1- and 2-sigma intervals (68 % / 95 % for an honest sigma), at the first and at
   the last frame.
+  The front camera is fitted a second time with a flat prior on the drift (`drift_prior=None`,
+  the plain least-squares fit used before the mixture prior), for comparison.
 - seed 0, the demo's default, edge by edge.
 - a check of the check: the same fits with every RSSI timestamp delayed by --lag-ms (13 ms by
   default, the demo's seed-0 error), which a real detector lag would look like.
@@ -38,13 +40,20 @@ import math
 import shutil
 import tempfile
 import time
+from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 from sync_accuracy import T0, demo_readings
 
 from annotator import demo
-from annotator.core.sync import CoverEvent, detect_rssi_events, detect_video_events, fit_clock_map
+from annotator.core.sync import (
+    DRIFT_PRIOR,
+    CoverEvent,
+    detect_rssi_events,
+    detect_video_events,
+    fit_clock_map,
+)
 from annotator.io.sync import brightness_series
 from annotator.render import render_experiment
 
@@ -92,77 +101,58 @@ def render_video(settings: demo.DemoSettings, width: int, height: int, work: Pat
     return {cam: detect_video_events(*brightness_series(out / f"{cam}.mp4"), name=cam) for cam in CAMERAS}
 
 
-def one_duration(duration: float, seeds: int, width: int, height: int, lag: float, work: Path) -> None:
-    settings = demo.DemoSettings(out=None, duration_s=duration)  # type: ignore[arg-type]
-    truth = true_edges(settings)
-    t_render = time.perf_counter()
-    video = render_video(settings, width, height, work)
-    t_render = time.perf_counter() - t_render
-    print(f"\n=== {duration:g} s captures, {len(truth)} cover event(s), {seeds} seeds "
-          f"(render {width}x{height} in {t_render:.0f} s) ===")
-
-    kinds = [f"{k} {i + 1}" for i in range(len(truth)) for k in ("cover", "release")]
-    r_err: dict[str, list[float]] = {k: [] for k in kinds}
-    r_sig: dict[str, list[float]] = {k: [] for k in kinds}
-    o_err: dict[str, list[float]] = {k: [] for k in kinds}
-    sent_err: list[float] = []
-    gaps: list[float] = []
-    common: list[float] = []
-    start_err = {c: [] for c in CAMERAS}
-    start_sig = {c: [] for c in CAMERAS}
-    end_err = {c: [] for c in CAMERAS}
-    end_sig = {c: [] for c in CAMERAS}
-    lag_err: list[float] = []
-    seed0: list[str] = []
-    for seed in range(seeds):
-        (t, r, s), _ = demo_readings(seed, duration)
-        found = detect_rssi_events(t, r, s)
-        adverts = np.unique(t) - T0
-        sent = sent_adverts(seed, duration)
-        if len(found) != len(truth):
-            print(f"  seed {seed}: {len(found)} RSSI events found, {len(truth)} true; skipped")
-            continue
-        for i, (ev, (c, rel)) in enumerate(zip(found, truth, strict=True)):
-            errs = []
-            for kind, got, sig, true in (("cover", ev.cover, ev.cover_sigma, c),
-                                         ("release", ev.release, ev.release_sigma, rel)):
-                key = f"{kind} {i + 1}"
-                before, after = adverts[adverts < true].max(), adverts[adverts >= true].min()
-                r_err[key].append(got - T0 - true)
-                r_sig[key].append(sig)
-                o_err[key].append(0.5 * (before + after) - true)
-                sent_err.append(0.5 * (sent[sent < true].max() + sent[sent >= true].min()) - true)
-                gaps.append(after - before)
-                errs.append(got - T0 - true)
-                if seed == 0:
-                    seed0.append(f"    RSSI {key:<9} error {1e3 * (got - T0 - true):+7.1f} ms (sigma "
-                                 f"{1e3 * sig:5.1f})   adverts heard {1e3 * (before - true):+6.1f} / "
-                                 f"{1e3 * (after - true):+6.1f} ms around the true edge")
-            common.append(float(np.mean(errs)))
-        for cam, offset in CAMERAS.items():
-            cm = fit_clock_map(video[cam], found, name=cam)
-            last = duration - offset  # PTS of (about) the last frame
-            start_err[cam].append(cm.video_start - T0 - offset)
-            start_sig[cam].append(cm.video_start_sigma)
-            end_err[cam].append(float(cm.to_rssi(last)) - T0 - offset - last)
-            end_sig[cam].append(float(cm.sigma_at(last)))
+def score_rssi(acc: dict[str, list], seed: int, t: np.ndarray, found: list[CoverEvent],
+               truth: list[tuple[float, float]], sent: np.ndarray, seed0: list[str]) -> None:
+    """Each RSSI edge against the truth, the two oracles and the gap round each true edge."""
+    adverts = np.unique(t) - T0
+    for i, (ev, (c, rel)) in enumerate(zip(found, truth, strict=True)):
+        errs = []
+        for kind, got, sig, true in (("cover", ev.cover, ev.cover_sigma, c),
+                                     ("release", ev.release, ev.release_sigma, rel)):
+            key = f"{kind} {i + 1}"
+            before, after = adverts[adverts < true].max(), adverts[adverts >= true].min()
+            acc[f"err {key}"].append(got - T0 - true)
+            acc[f"sig {key}"].append(sig)
+            acc["oracle"].append(0.5 * (before + after) - true)
+            acc["sent"].append(0.5 * (sent[sent < true].max() + sent[sent >= true].min()) - true)
+            acc["gaps"].append(after - before)
+            errs.append(got - T0 - true)
             if seed == 0:
-                seed0.append(f"    {cam} video start error {1e3 * start_err[cam][-1]:+6.1f} ms (sigma "
-                             f"{1e3 * cm.video_start_sigma:4.1f}), drift {cm.drift:+.1e}, "
-                             f"edge bias {1e3 * cm.edge_bias:+5.1f} ms")
-        if lag > 0:
-            lagged = detect_rssi_events(t + lag, r, s)
-            lag_err.append(fit_clock_map(video["front"], lagged).video_start - T0)
+                seed0.append(f"    RSSI {key:<9} error {1e3 * (got - T0 - true):+7.1f} ms (sigma "
+                             f"{1e3 * sig:5.1f})   adverts heard {1e3 * (before - true):+6.1f} / "
+                             f"{1e3 * (after - true):+6.1f} ms around the true edge")
+        acc["common"].append(float(np.mean(errs)))
 
+
+def score_clocks(acc: dict[str, list], seed: int, video: dict[str, list[CoverEvent]], found: list[CoverEvent],
+                 duration: float, seed0: list[str]) -> None:
+    """Each camera's clock map against the truth at its first and last frame; the front camera
+    also with the flat drift prior of the fit before the mixture prior."""
+    for cam, offset in CAMERAS.items():
+        for label, prior in (("", DRIFT_PRIOR), (" flat", None)):
+            if label and cam != "front":
+                continue
+            cm = fit_clock_map(video[cam], found, name=cam, drift_prior=prior)
+            for where, pts in (("first", 0.0), ("last", duration - offset)):
+                acc[f"{cam}{label} {where} err"].append(float(cm.to_rssi(pts)) - T0 - offset - pts)
+                acc[f"{cam}{label} {where} sig"].append(float(cm.sigma_at(pts)))
+            if seed == 0 and not label:
+                seed0.append(f"    {cam} video start error {1e3 * (cm.video_start - T0 - offset):+6.1f} ms "
+                             f"(sigma {1e3 * cm.video_start_sigma:4.1f}), drift {cm.drift:+.1e}, "
+                             f"edge bias {1e3 * cm.edge_bias:+5.1f} ms")
+
+
+def report(acc: dict[str, list], kinds: list[str], video: dict[str, list[CoverEvent]],
+           truth: list[tuple[float, float]], seed0: list[str], lag: float) -> None:
     print("RSSI edges against the truth (seconds after t0 when the hands are halfway over the beacon):")
     for k in kinds:
-        e, sg = np.array(r_err[k]), np.array(r_sig[k])
+        e, sg = np.array(acc[f"err {k}"]), np.array(acc[f"sig {k}"])
         print(f"  {k:<10} {stats(e)}   {coverage(e, sg)}")
-    print(f"  {'common':<10} {stats(np.array(common))}   (what the video start inherits)")
-    oracle = np.concatenate([o_err[k] for k in kinds])
-    print(f"  oracle gap middle: {stats(oracle)}; gap round a true edge: median {1e3 * np.median(gaps):.0f} ms, "
-          f"p95 {1e3 * np.percentile(gaps, 95):.0f} ms, max {1e3 * np.max(gaps):.0f} ms")
-    print(f"  oracle knowing every advert sent: {stats(np.array(sent_err))}")
+    print(f"  {'common':<10} {stats(np.array(acc['common']))}   (what the video start inherits)")
+    gaps = np.array(acc["gaps"])
+    print(f"  oracle gap middle: {stats(np.array(acc['oracle']))}; gap round a true edge: median "
+          f"{1e3 * np.median(gaps):.0f} ms, p95 {1e3 * np.percentile(gaps, 95):.0f} ms, max {1e3 * gaps.max():.0f} ms")
+    print(f"  oracle knowing every advert sent: {stats(np.array(acc['sent']))}")
     print("video edges of the render against the truth (PTS):")
     for cam, offset in CAMERAS.items():
         parts = []
@@ -172,16 +162,40 @@ def one_duration(duration: float, seeds: int, width: int, height: int, lag: floa
             parts.append(f"cover {1e3 * (ev.cover - (c - offset)):+6.1f} / release "
                          f"{1e3 * (ev.release - (rel - offset)):+6.1f} ms (sigma {1e3 * ev.cover_sigma:.1f})")
         print(f"  {cam:<6} " + ";  ".join(parts))
-    print("video start (clock offset) over seeds:")
-    for cam in CAMERAS:
-        e, sg = np.array(start_err[cam]), np.array(start_sig[cam])
-        print(f"  {cam:<6} first frame {stats(e)}   {coverage(e, sg)}")
-        e, sg = np.array(end_err[cam]), np.array(end_sig[cam])
-        print(f"  {cam:<6} last frame  {stats(e)}   {coverage(e, sg)}")
+    print("video clock map over seeds (error of the mapped time at the first / last frame):")
+    for cam, label in (*((c, "") for c in CAMERAS), ("front", " flat")):
+        for where in ("first", "last"):
+            e, sg = np.array(acc[f"{cam}{label} {where} err"]), np.array(acc[f"{cam}{label} {where} sig"])
+            note = "   (flat drift prior: the fit before)" if label else ""
+            print(f"  {cam:<6} {where + ' frame':<11} {stats(e)}   {coverage(e, sg)}{note}")
     print("seed 0 (the demo's default):")
     print("\n".join(seed0))
-    if lag_err:
-        print(f"check: every RSSI timestamp {1e3 * lag:g} ms late -> front start {stats(np.array(lag_err))}")
+    if acc["lag"]:
+        print(f"check: every RSSI timestamp {1e3 * lag:g} ms late -> front start {stats(np.array(acc['lag']))}")
+
+
+def one_duration(duration: float, seeds: int, width: int, height: int, lag: float, work: Path) -> None:
+    settings = demo.DemoSettings(out=None, duration_s=duration)  # type: ignore[arg-type]
+    truth = true_edges(settings)
+    t_render = time.perf_counter()
+    video = render_video(settings, width, height, work)
+    t_render = time.perf_counter() - t_render
+    print(f"\n=== {duration:g} s captures, {len(truth)} cover event(s), {seeds} seeds "
+          f"(render {width}x{height} in {t_render:.0f} s) ===")
+    kinds = [f"{k} {i + 1}" for i in range(len(truth)) for k in ("cover", "release")]
+    acc: dict[str, list] = defaultdict(list)
+    seed0: list[str] = []
+    for seed in range(seeds):
+        (t, r, s), _ = demo_readings(seed, duration)
+        found = detect_rssi_events(t, r, s)
+        if len(found) != len(truth):
+            print(f"  seed {seed}: {len(found)} RSSI events found, {len(truth)} true; skipped")
+            continue
+        score_rssi(acc, seed, t, found, truth, sent_adverts(seed, duration), seed0)
+        score_clocks(acc, seed, video, found, duration, seed0)
+        if lag > 0:
+            acc["lag"].append(fit_clock_map(video["front"], detect_rssi_events(t + lag, r, s)).video_start - T0)
+    report(acc, kinds, video, truth, seed0, lag)
 
 
 def main() -> None:
