@@ -13,7 +13,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, TaskID, TextColumn, Tim
 from annotator.commands._common import LazyProgress, default_jobs, one_line_errors
 
 if TYPE_CHECKING:
-    from annotator.refine import Refinement
+    from annotator.core.refine import Refinement
 
 
 class Method(StrEnum):
@@ -79,9 +79,9 @@ def track(
     quality columns (markers, rms_px, sigma_m). Rows without a trustworthy pose are NaN.
     """
     from annotator.errors import ConfigError
-    from annotator.experiment import load_experiment
+    from annotator.io.experiment import load_experiment
+    from annotator.io.trajectory import write_trajectory
     from annotator.pipeline import TrackSettings, track
-    from annotator.trajectory_io import write_trajectory
     from annotator.vision.detection import DetectorSettings
     from annotator.vision.paper import PaperSettings
 
@@ -130,7 +130,7 @@ def _report_refinement(out: Path, refinement: Refinement, console: Console) -> N
     import json
     import math
 
-    from annotator.refine import write_refined
+    from annotator.core.refine import write_refined
 
     write_refined(out / "refined", refinement)
     rep = refinement.report
