@@ -35,7 +35,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -47,7 +47,8 @@ from annotator.core.priors import ParameterCovariance, Priors
 from annotator.vision.geometry import marker_corners_local
 
 if TYPE_CHECKING:
-    from annotator.io.experiment import Experiment
+    from annotator.core.uncertainty import VideoFrames
+    from annotator.io.experiment import CameraCalibration, Experiment, RigCamera
 
 log = logging.getLogger(__name__)
 
@@ -713,7 +714,7 @@ class Keyframe:
     views: list[FrameView]
 
 
-def _calibration(cam: CameraParams):  # noqa: ANN202 - CameraCalibration, imported lazily
+def _calibration(cam: CameraParams) -> CameraCalibration:
     from annotator.io.experiment import CameraCalibration
 
     return CameraCalibration(cam.K, np.asarray(cam.dist, float), 0, cam.height, "", cam.model, cam.readout_s)
@@ -882,14 +883,14 @@ def blur_weight(smear_px: float, scale_px: float = 2.0) -> float:
     return 1.0 / (1.0 + (smear_px / scale_px) ** 2)
 
 
-def camera_params(rig_cam) -> CameraParams:  # noqa: ANN001 - annotator.io.experiment.RigCamera
+def camera_params(rig_cam: RigCamera) -> CameraParams:
     cal = rig_cam.calibration
     return CameraParams(rig_cam.name, rig_cam.R_bundle_camera, rig_cam.t_bundle_camera, cal.camera_matrix,
                         np.asarray(cal.dist_coeffs, float), cal.model, cal.readout_s, cal.height,
                         cal.corner_bias_px)
 
 
-def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,  # noqa: ANN001
+def select_keyframes(frames: Sequence[VideoFrames], exp: Experiment, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
                      settings: RefineSettings) -> list[Keyframe]:
     """Keyframes over the capture: frames of the first camera with the other cameras' nearest
     frames, where the first pass has a pose, enough markers are seen and blur is small."""
@@ -953,11 +954,11 @@ class Refinement:
     experiment: Experiment  # with the refined map, rig and calibrations
     solution: Solution
     covariance: ParameterCovariance
-    report: dict
+    report: dict[str, Any]
     mapped: list[int]  # markers the survey did not give, now mapped from the video
 
 
-def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,  # noqa: ANN001
+def refine_capture(frames: Sequence[VideoFrames], exp: Experiment, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
                    settings: RefineSettings | None = None,
                    initial: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> Refinement | None:
     """Refine the experiment's map (mode map) and rig, lenses, readouts (mode all) from a first pass.
@@ -1003,8 +1004,8 @@ def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np
     return Refinement(refined, sol, sol.covariance, report, mapped)
 
 
-def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], exp, s: RefineSettings,  # noqa: ANN001
-                      n_keyframes: int, mapped: list[int], seconds: float) -> dict:
+def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], exp: Experiment, s: RefineSettings,
+                      n_keyframes: int, mapped: list[int], seconds: float) -> dict[str, Any]:
     """report.json's ``refinement`` section."""
     cameras = {}
     for a, b in zip(cams, sol.cameras, strict=True):
@@ -1035,7 +1036,7 @@ def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], ex
 
 # --- the refined files ----------------------------------------------------------------------
 
-def _write_calibration(path: object, cal) -> None:  # noqa: ANN001 - CameraCalibration
+def _write_calibration(path: object, cal: CameraCalibration) -> None:
     import cv2
 
     from annotator.io.experiment import CORNER_BIAS_KEY, READOUT_KEY
