@@ -4,7 +4,7 @@ Per video (in parallel processes with jobs > 1): decode by PTS -> detect markers
 bundle pose from that camera. Then, for method ``rig``: choose between mirror solutions of
 single-marker frames -> smooth (pass 1) -> joint two-camera solves of near-simultaneous frames,
 motion-compensated with the pass-1 trajectory -> smooth again -> (refine != none) self-calibration
-over keyframes (annotator.refine) -> joint solves with the refined map, rig and lenses (rolling
+over keyframes (annotator.core.refine) -> joint solves with the refined map, rig and lenses (rolling
 shutter from the previous pass's motion) -> smooth again. Method ``paper``: per-marker poses
 -> batches -> selection -> random-walk Kalman filter.
 With jobs > 1 one process pool serves the whole run: the videos, then the joint solves and the
@@ -28,10 +28,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from annotator.errors import NoDataError
-from annotator.experiment import Experiment, MarkerSetup, RigCamera
-from annotator.priors import ParameterCovariance
-from annotator.refine import (
+from annotator.core.priors import ParameterCovariance
+from annotator.core.refine import (
     Refinement,
     RefineSettings,
     blur_weight,
@@ -39,15 +37,17 @@ from annotator.refine import (
     predicted_smear_px,
     refine_capture,
 )
-from annotator.smoothing import SmootherSettings, smooth_positions, smooth_rotations, supported
-from annotator.trajectory_io import Trajectory
-from annotator.uncertainty import (
+from annotator.core.smoothing import SmootherSettings, smooth_positions, smooth_rotations, supported
+from annotator.core.uncertainty import (
     UncertaintySettings,
     row_uncertainty,
     sync_time_sigma,
     total_sigma,
 )
-from annotator.video import iter_frames, video_info
+from annotator.errors import NoDataError
+from annotator.io.experiment import Experiment, MarkerSetup, RigCamera
+from annotator.io.trajectory import Trajectory
+from annotator.io.video import iter_frames, video_info
 from annotator.vision.detection import Detections, DetectorSettings, MarkerDetector
 from annotator.vision.geometry import MarkerRoom
 from annotator.vision.paper import MarkerPoses, PaperSettings, marker_poses, paper_track
@@ -75,7 +75,7 @@ class TrackSettings:
     joint: bool = True  # rig: joint two-camera solve of near-simultaneous frames
     max_frames: int | None = None  # per video; for quick looks and benchmarks
     uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)  # what sigma_m holds
-    # rig: self-calibration after the first pass (annotator.refine): none | map | all
+    # rig: self-calibration after the first pass (annotator.core.refine): none | map | all
     refine: str = "all"
     # Assumed exposure for the motion-blur measure (predicted smear, px, of each frame's markers).
     exposure_s: float = 0.008
@@ -527,9 +527,9 @@ class RunSettings:
 @dataclass(frozen=True, eq=False)
 class RunResult:
     trajectory: Trajectory
-    sync: Any  # annotator.sync.SyncResult
-    labels: Any  # annotator.labeling.Labels, one per reading of `rssi`
-    rssi: Any  # annotator.rssi_io.RssiTable: the bundle beacon's readings
+    sync: Any  # annotator.core.sync.SyncResult
+    labels: Any  # annotator.core.labeling.Labels, one per reading of `rssi`
+    rssi: Any  # annotator.io.rssi.RssiTable: the bundle beacon's readings
     report: dict[str, Any]
     refinement: Refinement | None = None  # what the self-calibration did (None: --refine none, paper)
     params: ParameterCovariance | None = None  # uncertainty of the map, rig and lenses tracked with
@@ -561,20 +561,20 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
     report.json and the plots into ``out_dir``."""
     from dataclasses import replace
 
-    from annotator.errors import ConfigError
-    from annotator.labeling import Poses, label_readings
-    from annotator.outputs import build_report, write_annotated_mbd, write_parquet, write_report
-    from annotator.plots import write_run_plots
-    from annotator.rssi_io import bundle_beacon, load_rssi
-    from annotator.sync import (
+    from annotator.core.labeling import Poses, label_readings
+    from annotator.core.sync import (
         VideoSeries,
         cover_intervals,
         detect_rssi_events,
         manual_sync,
         synchronise,
     )
-    from annotator.sync_io import brightness_series
-    from annotator.trajectory_io import write_trajectory
+    from annotator.errors import ConfigError
+    from annotator.io.outputs import build_report, write_annotated_mbd, write_parquet, write_report
+    from annotator.io.rssi import bundle_beacon, load_rssi
+    from annotator.io.sync import brightness_series
+    from annotator.io.trajectory import write_trajectory
+    from annotator.plots.run import write_run_plots
 
     settings = settings or RunSettings()
     track = settings.track
@@ -641,7 +641,7 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
             markers=exp.markers.markers)
         report["plots"] = {k: p.name for k, p in plots.items()}
     if result.refinement is not None:
-        from annotator.refine import write_refined
+        from annotator.core.refine import write_refined
 
         report["refinement"] = {**result.refinement.report,
                                 "files": {k: f"refined/{v}" for k, v in write_refined(out / "refined",

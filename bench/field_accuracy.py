@@ -7,7 +7,7 @@
 Each condition renders the same walk through the tetam room (the default loop, 960x540, two
 cameras) with `annotator.render.render_experiment`, gives `annotator track` the files a real
 capture would have (the condition's errors; see docs/renderer.md) and scores the trajectory with
-`annotator.evaluate.compare_to_truth` against the exact truth. Conditions:
+`annotator.core.evaluate.compare_to_truth` against the exact truth. Conditions:
 
     none        exact files, global shutter, no motion blur (exposure 0), the mild lens, no flicker
     survey      marker map off by 1.5 cm / 1 deg per axis (1-sigma per marker)
@@ -51,11 +51,11 @@ import numpy as np
 
 import annotator.render as render_pkg
 from annotator.commands.simulate import ERROR_PRESETS
-from annotator.evaluate import compare_to_truth
+from annotator.core.evaluate import compare_to_truth
+from annotator.io.trajectory import read_trajectory
 from annotator.render import LoopTrajectory, default_cameras, render_experiment
 from annotator.render.errors import FileErrors
 from annotator.render.experiment import write_experiment_files
-from annotator.trajectory_io import read_trajectory
 from bgt_core.formats.markers import read_marker_map
 from bgt_core.sites import site_dir
 

@@ -119,7 +119,7 @@ def make_experiment(folder: Path, video_dir: Path, cond: str, settings: demo.Dem
 
 
 def run_and_score(exp: Path, settings: demo.DemoSettings, jobs: int) -> dict[str, object]:
-    from annotator.experiment import load_experiment
+    from annotator.io.experiment import load_experiment
     from annotator.pipeline import RunSettings, TrackSettings, run_experiment
 
     t = time.perf_counter()

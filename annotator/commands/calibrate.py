@@ -80,7 +80,7 @@ def calibrate(
     """Calibrate a camera from views of a ChArUco board; prints the RMS reprojection error and
     writes camera_matrix, distortion_coefficients, image_width and image_height."""
     with one_line_errors():
-        from annotator.calibration import CharucoSpec, calibrate_charuco, parse_squares
+        from annotator.core.calibration import CharucoSpec, calibrate_charuco, parse_squares
 
         if every < 1:
             raise ConfigError("--every must be at least 1")

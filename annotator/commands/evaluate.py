@@ -1,5 +1,5 @@
 """`annotator evaluate`: a trajectory against a reference trajectory or a planned path;
-writes a JSON report and a PNG plot (the metrics themselves live in annotator/evaluate.py)."""
+writes a JSON report and a PNG plot (the metrics themselves live in annotator/core/evaluate.py)."""
 
 from __future__ import annotations
 
@@ -80,8 +80,8 @@ def evaluate(
     reference interpolated in time) and rotation error in degrees. Against --path: deviation
     from the planned polyline and along-track drag at each segment end."""
     with one_line_errors():
-        from annotator.evaluate import compare_to_path, compare_to_truth
-        from annotator.trajectory_io import read_trajectory
+        from annotator.core.evaluate import compare_to_path, compare_to_truth
+        from annotator.io.trajectory import read_trajectory
 
         if (truth is None) == (path is None):
             raise ConfigError("give exactly one of --truth TRUTH.csv or --path PATH.yaml")

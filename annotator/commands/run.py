@@ -36,7 +36,7 @@ def run(
     dark, the beacon's RSSI drops); with `manual`, sync.video_start is used as given.
     """
     with one_line_errors():
-        from annotator.experiment import load_experiment
+        from annotator.io.experiment import load_experiment
         from annotator.pipeline import RunSettings, TrackSettings, run_experiment
         from bgt_core.wire import normalize_mac
 

@@ -76,9 +76,9 @@ def track(
     quality columns (markers, rms_px, sigma_m). Rows without a trustworthy pose are NaN.
     """
     from annotator.errors import ConfigError
-    from annotator.experiment import load_experiment
+    from annotator.io.experiment import load_experiment
+    from annotator.io.trajectory import write_trajectory
     from annotator.pipeline import TrackSettings, track
-    from annotator.trajectory_io import write_trajectory
     from annotator.vision.detection import DetectorSettings
     from annotator.vision.paper import PaperSettings
 
@@ -127,7 +127,7 @@ def _report_refinement(out: Path, refinement: object, console: Console) -> None:
     import json
     import math
 
-    from annotator.refine import write_refined
+    from annotator.core.refine import write_refined
 
     write_refined(out / "refined", refinement)
     rep = refinement.report

@@ -2,7 +2,7 @@
 calibrations that are a little off, as a careful real capture's are. The video is always
 rendered with the exact values; only the written files carry the errors.
 
-Conventions match `annotator.priors`: a marker's written rotation is exp([d]x) @ R_true with d a
+Conventions match `annotator.core.priors`: a marker's written rotation is exp([d]x) @ R_true with d a
 world-frame rotation vector, a rig camera's exp([d]x) @ R_bundle_camera with d in the bundle
 frame; positions get an additive offset. Each kind of error draws from its own random stream
 (seeded from `seed` and the kind), as unit normals scaled by the sigma: a given seed moves the

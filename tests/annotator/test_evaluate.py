@@ -11,8 +11,13 @@ from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from annotator.cli import app
-from annotator.evaluate import compare_to_path, compare_to_truth, error_stats, interpolate_poses
-from annotator.trajectory_io import Trajectory, write_trajectory
+from annotator.core.evaluate import (
+    compare_to_path,
+    compare_to_truth,
+    error_stats,
+    interpolate_poses,
+)
+from annotator.io.trajectory import Trajectory, write_trajectory
 
 
 def make_truth(n: int = 101, dt: float = 0.1, t0: float = 1000.0) -> tuple[np.ndarray, np.ndarray, Rotation]:

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from annotator import fingerprints as fp
 from annotator.cli import app
+from annotator.core import fingerprints as fp
 from bgt_core.formats.hst import read_hst
 
 DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"

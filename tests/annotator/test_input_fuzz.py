@@ -162,7 +162,7 @@ def experiment(template: Path, tmp_path: Path) -> Path:
 
 
 def test_the_template_experiment_is_valid(experiment: Path):
-    from annotator.experiment import load_experiment
+    from annotator.io.experiment import load_experiment
 
     exp = load_experiment(experiment / "experiment.yaml")
     assert exp.video_start == {"front": T0}
@@ -171,7 +171,7 @@ def test_the_template_experiment_is_valid(experiment: Path):
 
 def test_sync_values_are_checked_and_normalised(experiment: Path):
     """Good values pass and come out as the pipeline reads them: floats and a 12-hex MAC."""
-    from annotator.experiment import load_experiment
+    from annotator.io.experiment import load_experiment
 
     sync("  mode: auto\n  video_start: {front: 1.7e9}\n  beacon: 'AA:BB:CC:DD:EE:FF'\n"
          "  min_cover_s: 1\n  max_cover_s: 4\n  max_start_error: 30\n")(experiment)

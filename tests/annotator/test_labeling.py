@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from annotator.labeling import (
+from annotator.core.labeling import (
     AFTER_SPAN,
     BEFORE_SPAN,
     COVERED,
@@ -135,7 +135,7 @@ def test_cover_events_are_excluded_and_not_counted_against_coverage() -> None:
 
 
 def test_sync_uncertainty_adds_speed_times_time_sigma_to_each_reading():
-    from annotator.labeling import Poses, label_readings
+    from annotator.core.labeling import Poses, label_readings
 
     t = np.arange(0.0, 2.0, 0.1)
     pos = np.stack([1.5 * t, np.zeros_like(t), np.ones_like(t)], 1)  # 1.5 m/s along x

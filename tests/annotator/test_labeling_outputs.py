@@ -12,17 +12,17 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
+from annotator.core.labeling import Poses, label_readings
 from annotator.errors import ConfigError, NoDataError
-from annotator.labeling import Poses, label_readings
-from annotator.outputs import write_annotated_mbd, write_parquet, write_report
-from annotator.plots import (
+from annotator.io.outputs import write_annotated_mbd, write_parquet, write_report
+from annotator.io.rssi import bundle_beacon, load_rssi
+from annotator.plots.run import (
     builtin_site_for,
     load_site,
     plot_rssi_on_trajectory,
     plot_rssi_time,
     plot_trajectory_map,
 )
-from annotator.rssi_io import bundle_beacon, load_rssi
 from bgt_core.formats.markers import read_marker_map
 from bgt_core.formats.mbd import MbdError, format_row, iter_rows
 from bgt_core.sites import site_dir

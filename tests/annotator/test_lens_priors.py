@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
+from annotator.core.priors import ParameterCovariance, parse_priors
 from annotator.errors import ConfigError
-from annotator.experiment import parse_calibration
-from annotator.priors import ParameterCovariance, parse_priors
+from annotator.io.experiment import parse_calibration
 from annotator.vision.lens import project_points, undistort_points
 
 

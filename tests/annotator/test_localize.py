@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from annotator.localize import RadioMapArrays, Readings, grid_hmm, knn
-from annotator.localize_io import radiomap_arrays
+from annotator.core.localize import RadioMapArrays, Readings, grid_hmm, knn
+from annotator.io.localize import radiomap_arrays
 from bgt_core.formats.grd import RadioMapGrid
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "dataset"
@@ -125,10 +125,10 @@ def test_baselines_on_the_bundled_published_track(tmp_path: Path) -> None:
         assert body["coverage"]["scored_fraction"] > 0.95
         ce75[method] = body["error_2d_m"]["ce75"]
     # the trivial answer: the centroid of the free cells, every time
-    from annotator.localize_io import radiomap_arrays as arrays
-    from annotator.localize_io import read_radiomap_grids
-    from annotator.scoring import score
-    from annotator.scoring_io import read_truth
+    from annotator.core.scoring import score
+    from annotator.io.localize import radiomap_arrays as arrays
+    from annotator.io.localize import read_radiomap_grids
+    from annotator.io.scoring import read_truth
 
     m = arrays(read_radiomap_grids(tmp_path / "rm"), "e78f135624ce")
     ref = read_truth(truth)

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from annotator.cli import app
 from annotator.errors import ConfigError
-from annotator.marker_sheets import INCH, choose_paper, marker_page, parse_ids
+from annotator.plots.marker_sheets import INCH, choose_paper, marker_page, parse_ids
 
 PT_PER_M = 72 / INCH
 

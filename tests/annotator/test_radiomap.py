@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from annotator import radio_data
-from annotator import radiomap as rm
 from annotator.cli import app
+from annotator.core import radiomap as rm
+from annotator.io import radio_data
 from bgt_core.formats import devices, grd, hst, occ
 
 DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"

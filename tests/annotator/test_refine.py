@@ -8,8 +8,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from annotator.priors import MarkerPrior, Priors
-from annotator.refine import CameraParams, FrameView, Keyframe, RefineSettings, build_problem, solve
+from annotator.core.priors import MarkerPrior, Priors
+from annotator.core.refine import (
+    CameraParams,
+    FrameView,
+    Keyframe,
+    RefineSettings,
+    build_problem,
+    solve,
+)
 from track_helpers import make_path, make_rig, make_room, project
 
 N_KF = 60
@@ -182,7 +189,7 @@ def test_field_errors_end_to_end(tmp_path):
     from typer.testing import CliRunner
 
     from annotator.cli import app
-    from annotator.trajectory_io import read_trajectory
+    from annotator.io.trajectory import read_trajectory
     from track_helpers import errors_against_truth
 
     exp = tmp_path / "exp"

@@ -92,7 +92,7 @@ def test_simulate_writes_the_contract_files(sim: Path) -> None:
 
 
 def test_the_tracker_loads_the_experiment(sim: Path) -> None:
-    from annotator.experiment import load_experiment
+    from annotator.io.experiment import load_experiment
 
     exp = load_experiment(sim / "experiment.yaml")
     assert exp.video_start == {"front": T0, "back": T0 + OFFSET}

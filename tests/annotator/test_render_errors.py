@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from annotator.cli import app
-from annotator.experiment import load_calibration, load_experiment, load_rig
+from annotator.io.experiment import load_calibration, load_experiment, load_rig
 from annotator.render import LoopTrajectory, default_cameras, render_experiment
 from annotator.render.camera import RIG_EXTRINSICS, RIG_YAML, camera_pose
 from annotator.render.effects import flicker_gain

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from annotator.rssi_io import load_rssi
+from annotator.io.rssi import load_rssi
 
 
 def _run(tmp_path: Path, files: dict[str, str]) -> Path:

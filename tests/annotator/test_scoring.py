@@ -1,4 +1,4 @@
-"""annotator.scoring and `annotator score`: errors at each estimate's own time against known truth."""
+"""annotator.core.scoring and `annotator score`: errors at each estimate's own time against known truth."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from annotator.scoring import Truth, interpolate_truth, score, summarize
-from annotator.scoring_io import read_estimates, read_truth, write_estimates
-from annotator.trajectory_io import Trajectory, write_trajectory
+from annotator.core.scoring import Truth, interpolate_truth, score, summarize
+from annotator.io.scoring import read_estimates, read_truth, write_estimates
+from annotator.io.trajectory import Trajectory, write_trajectory
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "dataset"
 TRACK = DATA / "trk" / "straight_01_all_sensors.mbd"

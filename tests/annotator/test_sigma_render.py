@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from annotator.cli import app
-from annotator.evaluate import compare_to_truth
-from annotator.trajectory_io import POSE_COLUMNS, read_trajectory
+from annotator.core.evaluate import compare_to_truth
+from annotator.io.trajectory import POSE_COLUMNS, read_trajectory
 from track_helpers import errors_against_truth
 
 pytestmark = pytest.mark.slow

@@ -7,8 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from annotator.errors import NoDataError
-from annotator.sync import (
+from annotator.core.sync import (
     CoverEvent,
     VideoSeries,
     detect_rssi_events,
@@ -17,6 +16,7 @@ from annotator.sync import (
     manual_clock_map,
     synchronise,
 )
+from annotator.errors import NoDataError
 
 FPS = 30.0
 FRAME = 1.0 / FPS

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from annotator import demo
-from annotator.sync import detect_rssi_events, detect_video_events, fit_clock_map
+from annotator.core.sync import detect_rssi_events, detect_video_events, fit_clock_map
 from sensor_agent.scanning.simulated import Simulation, load_site, pick_sensors
 
 T0 = 1_700_000_000.0

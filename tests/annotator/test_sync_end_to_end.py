@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from annotator.cli import app
-from annotator.experiment import load_experiment
+from annotator.io.experiment import load_experiment
 from annotator.pipeline import RunSettings, run_experiment
 from annotator.render import LoopTrajectory, render_experiment
 from bgt_core.formats.devices import read_dev

@@ -12,9 +12,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from annotator.errors import AnnotatorError, ConfigError
-from annotator.experiment import load_calibration, load_experiment
-from annotator.trajectory_io import Trajectory, read_trajectory, write_trajectory
-from annotator.video import iter_frames
+from annotator.io.experiment import load_calibration, load_experiment
+from annotator.io.trajectory import Trajectory, read_trajectory, write_trajectory
+from annotator.io.video import iter_frames
 from bgt_core.sites import site_dir
 
 K = np.array([[620.0, 0, 480.5], [0, 621.5, 268.25], [0, 0, 1]])

@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from annotator.cli import app
-from annotator.trajectory_io import read_trajectory
+from annotator.io.trajectory import read_trajectory
 from track_helpers import errors_against_truth
 
 pytestmark = pytest.mark.slow

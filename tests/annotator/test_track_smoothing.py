@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from annotator.smoothing import SmootherSettings, smooth_positions, smooth_rotations, supported
+from annotator.core.smoothing import SmootherSettings, smooth_positions, smooth_rotations, supported
 
 
 def make_walk(n: int, dt: float) -> tuple[np.ndarray, np.ndarray]:

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from annotator.scoring import interpolate_truth
-from annotator.scoring_io import read_truth, write_estimates
-from annotator.trajectory_io import Trajectory, write_trajectory
-from annotator.tum_io import read_poses
+from annotator.core.scoring import interpolate_truth
+from annotator.io.scoring import read_truth, write_estimates
+from annotator.io.trajectory import Trajectory, write_trajectory
+from annotator.io.tum import read_poses
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "dataset"
 TRACK = DATA / "trk" / "straight_01_all_sensors.mbd"

@@ -7,9 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from annotator.experiment import CameraCalibration
-from annotator.priors import ParameterCovariance, Priors
-from annotator.uncertainty import (
+from annotator.core.priors import ParameterCovariance, Priors
+from annotator.core.uncertainty import (
     BLOCKS,
     FrameView,
     UncertaintySettings,
@@ -18,6 +17,7 @@ from annotator.uncertainty import (
     propagate,
     smear_weights,
 )
+from annotator.io.experiment import CameraCalibration
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom, marker_corners_local
 from annotator.vision.pose import observe, solve_bundle_pose
@@ -218,7 +218,7 @@ def test_a_correlated_covariance_is_propagated_as_a_whole():
 
 def test_calibration_exposure_is_optional_and_checked():
     from annotator.errors import ConfigError
-    from annotator.experiment import parse_calibration
+    from annotator.io.experiment import parse_calibration
 
     d = {"camera_matrix": [[600.0, 0, 480], [0, 601.0, 270], [0, 0, 1]], "image_width": 960,
          "image_height": 540, "distortion_coefficients": [0.0, 0.0, 0.0, 0.0, 0.0]}

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from annotator.experiment import CameraCalibration, RigCamera
+from annotator.io.experiment import CameraCalibration, RigCamera
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom
 from bgt_core.formats.markers import read_marker_map
@@ -73,7 +73,7 @@ def project(room: MarkerRoom, cam: RigCamera, R_wb: np.ndarray, t_wb: np.ndarray
 
 def errors_against_truth(traj, truth) -> tuple[np.ndarray, np.ndarray]:
     """Position (m) and rotation (deg) errors of a trajectory's posed rows inside truth's span."""
-    from annotator.evaluate import compare_to_truth
+    from annotator.core.evaluate import compare_to_truth
 
     cmp = compare_to_truth(traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation)
     ok = np.isfinite(cmp.position_error)

@@ -13,8 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from annotator.errors import AnnotatorError
-from annotator.experiment import load_calibration
-from annotator.trajectory_io import read_trajectory
+from annotator.io.experiment import load_calibration
+from annotator.io.trajectory import read_trajectory
 from bgt_core import safe_yaml
 from bgt_core.formats import devices, grd, hst, markers, occ, tables
 from bgt_core.formats.mbd import MbdError, iter_rows

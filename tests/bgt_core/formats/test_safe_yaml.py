@@ -157,7 +157,7 @@ def test_a_loader_must_be_the_safe_one():
 def _yaml_readers():
     from annotator.commands.evaluate import load_waypoints
     from annotator.errors import ConfigError as AnnotatorConfigError
-    from annotator.experiment import load_calibration, load_experiment, load_rig
+    from annotator.io.experiment import load_calibration, load_experiment, load_rig
     from bgt_core.formats.markers import MarkerMapError, read_marker_map
     from collector.config import ConfigError as CollectorConfigError
     from collector.config import load_config as collector_config
@@ -191,7 +191,7 @@ def test_every_yaml_reader_of_the_suite_refuses_aliases(tmp_path: Path, index: i
 
 def test_run_yaml_with_aliases_is_skipped_by_the_collector_and_refused_by_the_annotator(tmp_path: Path):
     from annotator.errors import ConfigError
-    from annotator.rssi_io import load_rssi
+    from annotator.io.rssi import load_rssi
     from collector.store import list_runs
 
     run = tmp_path / "data" / "r1"

@@ -40,7 +40,7 @@ def read_poses(path: str | Path) -> PoseSeries:
     """A trajectory.csv (full pose), an annotated run directory (its trajectory.csv), a track
     .mbd file or folder (pose of each timestamp), or an estimates CSV ``t,x,y[,z]`` (identity
     orientation, z 0 when absent)."""
-    from annotator.scoring_io import read_estimates
+    from annotator.io.scoring import read_estimates
 
     path = Path(path)
     if path.is_dir() and (path / "trajectory.csv").is_file():
@@ -49,7 +49,7 @@ def read_poses(path: str | Path) -> PoseSeries:
         with path.open(encoding="utf-8") as f:
             header = [h.strip() for h in f.readline().split(",")]
         if "r11" in header:
-            from annotator.trajectory_io import read_trajectory
+            from annotator.io.trajectory import read_trajectory
 
             traj = read_trajectory(path)
             q, bad = _quats(traj.rotation)
@@ -60,7 +60,7 @@ def read_poses(path: str | Path) -> PoseSeries:
         if not est.has_z:
             pos[:, 2] = np.where(np.isfinite(pos[:, :2]).all(axis=1), 0.0, np.nan)
         return PoseSeries(est.t, pos, np.tile([0.0, 0.0, 0.0, 1.0], (len(est.t), 1)))
-    from annotator.radio_data import annotated_files
+    from annotator.io.radio_data import annotated_files
     from bgt_core.formats.tables import load_mbd
 
     files = annotated_files([path])
@@ -102,7 +102,7 @@ def write_tum(path: str | Path, p: PoseSeries, *, flat: bool = False) -> int:
 def resample(p: PoseSeries, t: np.ndarray, *, max_gap_s: float) -> PoseSeries:
     """Positions interpolated at ``t`` as `annotator score` does (never extrapolated, no bridging
     of gaps); orientations by slerp between the same two samples. Unscored times are gaps."""
-    from annotator.scoring import Truth, interpolate_truth
+    from annotator.core.scoring import Truth, interpolate_truth
 
     truth = Truth.from_samples(p.t, p.position)
     pos, _ = interpolate_truth(truth, t, max_gap_s=max_gap_s)

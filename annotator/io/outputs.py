@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from annotator.labeling import Labels
-from annotator.rssi_io import RssiTable
+from annotator.core.labeling import Labels
+from annotator.io.rssi import RssiTable
 from bgt_core.formats.mbd import TRACK_COLUMNS
 from bgt_core.wire import format_ts
 
@@ -158,10 +158,10 @@ def build_report(*, experiment: str | Path, sync: Any, beacon: str, readings_tot
                  max_gap: float, method: str) -> dict[str, Any]:
     """What report.json says: sync offsets with uncertainty, counts, coverage and quality.
 
-    ``sync`` is an :class:`annotator.sync.SyncResult`; ``table`` and ``labels`` are the bundle
+    ``sync`` is an :class:`annotator.core.sync.SyncResult`; ``table`` and ``labels`` are the bundle
     beacon's readings and their labels.
     """
-    from annotator.labeling import tracked_span_coverage
+    from annotator.core.labeling import tracked_span_coverage
 
     tv = np.asarray(traj_t)[np.asarray(traj_valid, dtype=bool)]
     lab = labels.labelled

@@ -1,5 +1,5 @@
 """Fingerprint histograms as pure array code: RSSI counts per bin, normalisation, and binning of
-position-annotated (moving) readings into grid cells. No file I/O here (see annotator.radio_data).
+position-annotated (moving) readings into grid cells. No file I/O here (see annotator.io.radio_data).
 
 Binning follows ``numpy.histogram`` on the edges, as the published .hst files were made: bins are
 half-open ``[e_k, e_k+1)`` except the last, which is closed, and readings outside ``[e_0, e_K]``

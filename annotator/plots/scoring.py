@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator.scoring import Score, Truth
+from annotator.core.scoring import Score, Truth
 
 
 def _site_plan():  # -> (MapParams, png path) or None

@@ -42,8 +42,8 @@ from scipy.linalg import block_diag
 from scipy.optimize import nnls
 from scipy.spatial.transform import Rotation
 
-from annotator.experiment import CameraCalibration, Experiment
-from annotator.priors import ParameterCovariance
+from annotator.core.priors import ParameterCovariance
+from annotator.io.experiment import CameraCalibration, Experiment
 from annotator.vision.geometry import MarkerRoom, marker_corners_local
 from annotator.vision.lens import undistort_points
 
@@ -592,7 +592,7 @@ def total_sigma(smoother_m: np.ndarray, u: RowUncertainty, settings: Uncertainty
 
 def sync_time_sigma(clocks: dict[str, object], t_rssi: np.ndarray) -> np.ndarray:
     """1-sigma uncertainty (s) of each RSSI time against the video clock: the worst camera's clock
-    map at that time (``annotator.sync.ClockMap.sigma_at``); 0 where no camera states one (manual
+    map at that time (``annotator.core.sync.ClockMap.sigma_at``); 0 where no camera states one (manual
     sync states none)."""
     t = np.asarray(t_rssi, dtype=float)
     out = np.zeros(t.shape)

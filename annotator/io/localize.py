@@ -1,5 +1,5 @@
 """The file side of the baseline localizers: radio maps (.grd folders) and RSSI readings in,
-estimates CSV (the input of `annotator score`) out. The algorithms live in annotator.localize."""
+estimates CSV (the input of `annotator score`) out. The algorithms live in annotator.core.localize."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from annotator.core.localize import Estimates2D, RadioMapArrays, Readings, grid_hmm, knn
 from annotator.errors import AnnotatorError, ConfigError, NoDataError
-from annotator.localize import Estimates2D, RadioMapArrays, Readings, grid_hmm, knn
 
 METHODS = ("knn", "grid-hmm")
 
@@ -77,7 +77,7 @@ def radiomap_arrays(grids: list, beacon: str, occupancy: str | Path | None = Non
 def reading_files(run: str | Path) -> list[Path]:
     """RSSI files of: a .mbd file; a collector run (rssi/*.mbd); an annotated run (annotated/);
     a published track folder (its per-sensor files) or any folder of .mbd files."""
-    from annotator.radio_data import annotated_files
+    from annotator.io.radio_data import annotated_files
 
     run = Path(run)
     if run.is_dir():

@@ -1,5 +1,5 @@
 """The file side of fingerprints and radio maps: finds and reads recordings, calls the pure stages
-in annotator.fingerprints / annotator.radiomap, and writes .hst, .grd and heat-map PNGs."""
+in annotator.core.fingerprints / annotator.core.radiomap, and writes .hst, .grd and heat-map PNGs."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator import fingerprints as fp
-from annotator import radiomap as rm
+from annotator.core import fingerprints as fp
+from annotator.core import radiomap as rm
 from annotator.errors import AnnotatorError, ConfigError, NoDataError
 from bgt_core.formats.devices import Device, Devices, MapParams, read_dev, read_par
 from bgt_core.formats.grd import RadioMapGrid, write_grd
@@ -344,7 +344,7 @@ def write_radio_maps(maps: Sequence[SensorMap], h: FingerprintHistograms, grid: 
         write_grd(m.grid, grd_path)
         written.append(grd_path)
         if plots:
-            from annotator.radiomap_plots import plot_mean_rssi
+            from annotator.plots.radiomap import plot_mean_rssi
 
             alias = h.devices.dongles.get(m.grid.sensor)
             name = alias.alias if alias is not None else m.grid.sensor

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from annotator.core.priors import Priors, parse_priors
 from annotator.errors import ConfigError
-from annotator.priors import Priors, parse_priors
 from bgt_core.formats.markers import MarkerPose, read_marker_map
 
 log = logging.getLogger(__name__)
@@ -40,7 +40,7 @@ class CameraCalibration:
     readout_s: float = 0.0
     exposure_s: float | None = None  # optional: exposure time, for the motion-blur measure
     # Detected marker corners sit this far (px) outward (+) or inward (-) of the true corner along
-    # the square's diagonal; estimated by the self-calibration (annotator.refine), 0 otherwise.
+    # the square's diagonal; estimated by the self-calibration (annotator.core.refine), 0 otherwise.
     corner_bias_px: float = 0.0
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from annotator.errors import NoDataError
-from annotator.video import iter_frames
+from annotator.io.video import iter_frames
 
 
 def brightness_series(path: str | Path, progress: Callable[[int], None] | None = None,

@@ -16,7 +16,7 @@ poses over a few ms), and every corner is seen at its frame time + row / height 
 the bundle moving at the first pass's velocity meanwhile.
 
 All parameters are deltas from their starting values (rotations as world- or bundle-frame rotation
-vectors, as in `annotator.priors`), so the Jacobian is taken by forward differences on the deltas:
+vectors, as in `annotator.core.priors`), so the Jacobian is taken by forward differences on the deltas:
 a perturbation of component i of every instance of a block at once gives that column for every
 residual, since each residual depends on one instance of each block only (28 evaluations for the
 whole Jacobian). The solver is our own Levenberg-Marquardt with a Schur complement on the pose
@@ -43,7 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
-from annotator.priors import ParameterCovariance, Priors
+from annotator.core.priors import ParameterCovariance, Priors
 from annotator.vision.geometry import marker_corners_local
 
 log = logging.getLogger(__name__)
@@ -708,7 +708,7 @@ class Keyframe:
 
 
 def _calibration(cam: CameraParams):  # noqa: ANN202 - CameraCalibration, imported lazily
-    from annotator.experiment import CameraCalibration
+    from annotator.io.experiment import CameraCalibration
 
     return CameraCalibration(cam.K, np.asarray(cam.dist, float), 0, cam.height, "", cam.model, cam.readout_s)
 
@@ -876,7 +876,7 @@ def blur_weight(smear_px: float, scale_px: float = 2.0) -> float:
     return 1.0 / (1.0 + (smear_px / scale_px) ** 2)
 
 
-def camera_params(rig_cam) -> CameraParams:  # noqa: ANN001 - annotator.experiment.RigCamera
+def camera_params(rig_cam) -> CameraParams:  # noqa: ANN001 - annotator.io.experiment.RigCamera
     cal = rig_cam.calibration
     return CameraParams(rig_cam.name, rig_cam.R_bundle_camera, rig_cam.t_bundle_camera, cal.camera_matrix,
                         np.asarray(cal.dist_coeffs, float), cal.model, cal.readout_s, cal.height,
@@ -944,7 +944,7 @@ def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: 
 class Refinement:
     """What refining a capture produced: the experiment to track with, the record, covariances."""
 
-    experiment: object  # annotator.experiment.Experiment with the refined map, rig and calibrations
+    experiment: object  # annotator.io.experiment.Experiment with the refined map, rig and calibrations
     solution: Solution
     covariance: ParameterCovariance
     report: dict
@@ -960,7 +960,7 @@ def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np
     earlier round."""
     from dataclasses import replace
 
-    from annotator.experiment import MarkerSetup, Rig
+    from annotator.io.experiment import MarkerSetup, Rig
     from annotator.vision.geometry import MarkerRoom
     from bgt_core.formats.markers import MarkerPose
 
@@ -1032,7 +1032,7 @@ def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], ex
 def _write_calibration(path: object, cal) -> None:  # noqa: ANN001 - CameraCalibration
     import cv2
 
-    from annotator.experiment import CORNER_BIAS_KEY, READOUT_KEY
+    from annotator.io.experiment import CORNER_BIAS_KEY, READOUT_KEY
 
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     try:
@@ -1077,10 +1077,10 @@ def write_refined(folder: object, refinement: Refinement) -> dict[str, str]:
             "source": "video" if mid in refinement.mapped else ("video, moved since the survey?" if mid in moved
                                                                  else "survey + video"),
         })
-    header = ("# Marker map refined from the capture (annotator.refine). sigma_*: 1-sigma per axis.\n"
+    header = ("# Marker map refined from the capture (annotator.core.refine). sigma_*: 1-sigma per axis.\n"
               f"# dictionary {exp.markers.dictionary}, marker length {exp.markers.length} m\n")
     (out / "markers.yaml").write_text(header + yaml.safe_dump({"markers": rows}, sort_keys=False), encoding="utf-8")
-    lines = ["# Rig refined from the capture (annotator.refine).", "cameras:"]
+    lines = ["# Rig refined from the capture (annotator.core.refine).", "cameras:"]
     for name, cam in exp.rig.cameras.items():
         _write_calibration(out / f"{name}.yaml", cam.calibration)
         rows_r = ", ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in cam.R_bundle_camera)

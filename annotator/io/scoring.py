@@ -1,5 +1,5 @@
 """The file side of scoring: estimates CSV in, ground truth from an annotated run or a published
-track, score.json out. The metrics themselves live in annotator.scoring."""
+track, score.json out. The metrics themselves live in annotator.core.scoring."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from annotator.core.scoring import Score, Truth
 from annotator.errors import AnnotatorError, NoDataError
-from annotator.scoring import Score, Truth
 
 ESTIMATE_COLUMNS = ("t", "x", "y")  # then an optional z; other columns are ignored
 
@@ -99,7 +99,7 @@ def _truth_from_mbd(paths: list[Path], source: str) -> Truth:
 
 
 def _truth_from_trajectory(path: Path) -> Truth:
-    from annotator.trajectory_io import read_trajectory
+    from annotator.io.trajectory import read_trajectory
 
     traj = read_trajectory(path)
     sigma = traj.quality.get("sigma_m")
