@@ -4,7 +4,8 @@ Reads the source of an installed package (say ``collector``) and of every module
 it reaches (``bgt_core.zenoh_config``, ...), collects the top-level names of all imports,
 including those inside functions (``from cryptography import x509`` in a TLS check runs only
 when a TLS config is checked), and imports each one that is neither the standard library nor
-this project. Imports guarded by ``except ImportError`` are optional and not counted.
+this project. Imports guarded by ``except ImportError`` are optional and those under
+``if TYPE_CHECKING:`` never run: neither is counted.
 
 Standard library only: it runs as a script in a fresh venv that holds one extra of the project,
 
@@ -36,30 +37,39 @@ def _module_file(root: Path, name: str) -> Path | None:
     return None
 
 
-def _optional_lines(tree: ast.AST) -> set[int]:
-    """Line numbers of statements inside a ``try`` that catches ImportError."""
+def _is_type_checking(test: ast.expr) -> bool:
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def _not_run_lines(tree: ast.AST) -> set[int]:
+    """Line numbers of imports that may fail or never run: inside a ``try`` that catches
+    ImportError, or under ``if TYPE_CHECKING:`` (for the type checker only)."""
     lines: set[int] = set()
     for node in ast.walk(tree):
-        if not isinstance(node, ast.Try):
+        if isinstance(node, ast.If) and _is_type_checking(node.test):
+            body = node.body
+        elif isinstance(node, ast.Try):
+            caught: set[str] = set()
+            for h in node.handlers:
+                types = h.type.elts if isinstance(h.type, ast.Tuple) else [h.type]
+                caught |= {t.id for t in types if isinstance(t, ast.Name)}
+            body = node.body if caught & OPTIONAL else []
+        else:
             continue
-        caught: set[str] = set()
-        for h in node.handlers:
-            types = h.type.elts if isinstance(h.type, ast.Tuple) else [h.type]
-            caught |= {t.id for t in types if isinstance(t, ast.Name)}
-        if caught & OPTIONAL:
-            for stmt in node.body:
-                lines.update(range(stmt.lineno, (stmt.end_lineno or stmt.lineno) + 1))
+        for stmt in body:
+            lines.update(range(stmt.lineno, (stmt.end_lineno or stmt.lineno) + 1))
     return lines
 
 
 def _imports(path: Path, module: str) -> Iterator[str]:
-    """Dotted names imported by one source file (relative imports resolved), optional ones left
+    """Dotted names imported by one source file (relative imports resolved), skipped ones left
     out; ``from a import b`` yields ``a`` and ``a.b`` (b may be a submodule)."""
     tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
-    optional = _optional_lines(tree)
+    skipped = _not_run_lines(tree)
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
     for node in ast.walk(tree):
-        if getattr(node, "lineno", None) in optional:
+        if getattr(node, "lineno", None) in skipped:
             continue
         if isinstance(node, ast.Import):
             yield from (a.name for a in node.names)

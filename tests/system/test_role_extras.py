@@ -252,10 +252,13 @@ def test_import_scan_finds_imports_inside_functions_and_through_project_modules(
     assert found == {"cryptography": "collector.config", "not_installed_xyz": "bgt_core.tls"}
 
 
-def test_import_scan_leaves_out_imports_guarded_by_import_error(tmp_path) -> None:
+def test_import_scan_leaves_out_optional_and_type_checking_imports(tmp_path) -> None:
     _package(tmp_path, {
         "annotator/__init__.py": ("try:\n    import optional_xyz\nexcept ImportError:\n"
                                   "    optional_xyz = None\nimport numpy\n"),
+        "annotator/types.py": ("import typing\nfrom typing import TYPE_CHECKING\n"
+                               "if TYPE_CHECKING:\n    import pandas\n"
+                               "if typing.TYPE_CHECKING:\n    from scipy import stats\n"),
     })
     assert import_closure.third_party_imports(tmp_path, "annotator") == {"numpy": "annotator"}
 
