@@ -37,7 +37,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -45,6 +45,9 @@ from scipy.spatial.transform import Rotation
 
 from annotator.core.priors import ParameterCovariance, Priors
 from annotator.vision.geometry import marker_corners_local
+
+if TYPE_CHECKING:
+    from annotator.io.experiment import Experiment
 
 log = logging.getLogger(__name__)
 
@@ -542,11 +545,11 @@ def solve(prob: Problem, settings: RefineSettings | None = None,
     x, _ = lm.solve(x, 5)
     lm._priors()
     _, uv_before = lm.cost(x)
-    for mid, (R, c) in (starts or {}).items():
+    for mid, (R, centre) in (starts or {}).items():
         m = prob.markers.index(mid)
         b = layout.n_pose + layout.static_slices()["marker"][0] + 6 * m
         x[b:b + 3] = Rotation.from_matrix(R @ prob.R_m[m].T).as_rotvec()
-        x[b + 3:b + 6] = c - prob.t_m[m]
+        x[b + 3:b + 6] = centre - prob.t_m[m]
     rms_before = _rms_per_camera(uv_before, prob.obs, prob.cameras, s.huber_px)
     # 1: a first solve with a conservative noise level; 2: markers whose survey the data contradict
     # lose their prior ("moved since the survey?"), the noise is re-estimated, solve again.
@@ -666,7 +669,10 @@ def _covariance(cov: np.ndarray, layout: _Layout, prob: Problem, lm: _LM) -> tup
         b = off + 6 * m
         markers[mid] = cov[b:b + 6, b:b + 6].copy()
         msig[m] = math.sqrt(np.trace(markers[mid][3:, 3:]) / 3)
-    rig, intr, dist, readout = {}, {}, {}, {}
+    rig: dict[str, np.ndarray] = {}
+    intr: dict[str, np.ndarray] = {}
+    dist: dict[str, np.ndarray] = {}
+    readout: dict[str, np.ndarray] = {}
     for c, cam in enumerate(prob.cameras):
         for name, target in ((RIG, rig), (INTR, intr), (DIST, dist), (READOUT, readout)):
             if name not in sl:
@@ -910,7 +916,7 @@ def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: 
     # Prefer sharp frames: drop the candidates whose predicted smear is too large.
     room_centres = {int(m): np.asarray(p.position, float) for m, p in exp.markers.markers.items()}
     sharp = []
-    for k in cand:
+    for k in cand.tolist():
         det = base.detections[k]
         pts = np.array([room_centres[int(i)] for i in det.ids if int(i) in room_centres]).reshape(-1, 3)
         smear = predicted_smear_px(pts, Rk[k], pk[k], om[k], vel[k], cams[0].R_bundle_camera,
@@ -919,7 +925,7 @@ def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: 
             sharp.append((k, smear))
     if len(sharp) < max(10, len(cand) // 5):  # a fast walk throughout: take the sharpest fifth
         sharp = []
-        for k in cand:
+        for k in cand.tolist():
             sharp.append((k, 0.0))
     pick = np.linspace(0, len(sharp) - 1, min(settings.max_keyframes, len(sharp))).round().astype(int)
     chosen = [sharp[i] for i in np.unique(pick)]
@@ -927,16 +933,16 @@ def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: 
     Rj, pj, omj, velj, okj = motion_at(times, t_grid, pos, R)
     out, n = [], 0
     for k, smear in chosen:
-        views = []
+        kf_views = []
         R0, p0 = Rk[k], pk[k]
         for ci, j in partner[k]:
             i, n = n, n + 1
             if not okj[i]:
                 continue
             det = frames[ci].detections[j]
-            views.append(FrameView(ci, det.ids, det.corners, R0.T @ Rj[i], R0.T @ (pj[i] - p0), R0.T @ omj[i],
-                                   R0.T @ velj[i], blur_weight(smear)))
-        out.append(Keyframe(R0, p0, views))
+            kf_views.append(FrameView(ci, det.ids, det.corners, R0.T @ Rj[i], R0.T @ (pj[i] - p0), R0.T @ omj[i],
+                                      R0.T @ velj[i], blur_weight(smear)))
+        out.append(Keyframe(R0, p0, kf_views))
     return out
 
 
@@ -944,7 +950,7 @@ def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: 
 class Refinement:
     """What refining a capture produced: the experiment to track with, the record, covariances."""
 
-    experiment: object  # annotator.io.experiment.Experiment with the refined map, rig and calibrations
+    experiment: Experiment  # with the refined map, rig and calibrations
     solution: Solution
     covariance: ParameterCovariance
     report: dict
@@ -981,7 +987,7 @@ def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np
     for m, mid in enumerate(prob.markers):
         if mid not in markers:
             mapped.append(mid)
-        markers[mid] = MarkerPose(mid, tuple(float(v) for v in sol.t_m[m]), tuple(float(v) for v in euler[m]))
+        markers[mid] = MarkerPose.from_values(mid, sol.t_m[m], euler[m])
     rig = dict(exp.rig.cameras)
     for c, cf in enumerate(frames):
         rc, new = rig[cf.camera], sol.cameras[c]
