@@ -70,7 +70,7 @@ class VideoFrames(Protocol):
 
 
 class VideoClock(Protocol):
-    """What :func:`sync_time_sigma` reads of a camera's clock map (``annotator.sync.ClockMap``)."""
+    """What :func:`sync_time_sigma` reads of a camera's clock map (``annotator.core.sync.ClockMap``)."""
 
     def to_video(self, t_rssi: np.ndarray | float) -> np.ndarray: ...
     def sigma_at(self, pts: np.ndarray | float) -> np.ndarray: ...
