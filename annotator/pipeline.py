@@ -581,12 +581,12 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
     if exp.rssi is None:
         raise ConfigError(f"{exp.path}: no 'rssi:' entry; annotator run needs the RSSI recording")
     everything = load_rssi(exp.rssi)
-    beacon = bundle_beacon(everything, settings.beacon or exp.sync.get("beacon"))
+    beacon = bundle_beacon(everything, settings.beacon or exp.sync.beacon)
     table = everything.select(everything.beacon == beacon)
 
     if exp.sync_mode == "auto":
         sc = exp.sync
-        cover_s = (float(sc.get("min_cover_s", 0.3)), float(sc.get("max_cover_s", 10.0)))
+        cover_s = (sc.min_cover_s, sc.max_cover_s)
         # The RSSI event first: cheap, and a missing one should fail before the long video pass.
         rssi_events = detect_rssi_events(table.t_seconds(), table.rssi, table.sensor,
                                          name=f"RSSI of beacon {beacon}", min_duration=cover_s[0],
@@ -606,7 +606,7 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
             counts = np.array([len(d.ids) for d in cf.detections], dtype=float)
             series[cf.camera] = VideoSeries(cf.t, level[:n], counts)
         sync = synchronise(series, rssi_events, approx_start=exp.video_start,
-                           max_start_error=float(sc.get("max_start_error", 60.0)),
+                           max_start_error=sc.max_start_error,
                            min_duration=cover_s[0], max_duration=cover_s[1])
         frames = [replace(cf, t=sync.clocks[cf.camera].to_rssi(cf.t)) for cf in frames]
     else:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +67,18 @@ class MarkerSetup:
     length: float  # printed outer black square, metres
 
 
+@dataclass(frozen=True)
+class SyncSettings:
+    """experiment.yaml's ``sync:`` section, checked once at load (see ``parse_sync``)."""
+
+    mode: str = "manual"  # manual | auto
+    video_start: dict[str, float] | None = None  # as written: wall time of each video's first frame
+    beacon: str | None = None  # the bundle's beacon, 12 lower-case hex digits
+    min_cover_s: float = 0.3  # auto: shortest and longest "hands over the bundle" event, s
+    max_cover_s: float = 10.0
+    max_start_error: float = 60.0  # auto: how far (s) a stated video start may be off
+
+
 @dataclass(frozen=True, eq=False)
 class Experiment:
     path: Path
@@ -74,10 +86,13 @@ class Experiment:
     rig: Rig
     videos: dict[str, Path]
     rssi: Path | None
-    sync_mode: str
     video_start: dict[str, float] | None  # wall time of each video's first frame (manual sync)
-    sync: dict[str, Any] = field(default_factory=dict)  # the raw sync section, for auto sync
+    sync: SyncSettings = field(default_factory=SyncSettings)
     priors: Priors = field(default_factory=Priors)  # the `refine:` section: survey/rig/lens sigmas
+
+    @property
+    def sync_mode(self) -> str:
+        return self.sync.mode
 
 
 # --- YAML plumbing --------------------------------------------------------------------------
@@ -282,17 +297,16 @@ def _markers(value: Any, base: Path, source: str) -> MarkerSetup:
     return MarkerSetup(read_marker_map(base / str(d["file"])), dictionary, length)
 
 
-# The `sync:` section: every key it may hold, and the defaults of the optional numbers.
-SYNC_KEYS = ("mode", "video_start", "beacon", "min_cover_s", "max_cover_s", "max_start_error")
-SYNC_DEFAULTS = {"min_cover_s": 0.3, "max_cover_s": 10.0, "max_start_error": 60.0}
+# The `sync:` section: every key it may hold.
+SYNC_KEYS = tuple(f.name for f in fields(SyncSettings))
 # A video's start is Unix seconds between 1970 and 2100.
 UNIX_S_MAX = 4_102_444_800.0
 
 
-def parse_sync(obj: Any, source: str, cameras: list[str]) -> tuple[str, dict[str, float] | None, dict[str, Any]]:
-    """The `sync:` section -> (mode, video_start per camera or None, the section with its values
-    checked and normalised: numbers as floats, the beacon as a 12-hex MAC). Unknown keys, values
-    that are not numbers, NaN, infinities and times outside 1970..2100 are one ConfigError line."""
+def parse_sync(obj: Any, source: str, cameras: list[str]) -> SyncSettings:
+    """The `sync:` section, checked and normalised: numbers as floats, the beacon as a 12-hex MAC.
+    Unknown keys, values that are not numbers, NaN, infinities and times outside 1970..2100 are one
+    ConfigError line naming the field."""
     from bgt_core.wire import WireError, normalize_mac
 
     sync = dict(_mapping(obj, source, "sync"))
@@ -318,8 +332,8 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> tuple[str, dict[str
     for key in ("min_cover_s", "max_cover_s", "max_start_error"):
         if key in sync:
             sync[key] = _number(sync[key], f"{source}: sync.{key}", 1e-3, 86_400.0)
-    lo = sync.get("min_cover_s", SYNC_DEFAULTS["min_cover_s"])
-    hi = sync.get("max_cover_s", SYNC_DEFAULTS["max_cover_s"])
+    lo = sync.get("min_cover_s", SyncSettings.min_cover_s)
+    hi = sync.get("max_cover_s", SyncSettings.max_cover_s)
     if not lo < hi:
         raise ConfigError(f"{source}: sync.min_cover_s ({lo:g}) must be less than sync.max_cover_s ({hi:g})")
     if sync.get("beacon") is not None:
@@ -327,7 +341,7 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> tuple[str, dict[str
             sync["beacon"] = normalize_mac(sync["beacon"])
         except WireError:
             raise ConfigError(f"{source}: sync.beacon: not a MAC address: {sync['beacon']!r:.40}") from None
-    return str(mode), video_start, sync
+    return SyncSettings(**sync)
 
 
 def parse_experiment(obj: Any, path: Path) -> Experiment:
@@ -354,9 +368,9 @@ def parse_experiment(obj: Any, path: Path) -> Experiment:
             raise ConfigError(f"{source}: videos.{name}: no such file {vp}")
     rssi = base / str(d["rssi"]) if d.get("rssi") is not None else None
 
-    mode, video_start, sync = parse_sync(d.get("sync", {"mode": "manual"}), source, list(videos))
+    sync = parse_sync(d.get("sync", {"mode": "manual"}), source, list(videos))
     priors = parse_priors(d.get("refine"), source)
-    return Experiment(path, markers, rig, videos, rssi, mode, video_start, sync, priors)
+    return Experiment(path, markers, rig, videos, rssi, sync.video_start, sync, priors)
 
 
 def load_experiment(path: str | Path) -> Experiment:
