@@ -561,7 +561,7 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
     report.json and the plots into ``out_dir``."""
     from dataclasses import replace
 
-    from annotator.core.labeling import Poses, label_readings
+    from annotator.core.labeling import label_readings
     from annotator.core.sync import (
         VideoSeries,
         cover_intervals,
@@ -617,10 +617,8 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
         result = frames_to_result(frames, exp, track, pool)
     traj = result.trajectory
 
-    poses = Poses(traj.t, traj.position, traj.rotation, sigma=traj.quality.get("sigma_m"),
-                  markers=traj.quality.get("markers"))
     # Readings while hands covered the beacon carry the hands' attenuation: never labelled.
-    labels = label_readings(poses, table.t_ns, max_gap=settings.max_gap,
+    labels = label_readings(traj, table.t_ns, max_gap=settings.max_gap,
                             exclude=cover_intervals(sync.rssi_events),
                             time_sigma=sync_time_sigma(sync.clocks, table.t_seconds()))
     report = build_report(experiment=exp.path, sync=sync, beacon=beacon, readings_total=len(everything),

@@ -14,8 +14,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from annotator.core.scoring import interpolate_truth
+from annotator.core.trajectory import Trajectory
 from annotator.io.scoring import read_truth, write_estimates
-from annotator.io.trajectory import Trajectory, write_trajectory
+from annotator.io.trajectory import write_trajectory
 from annotator.io.tum import read_poses
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "dataset"
