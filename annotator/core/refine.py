@@ -834,12 +834,13 @@ def build_problem(survey: dict[int, tuple[np.ndarray, np.ndarray]], length: floa
 def motion_at(times: np.ndarray, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
               dt: float = 1 / 60) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Bundle pose and velocity at ``times`` from a trajectory: (R, p, omega_world, v_world, ok)."""
-    from annotator.pipeline import interp_poses
+    from annotator.core.trajectory import Trajectory
 
     times = np.asarray(times, float)
-    R0, p0, ok0 = interp_poses(times, t_grid, pos, R)
-    Ra, pa, oka = interp_poses(times - dt, t_grid, pos, R)
-    Rb, pb, okb = interp_poses(times + dt, t_grid, pos, R)
+    traj = Trajectory(np.asarray(t_grid, float), pos, R)
+    p0, R0, ok0 = traj.interpolate(times)
+    pa, Ra, oka = traj.interpolate(times - dt)
+    pb, Rb, okb = traj.interpolate(times + dt)
     ok = ok0 & oka & okb
     omega = np.zeros((len(times), 3))
     vel = np.zeros((len(times), 3))
