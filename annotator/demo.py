@@ -437,6 +437,7 @@ class DemoResult:
 def run_demo(settings: DemoSettings, progress: Progress | None = None, note: Note | None = None,
              on_capture: Callable[[Capture], None] | None = None) -> DemoResult:
     """The whole demo; writes OUT/capture, OUT/experiment, OUT/results and OUT/demo_summary.json."""
+    from annotator.commands.run import write_run_outputs
     from annotator.io.experiment import load_experiment
     from annotator.pipeline import RunSettings, TrackSettings, run_experiment
 
@@ -456,8 +457,9 @@ def run_demo(settings: DemoSettings, progress: Progress | None = None, note: Not
         on_capture(cap)
     exp_path = render(settings, path, cap.t0, cap.run_dir, progress)
     results = out / "results"
-    run = run_experiment(load_experiment(exp_path), results,
-                         RunSettings(track=TrackSettings(jobs=settings.jobs)), progress)
+    experiment = load_experiment(exp_path)
+    run = run_experiment(experiment, RunSettings(track=TrackSettings(jobs=settings.jobs)), progress)
+    report = write_run_outputs(results, experiment, run)
     true_starts = {"front": cap.t0, "back": cap.t0 + settings.start_offset_s}
     summary = score(run, path, cap.t0, true_starts, settings.duration_s)
     summary.update({
@@ -469,7 +471,7 @@ def run_demo(settings: DemoSettings, progress: Progress | None = None, note: Not
             for f in cap.files]},
         "experiment": str(exp_path),
         "results": str(results),
-        "plots": [str(results / p) for p in run.report.get("plots", {}).values()],
+        "plots": [str(results / p) for p in report.get("plots", {}).values()],
         "wall_time_s": time.monotonic() - started,
     })
     summary_path = out / "demo_summary.json"

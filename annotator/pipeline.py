@@ -22,7 +22,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing import Manager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -49,6 +49,11 @@ from annotator.vision.detection import MarkerDetector
 from annotator.vision.geometry import MarkerRoom
 from annotator.vision.paper import marker_poses
 from annotator.vision.pose import observe, solve_bundle_pose
+
+if TYPE_CHECKING:
+    from annotator.core.labeling import Labels
+    from annotator.core.sync import SyncResult
+    from annotator.io.rssi import RssiTable
 
 log = logging.getLogger(__name__)
 
@@ -230,7 +235,7 @@ def track_experiment(exp: Experiment, settings: TrackSettings | None = None,
     return track(exp, settings, progress).trajectory
 
 
-# --- `annotator run`: track -> sync -> label -> outputs ---------------------------------------
+# --- `annotator run`: track -> sync -> label --------------------------------------------------
 # Stage order of a full run. Sync needs the per-frame marker counts, so in `sync.mode: auto` each
 # video is first processed on its own PTS clock, then its frame times are mapped onto the RSSI
 # clock before the cameras are combined (the joint solve pairs frames by wall time).
@@ -241,16 +246,17 @@ class RunSettings:
     track: TrackSettings = field(default_factory=TrackSettings)
     max_gap: float = 0.5  # s: a reading between poses further apart than this stays unlabelled
     beacon: str | None = None  # the bundle's beacon; default: sync.beacon, else the most heard one
-    plots: bool = True
 
 
 @dataclass(frozen=True, eq=False)
 class RunResult:
+    """A full run; the command layer writes it (annotator.commands.run.write_run_outputs)."""
+
     trajectory: Trajectory
-    sync: Any  # annotator.core.sync.SyncResult
-    labels: Any  # annotator.core.labeling.Labels, one per reading of `rssi`
-    rssi: Any  # annotator.io.rssi.RssiTable: the bundle beacon's readings
-    report: dict[str, Any]
+    sync: SyncResult
+    labels: Labels  # one per reading of `rssi`
+    rssi: RssiTable  # the bundle beacon's readings
+    report: dict[str, Any]  # report.json's content, without the names of the files written
     refinement: Refinement | None = None  # what the self-calibration did (None: --refine none, paper)
     params: ParameterCovariance | None = None  # uncertainty of the map, rig and lenses tracked with
 
@@ -275,10 +281,10 @@ def frames_to_result(frames: list[CameraFrames], exp: Experiment, settings: Trac
     return _track_rig(frames, exp, settings, t_out, pool, params)
 
 
-def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings | None = None,
+def run_experiment(exp: Experiment, settings: RunSettings | None = None,
                    progress: Progress | None = None) -> RunResult:
-    """Everything `annotator run` does; writes trajectory.csv, annotated/, annotated.parquet,
-    report.json and the plots into ``out_dir``."""
+    """Everything `annotator run` computes: track, synchronise with the RSSI log, label every
+    reading of the bundle's beacon. Writes nothing (see annotator.commands.run.write_run_outputs)."""
     from dataclasses import replace
 
     from annotator.core.labeling import label_readings
@@ -290,11 +296,9 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
         synchronise,
     )
     from annotator.errors import ConfigError
-    from annotator.io.outputs import build_report, write_annotated_mbd, write_parquet, write_report
+    from annotator.io.outputs import build_report
     from annotator.io.rssi import bundle_beacon, load_rssi
     from annotator.io.sync import brightness_series
-    from annotator.io.trajectory import write_trajectory
-    from annotator.plots.run import write_run_plots
 
     settings = settings or RunSettings()
     track = settings.track
@@ -344,26 +348,4 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
     report = build_report(experiment=exp.path, sync=sync, beacon=beacon, readings_total=len(everything),
                           table=table, labels=labels, traj_t=traj.t, traj_valid=traj.valid,
                           max_gap=settings.max_gap, method=track.method)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    write_trajectory(out / "trajectory.csv", traj)
-    write_annotated_mbd(out / "annotated", table, labels)
-    write_parquet(out / "annotated.parquet", table, labels)
-    if settings.plots:
-        valid_t = traj.t[traj.valid]
-        plots = write_run_plots(
-            out, trajectory=traj.position, t_s=table.t_seconds(), rssi=table.rssi, sensor=table.sensor,
-            labelled=labels.labelled, label_positions=labels.positions,
-            events=[(e.cover, e.release) for e in sync.rssi_events],
-            span=(float(valid_t[0]), float(valid_t[-1])) if valid_t.size else None,
-            markers=exp.markers.markers)
-        report["plots"] = {k: p.name for k, p in plots.items()}
-    if result.refinement is not None:
-        from annotator.core.refine import write_refined
-
-        report["refinement"] = {**result.refinement.report,
-                                "files": {k: f"refined/{v}" for k, v in write_refined(out / "refined",
-                                                                                     result.refinement).items()}}
-    write_report(out / "report.json", report)
-    log.info("run: %d of %d readings labelled into %s", int(labels.labelled.sum()), len(table), out)
     return RunResult(traj, sync, labels, table, report, result.refinement, result.params)
