@@ -6,7 +6,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-from _track_helpers import make_path, make_rig, make_room, project
 from scipy.spatial.transform import Rotation
 
 from annotator.core.priors import MarkerPrior, Priors
@@ -18,6 +17,7 @@ from annotator.core.refine import (
     build_problem,
     solve,
 )
+from track_helpers import make_path, make_rig, make_room, project
 
 N_KF = 60
 
@@ -186,11 +186,11 @@ def test_field_errors_end_to_end(tmp_path):
     truth than the files as given, and report what it found."""
     import json
 
-    from _track_helpers import errors_against_truth
     from typer.testing import CliRunner
 
     from annotator.cli import app
     from annotator.io.trajectory import read_trajectory
+    from track_helpers import errors_against_truth
 
     exp = tmp_path / "exp"
     res = CliRunner().invoke(app, ["simulate", "--out", str(exp), "--duration", "12", "--seed", "3",

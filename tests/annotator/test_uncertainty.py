@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _track_helpers import make_path, make_rig, make_room, project
 from scipy.spatial.transform import Rotation
 
 from annotator.core.priors import ParameterCovariance, Priors
@@ -22,6 +21,7 @@ from annotator.io.experiment import CameraCalibration
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom, marker_corners_local
 from annotator.vision.pose import observe, solve_bundle_pose
+from track_helpers import make_path, make_rig, make_room, project
 
 READOUT_SIGMA = 0.02
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from _track_helpers import make_room
 from scipy.spatial.transform import Rotation
 
 from annotator.io.experiment import CameraCalibration
 from annotator.vision.detection import DetectorSettings, MarkerDetector, auto_downscale
+from track_helpers import make_room
 
 W, H = 960, 540
 CAL = CameraCalibration(np.array([[700.0, 0, 479.5], [0, 700.0, 269.5], [0, 0, 1]]), np.zeros(5), W, H)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from _track_helpers import make_path, make_rig, make_room, project
 
 from annotator.vision.paper import (
     MarkerPoses,
@@ -12,6 +11,7 @@ from annotator.vision.paper import (
     paper_track,
     select_poses,
 )
+from track_helpers import make_path, make_rig, make_room, project
 
 
 def test_selection_keeps_close_markers_then_drops_the_farthest_from_the_mean():

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from _track_helpers import make_calibration, make_path, make_rig, make_room, project
 from scipy.spatial.transform import Rotation
 
 from annotator.vision.detection import Detections
 from annotator.vision.pose import observe, solve_bundle_pose
+from track_helpers import make_calibration, make_path, make_rig, make_room, project
 
 
 def _observations(room, rig, R, p, noise, rng, cams=("front", "back")):

@@ -212,15 +212,8 @@ def _wait_reachable(ep: str, proc: subprocess.Popen, tls: TlsFiles | None, timeo
             time.sleep(0.2)
 
 
-def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20.0,
-              nofile: int | None = None, limits: dict | None = None, pki_dir: Path | None = None,
-              drain_timeout_s: float = 300.0) -> FloodOutcome:
-    """Start `collector serve` in `workdir`, record a run with two honest agents, flood it from a
-    third (kind "macs": one batch on each of `macs` MACs; "maxsize": maximum-size batches for
-    `seconds`), let the honest agents re-send until everything is acknowledged, stop the run,
-    SIGINT the collector, and measure everything on the way."""
-    port = free_port()
-    ep = f"tls/127.0.0.1:{port}" if pki_dir else f"tcp/127.0.0.1:{port}"
+def _write_config(workdir: Path, ep: str, limits: dict | None, pki_dir: Path | None) -> Path:
+    """collector.yaml (and, with a PKI, the ACL file) for `collector serve` on `ep`."""
     cfg = workdir / "collector.yaml"
     text = f"data_dir: data\nlisten: [{ep}]\n"
     if limits:
@@ -233,6 +226,79 @@ def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20
         text += f"tls: {json.dumps({'root_ca': col.root_ca, 'cert': col.cert, 'key': col.key})}\n"
         text += f"acl: {json.dumps(str(acl))}\n"
     cfg.write_text(text)
+    return cfg
+
+
+def _flood(kind: str, ep: str, macs: int, seconds: float, nofile: int | None,
+           bad: TlsFiles | None) -> str:
+    """Run the flood of `kind`; a description of what was sent."""
+    if kind == "macs":
+        flood_macs(ep, macs, bad)
+        return f"{macs} MACs, RLIMIT_NOFILE {nofile or 'unchanged'}"
+    if kind == "maxsize":
+        n = flood_maxsize(ep, seconds, bad)
+        return f"{n} batches of {wire.MAX_READINGS} readings in {seconds:g} s"
+    raise ValueError(f"unknown flood {kind!r}")
+
+
+def _drain(honest: list[Honest], timeout_s: float) -> None:
+    """Let the honest agents re-send until everything is acknowledged or `timeout_s` passes."""
+    deadline = time.monotonic() + timeout_s
+    while not all(h.settled() for h in honest) and time.monotonic() < deadline:
+        for h in honest:
+            h.resend()
+        time.sleep(0.5)
+
+
+def _wait_counted(c: CollectorClient, batches: int, timeout_s: float = 60) -> None:
+    """Wait until the collector has refused or admitted `batches` streams' first batches."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        st = c.status()
+        if st["refused_streams"]["batches"] + st["streams"]["admitted"] >= batches:
+            return
+        time.sleep(0.2)
+
+
+def _interrupt(proc: subprocess.Popen) -> tuple[str, float]:
+    """SIGINT the collector; its stderr and seconds to exit (-1.0, and its threads' stacks, when
+    it does not exit within 60 s)."""
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    try:
+        _out, err = proc.communicate(timeout=60)
+        return err, time.monotonic() - t0
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)
+        try:
+            _out, err = proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _out, err = proc.communicate()
+        return f"collector serve still running 60 s after SIGINT; its threads:\n{err}", -1.0
+
+
+def _honest_outcome(run_dir: Path, h: Honest) -> HonestOutcome:
+    """What the run recorded of one honest agent against what it sent."""
+    f = run_dir / "rssi" / h.agent / f"{h.sensor}.mbd"
+    got = Counter(f.read_text().splitlines()) if f.exists() else Counter()
+    sent = set(h.rows)
+    return HonestOutcome(len(h.rows), len(sent - got.keys()),
+                         sum(c - 1 for c in got.values() if c > 1),
+                         sum(c for k, c in got.items() if k not in sent),
+                         len(h.batches), h.acked)
+
+
+def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20.0,
+              nofile: int | None = None, limits: dict | None = None, pki_dir: Path | None = None,
+              drain_timeout_s: float = 300.0) -> FloodOutcome:
+    """Start `collector serve` in `workdir`, record a run with two honest agents, flood it from a
+    third (kind "macs": one batch on each of `macs` MACs; "maxsize": maximum-size batches for
+    `seconds`), let the honest agents re-send until everything is acknowledged, stop the run,
+    SIGINT the collector, and measure everything on the way."""
+    port = free_port()
+    ep = f"tls/127.0.0.1:{port}" if pki_dir else f"tcp/127.0.0.1:{port}"
+    cfg = _write_config(workdir, ep, limits, pki_dir)
     op = tls_files(pki_dir, "operator")
 
     def limit_fds() -> None:
@@ -256,8 +322,6 @@ def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
     honest: list[Honest] = []
-    err = ""
-    shutdown_s = -1.0
     try:
         _wait_reachable(ep, proc, op)
         with CollectorClient(ep, tls=op) as c:
@@ -267,34 +331,17 @@ def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20
             h.start()
         time.sleep(1.0)
         t_flood = time.monotonic()
-        bad = tls_files(pki_dir, FLOODER)
-        if kind == "macs":
-            flood_macs(ep, macs, bad)
-            flood = f"{macs} MACs, RLIMIT_NOFILE {nofile or 'unchanged'}"
-        elif kind == "maxsize":
-            n = flood_maxsize(ep, seconds, bad)
-            flood = f"{n} batches of {wire.MAX_READINGS} readings in {seconds:g} s"
-        else:
-            raise ValueError(f"unknown flood {kind!r}")
+        flood = _flood(kind, ep, macs, seconds, nofile, tls_files(pki_dir, FLOODER))
         t_end = time.monotonic()
         time.sleep(1.0)
         for h in honest:
             h.stop()
-        deadline = time.monotonic() + drain_timeout_s
-        while not all(h.settled() for h in honest) and time.monotonic() < deadline:
-            for h in honest:
-                h.resend()
-            time.sleep(0.5)
+        _drain(honest, drain_timeout_s)
         drain_s = time.monotonic() - t_end
         settled = all(h.settled() for h in honest)
         with CollectorClient(ep, tls=op) as c:
             if kind == "macs":  # the flood's last batches may still be queued behind the honest ones
-                deadline = time.monotonic() + 60
-                while time.monotonic() < deadline:
-                    st = c.status()
-                    if st["refused_streams"]["batches"] + st["streams"]["admitted"] >= macs + len(honest):
-                        break
-                    time.sleep(0.2)
+                _wait_counted(c, macs + len(honest))
             st = c.status()
             status_bytes = len(json.dumps({"ok": True, **st}).encode())
             t0 = time.monotonic()
@@ -303,31 +350,11 @@ def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20
     finally:
         for h in honest:
             h.close()
-        t0 = time.monotonic()
-        proc.send_signal(signal.SIGINT)
-        try:
-            _out, err = proc.communicate(timeout=60)
-            shutdown_s = time.monotonic() - t0
-        except subprocess.TimeoutExpired:
-            proc.send_signal(signal.SIGABRT)
-            try:
-                _out, err = proc.communicate(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                _out, err = proc.communicate()
-            err = f"collector serve still running 60 s after SIGINT; its threads:\n{err}"
+        err, shutdown_s = _interrupt(proc)
         sampling.set()
         sampler.join()
     run_dir = Path(stopped["run_dir"])
-    outcomes = {}
-    for h in honest:
-        f = run_dir / "rssi" / h.agent / f"{h.sensor}.mbd"
-        got = Counter(f.read_text().splitlines()) if f.exists() else Counter()
-        sent = set(h.rows)
-        outcomes[h.agent] = HonestOutcome(len(h.rows), len(sent - got.keys()),
-                                          sum(c - 1 for c in got.values() if c > 1),
-                                          sum(c for k, c in got.items() if k not in sent),
-                                          len(h.batches), h.acked)
+    outcomes = {h.agent: _honest_outcome(run_dir, h) for h in honest}
     flood_dir = run_dir / "rssi" / FLOODER
     return FloodOutcome(kind, flood, round(t_end - t_flood, 2), round(drain_s, 2), round(stop_s, 2),
                         round(shutdown_s, 2), peak[0], hwm[0], proc.returncode, err, outcomes, st,

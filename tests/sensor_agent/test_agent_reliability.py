@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from agent_testing import FakeCollector
 
+from agent_testing import FakeCollector
 from bgt_core import wire
 from bgt_core.atomic import FileOps
 from bgt_core.wire import Reading

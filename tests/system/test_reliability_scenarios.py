@@ -11,7 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from harness import (
+
+from reliability_harness import (
     Result,
     Scale,
     absurd_readings,

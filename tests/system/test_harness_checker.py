@@ -5,9 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from harness import beacon_macs, make_replay, sensor_macs, spool_batches, tally
-
 from bgt_core import wire
+from reliability_harness import beacon_macs, make_replay, sensor_macs, spool_batches, tally
 from sensor_agent.spool import Spool
 
 

@@ -9,8 +9,8 @@ from collections import Counter
 from pathlib import Path
 
 import pytest
-from agent_testing import AGENT, FakeCollector, agent_env
 
+from agent_testing import AGENT, FakeCollector, agent_env
 from bgt_core.formats.mbd import read_rows
 
 pytestmark = pytest.mark.slow

@@ -13,7 +13,7 @@ import pytest
 from bgt_core.formats import devices, grd, hst, markers, occ, tables
 from bgt_core.formats.mbd import iter_rows
 
-DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
+DATASET = Path(__file__).resolve().parents[2] / "data" / "dataset"
 
 MBD_FILES = sorted(DATASET.rglob("*.mbd"))
 OCC_FILES = sorted(DATASET.rglob("*.occ"))
@@ -213,7 +213,7 @@ def test_grd_round_trip(tmp_path: Path):
     assert values[-1] == "0.0"
 
 
-PUBLISHED_GRD = Path(__file__).resolve().parents[1] / "data" / "grd" / "published_layout.grd"
+PUBLISHED_GRD = Path(__file__).resolve().parents[2] / "data" / "grd" / "published_layout.grd"
 
 
 def test_grd_published_line_round_trip(tmp_path: Path):

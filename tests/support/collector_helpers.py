@@ -27,6 +27,11 @@ def make_batch(seq: int, n: int = 5, *, agent: str = "pi-01", boot: str = "01234
     return wire.Batch(agent, boot, sensor, seq, tuple(make_reading(first + j) for j in range(n)))
 
 
+def with_floor(batch: wire.Batch, floor: int) -> wire.Batch:
+    return wire.Batch(batch.agent_id, batch.boot_id, batch.sensor, batch.seq, batch.readings,
+                      batch.sent_ns, floor)
+
+
 def expected_lines(batches: list[wire.Batch]) -> list[str]:
     return [f"{wire.format_ts(r.t_ns)},{b.sensor},{r.beacon},{r.rssi}"
             for b in batches for r in b.readings]
@@ -109,3 +114,20 @@ class FakeAgent:
         if getattr(self, "_clock_q", None) is not None:
             self._clock_q.undeclare()
         self.session.close()
+
+
+def resend_until_acked(ag: FakeAgent, batches: list[wire.Batch], timeout: float = 30.0) -> None:
+    """What an agent's spool does: re-send every unacknowledged batch now and then until all
+    are acknowledged (its session reconnects to a restarted router on its own, after a while)."""
+    sensor, last = batches[0].sensor, batches[-1].seq
+    end = time.monotonic() + timeout
+    while ag.acked(sensor) < last:
+        assert time.monotonic() < end, f"acks stuck at {ag.acked(sensor)} of {last}"
+        acked = ag.acked(sensor)
+        for b in batches:
+            if b.seq > acked:
+                ag.put(b)
+        try:
+            wait_for(lambda: ag.acked(sensor) == last, timeout=1.0)
+        except AssertionError:
+            pass

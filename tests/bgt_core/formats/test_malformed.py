@@ -12,7 +12,7 @@ import pytest
 from bgt_core.formats import devices, grd, hst, markers, occ, tables
 from bgt_core.formats.mbd import MbdError
 
-DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
+DATASET = Path(__file__).resolve().parents[2] / "data" / "dataset"
 GOOD_HIST = "[" + ", ".join(["0.0"] * 79 + ["1.0"]) + "]"
 BINS = "[" + ", ".join(f"{float(v)}" for v in range(-100, -19)) + "]"
 HEADER = f"000000000101::[[0.0, 0.0], [2.0, 2.0]]::1.0::{BINS}"

@@ -2,7 +2,7 @@
 `sensor-agent run` processes on loopback Zenoh, faults injected from outside, and a checker
 that compares a run's rssi/<agent>/*.mbd files with the exact readings the agents were given.
 
-Both tests/reliability/test_*.py and bench/reliability_scenarios.py drive the scenarios below;
+Both tests/system/test_reliability_scenarios.py and bench/reliability_scenarios.py drive the scenarios below;
 the tests assert zero lost / zero duplicated, the bench prints the counts at a larger scale.
 """
 
@@ -640,6 +640,39 @@ def _absurd(rng: Any, agent: str, boot: str, sensor: str, seq: int) -> tuple[str
     return "absurd", wire.to_wire(wire.Batch(agent, boot, sensor, seq, (r,)))
 
 
+def _is_invalid(key: str, payload: bytes) -> bool:
+    """True when `payload` cannot be taken for a batch of the agent and sensor `key` names."""
+    try:
+        b = wire.from_wire(payload)
+        _, agent, sensor = wire.parse_data_key(key)
+    except wire.WireError:
+        return True
+    return b.agent_id != agent or b.sensor != sensor
+
+
+# Junk control-query payloads, sent to every command.
+_JUNK_QUERIES: tuple[bytes, ...] = (
+    b"", b"{", b"null", b"[]", b"42", b'"stop"', b"\xff\xfe", b"{}" * 50, b'{"name": 5}',
+    b'{"name": "../../etc"}', b'{"name": "x/y"}', b"{" * 500, b'{"name": "' + b"n" * 5000 + b'"}')
+
+
+def _junk_query(rng: Any, cmd: str) -> bytes:
+    """A junk payload for control command `cmd`; for "stop" never a JSON object, so a
+    well-behaved collector refuses it and the run goes on."""
+    if rng.random() < 0.3:
+        payload = rng.randbytes(rng.randint(1, 300))
+    else:
+        payload = rng.choice(_JUNK_QUERIES)
+    if cmd == "stop":
+        try:
+            parsed = json.loads(payload) if payload.strip() else {}
+        except ValueError:
+            parsed = None
+        if isinstance(parsed, dict):
+            payload = b"\xff" + payload  # never a valid stop request
+    return payload
+
+
 @dataclass
 class FuzzStats:
     data_sent: int = 0
@@ -670,14 +703,6 @@ def fuzz(endpoint: str, *, agent_id: str, valid_sensors: Sequence[str], n_data: 
         def put(key: str, payload: bytes) -> None:
             session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
-        def is_invalid(key: str, payload: bytes) -> bool:
-            try:
-                b = wire.from_wire(payload)
-                _, agent, sensor = wire.parse_data_key(key)
-            except wire.WireError:
-                return True
-            return b.agent_id != agent or b.sensor != sensor
-
         seq = 0
         while stats.data_sent < n_data and not should_stop():
             seq += 1
@@ -697,14 +722,14 @@ def fuzz(endpoint: str, *, agent_id: str, valid_sensors: Sequence[str], n_data: 
                 fuzz_key = wire.data_key(site, fuzz_agent, fsensor)
                 if kind == "impersonation":
                     key = fuzz_key
-                elif is_invalid(real_key, payload) and rng.random() < 0.5:
+                elif _is_invalid(real_key, payload) and rng.random() < 0.5:
                     key = real_key  # only ever provably broken payloads on the real keys
                 else:
                     key = fuzz_key
                 put(key, payload)
                 stats.data_sent += 1
                 stats.kinds[kind] += 1
-                stats.data_invalid += is_invalid(key, payload)
+                stats.data_invalid += _is_invalid(key, payload)
         for _ in range(oversized):
             big = b"BGTB" + b"\x01\x00" + rng.randbytes(wire.MAX_PAYLOAD_BYTES + 1000)
             put(wire.data_key(site, fuzz_agent, fuzz_sensors[0]), big)
@@ -712,26 +737,12 @@ def fuzz(endpoint: str, *, agent_id: str, valid_sensors: Sequence[str], n_data: 
             stats.data_invalid += 1
             stats.kinds["oversized"] += 1
 
-        # Control queries: junk for every command. "stop" only gets payloads that are not JSON
-        # objects, so a well-behaved collector refuses them and the run goes on.
-        junk: list[bytes] = [b"", b"{", b"null", b"[]", b"42", b'"stop"', b"\xff\xfe", b"{}" * 50,
-                             b'{"name": 5}', b'{"name": "../../etc"}', b'{"name": "x/y"}',
-                             b"{" * 500, b'{"name": "' + b"n" * 5000 + b'"}']
+        # Control queries: junk for every command (see _junk_query).
         for i in range(n_queries):
             if should_stop():
                 break
             cmd = ("start", "stop", "status", "runs", "bogus")[i % 5]
-            if rng.random() < 0.3:
-                payload = rng.randbytes(rng.randint(1, 300))
-            else:
-                payload = rng.choice(junk)
-            if cmd == "stop":
-                try:
-                    parsed = json.loads(payload) if payload.strip() else {}
-                except ValueError:
-                    parsed = None
-                if isinstance(parsed, dict):
-                    payload = b"\xff" + payload  # never a valid stop request
+            payload = _junk_query(rng, cmd)
             replies = session.get(wire.collector_control_key(site, cmd), payload=payload,
                                   timeout=5.0)
             stats.queries_sent += 1

@@ -13,8 +13,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from agent_testing import AGENT, FakeCollector, agent_env
 
+from agent_testing import AGENT, FakeCollector, agent_env
 from bgt_core import wire
 from sensor_agent.spool import Spool
 

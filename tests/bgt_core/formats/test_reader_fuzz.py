@@ -19,7 +19,7 @@ from bgt_core import safe_yaml
 from bgt_core.formats import devices, grd, hst, markers, occ, tables
 from bgt_core.formats.mbd import MbdError, iter_rows
 
-DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
+DATASET = Path(__file__).resolve().parents[2] / "data" / "dataset"
 BINS = "[" + ", ".join(f"{float(v)}" for v in range(-100, -19)) + "]"
 HIST = "[" + ", ".join(["0.0"] * 79 + ["1.0"]) + "]"
 

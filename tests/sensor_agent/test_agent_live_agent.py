@@ -9,8 +9,8 @@ import time
 from pathlib import Path
 
 import pytest
-from agent_testing import AGENT, FakeCollector, agent_env
 
+from agent_testing import AGENT, FakeCollector, agent_env
 from bgt_core import wire
 
 pytestmark = pytest.mark.slow
