@@ -89,7 +89,8 @@ def demo_path(speed_mps: float = 0.4) -> PathModel:
     furniture: true circular corners of radius CORNER_RADIUS_M walked at constant speed, so
     neither the position nor the heading ever changes direction in an instant. Time 0 is in the
     middle of the bottom side."""
-    from annotator.core.floor_paths import FloorGrid, plan_route, site_occupancy
+    from annotator.core.floor_paths import FloorGrid, plan_route
+    from annotator.io.radio_data import site_occupancy
 
     route = plan_route(FloorGrid.from_occupancy(site_occupancy()), [DEMO_START, *DEMO_CORNERS],
                        margin=DEMO_MARGIN_M)

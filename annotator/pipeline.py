@@ -1,4 +1,4 @@
-"""The one place that knows the order of the tracking stages: ``track_experiment``.
+"""The one place that knows the order of the stages: ``track`` and ``run_experiment``.
 
 Per video (in parallel processes with jobs > 1): decode by PTS -> detect markers -> per-frame
 bundle pose from that camera. Then, for method ``rig``: choose between mirror solutions of
@@ -9,6 +9,11 @@ shutter from the previous pass's motion) -> smooth again. Method ``paper``: per-
 -> batches -> selection -> random-walk Kalman filter.
 With jobs > 1 one process pool serves the whole run: the videos, then the joint solves and the
 rotation half of each smoothing pass.
+
+Only the order lives here: the maths of each stage are in annotator.core (tracking, smoothing,
+refine, uncertainty, sync, labeling), the files are read by annotator.io. ``track`` returns a
+``TrackResult`` and ``run_experiment`` a ``RunResult``; neither writes a file, the commands
+(annotator.commands.track, annotator.commands.run) write the outputs.
 """
 
 from __future__ import annotations

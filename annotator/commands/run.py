@@ -46,7 +46,7 @@ def write_run_outputs(out_dir: str | Path, exp: Experiment, result: RunResult, *
             markers=exp.markers.markers)
         report["plots"] = {k: p.name for k, p in written.items()}
     if result.refinement is not None:
-        from annotator.core.refine import write_refined
+        from annotator.io.refined import write_refined
 
         files = write_refined(out / "refined", result.refinement)
         report["refinement"] = {**result.refinement.report, "files": {k: f"refined/{v}" for k, v in files.items()}}

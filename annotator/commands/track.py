@@ -127,7 +127,7 @@ def _report_refinement(out: Path, refinement: object, console: Console) -> None:
     import json
     import math
 
-    from annotator.core.refine import write_refined
+    from annotator.io.refined import write_refined
 
     write_refined(out / "refined", refinement)
     rep = refinement.report

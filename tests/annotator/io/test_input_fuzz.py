@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 from annotator.cli import app
 from bgt_core.sites import site_dir
 
-DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
+DATASET = Path(__file__).resolve().parents[2] / "data" / "dataset"
 T0 = 1_700_000_000.0
 
 CALIBRATION = """\

@@ -19,7 +19,7 @@ from annotator.io.scoring import read_truth, write_estimates
 from annotator.io.trajectory import write_trajectory
 from annotator.io.tum import read_poses
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "dataset"
+DATA = Path(__file__).resolve().parents[2] / "data" / "dataset"
 TRACK = DATA / "trk" / "straight_01_all_sensors.mbd"
 BIN = Path(sys.executable).parent
 
