@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
+from annotator.core.experiment import Experiment, MarkerSetup, RigCamera
 from annotator.core.priors import ParameterCovariance
 from annotator.core.refine import Refinement, RefineSettings, refine_capture
 from annotator.core.tracking import (
@@ -48,7 +49,6 @@ from annotator.core.tracking import (
 from annotator.core.trajectory import Trajectory
 from annotator.core.uncertainty import row_uncertainty, sync_time_sigma, total_sigma
 from annotator.errors import NoDataError
-from annotator.io.experiment import Experiment, MarkerSetup, RigCamera
 from annotator.io.video import iter_frames, video_info
 from annotator.vision.detection import MarkerDetector
 from annotator.vision.geometry import MarkerRoom

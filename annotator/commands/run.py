@@ -14,7 +14,7 @@ from annotator.commands._common import LazyProgress, console, default_jobs, one_
 from annotator.errors import ConfigError
 
 if TYPE_CHECKING:
-    from annotator.io.experiment import Experiment
+    from annotator.core.experiment import Experiment
     from annotator.pipeline import RunResult
 
 log = logging.getLogger(__name__)

@@ -708,7 +708,7 @@ class Keyframe:
 
 
 def _calibration(cam: CameraParams):  # noqa: ANN202 - CameraCalibration, imported lazily
-    from annotator.io.experiment import CameraCalibration
+    from annotator.core.experiment import CameraCalibration
 
     return CameraCalibration(cam.K, np.asarray(cam.dist, float), 0, cam.height, "", cam.model, cam.readout_s)
 
@@ -961,7 +961,7 @@ def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np
     earlier round."""
     from dataclasses import replace
 
-    from annotator.io.experiment import MarkerSetup, Rig
+    from annotator.core.experiment import MarkerSetup, Rig
     from annotator.vision.geometry import MarkerRoom
     from bgt_core.formats.markers import MarkerPose
 

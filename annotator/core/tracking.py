@@ -18,12 +18,12 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from annotator.core.experiment import Experiment
 from annotator.core.refine import Refinement, blur_weight, motion_at, predicted_smear_px
 from annotator.core.smoothing import SmootherSettings, smooth_positions, smooth_rotations, supported
 from annotator.core.trajectory import Trajectory
 from annotator.core.uncertainty import UncertaintySettings
 from annotator.errors import NoDataError
-from annotator.io.experiment import Experiment
 from annotator.vision.detection import Detections, DetectorSettings
 from annotator.vision.geometry import MarkerRoom
 from annotator.vision.paper import MarkerPoses, PaperSettings, paper_track

@@ -11,8 +11,9 @@ import cv2
 import numpy as np
 import yaml
 
+from annotator.core.experiment import CameraCalibration
 from annotator.core.refine import Refinement
-from annotator.io.experiment import CORNER_BIAS_KEY, READOUT_KEY, CameraCalibration
+from annotator.io.experiment import CORNER_BIAS_KEY, READOUT_KEY
 from bgt_core.formats.markers import format_dat
 
 
