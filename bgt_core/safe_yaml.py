@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING, Any, overload
 
 import yaml
 
@@ -161,6 +161,12 @@ def load_file(path: str | Path, *, loader: type | None = None, max_bytes: int = 
     if preprocess is not None:
         text = preprocess(text)
     return loads(text, source, loader=loader, max_depth=max_depth, max_nodes=max_nodes)
+
+
+@overload
+def dump(data: Any, stream: None = None, **kwargs: Any) -> str: ...
+@overload
+def dump(data: Any, stream: IO[str], **kwargs: Any) -> None: ...
 
 
 def dump(data: Any, stream: IO[str] | None = None, **kwargs: Any) -> str | None:

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
-from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, TaskID, TextColumn, TimeRemainingColumn
 
 from annotator.commands._common import LazyProgress, console, default_jobs, one_line_errors
 from annotator.errors import ConfigError
@@ -104,7 +104,7 @@ def run(
         with LazyProgress(TextColumn("{task.description:>12}"), BarColumn(),
                           TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn(),
                           console=console) as bar:
-            tasks: dict[str, int] = {}
+            tasks: dict[str, TaskID] = {}
 
             def progress(name: str, done: int, total: int) -> None:
                 if name not in tasks:

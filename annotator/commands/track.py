@@ -4,13 +4,16 @@ from __future__ import annotations
 
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TaskID, TextColumn, TimeRemainingColumn
 
 from annotator.commands._common import LazyProgress, default_jobs, one_line_errors
+
+if TYPE_CHECKING:
+    from annotator.core.refine import Refinement
 
 
 class Method(StrEnum):
@@ -103,7 +106,7 @@ def track(
         # Lazy: no bars until a video reports its first frames.
         with LazyProgress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn(),
                           TimeRemainingColumn(), console=console) as bar:
-            tasks: dict[str, int] = {}
+            tasks: dict[str, TaskID] = {}
 
             def report(name: str, done: int, total: int) -> None:
                 if not tasks:
@@ -122,7 +125,7 @@ def track(
                       f"({100 * n_ok / max(len(traj), 1):.0f} %), method {method.value}", highlight=False)
 
 
-def _report_refinement(out: Path, refinement: object, console: Console) -> None:
+def _report_refinement(out: Path, refinement: Refinement, console: Console) -> None:
     """refined/ (map, rig, calibrations, refinement.json) and a few lines on the console."""
     import json
     import math

@@ -62,7 +62,8 @@ def detect_board(image: np.ndarray, detector: cv2.aruco.CharucoDetector,
     corners, ids, _, _ = detector.detectBoard(gray)
     if ids is None or len(ids) < min_corners:
         return None
-    obj, img = board.matchImagePoints(corners, ids)
+    # The stubs want a sequence of arrays; OpenCV also takes ChArUco's one (N, 1, 2) corner array.
+    obj, img = board.matchImagePoints(corners, ids)  # type: ignore[call-overload]
     if obj is None or len(obj) < min_corners:
         return None
     return obj.reshape(-1, 3).astype(np.float32), img.reshape(-1, 2).astype(np.float32)

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
@@ -84,7 +84,7 @@ class Lattice:
         return int(np.argmin(np.linalg.norm(self.points - np.asarray(p, dtype=float)[:2], axis=1)))
 
 
-def _graph(lat: Lattice, clear: np.ndarray, usable: np.ndarray, keep_off: float):
+def _graph(lat: Lattice, clear: np.ndarray, usable: np.ndarray, keep_off: float) -> csr_matrix:
     ny, nx = lat.shape
     idx = np.arange(ny * nx).reshape(ny, nx)
     clear = np.maximum(clear, 1e-3)

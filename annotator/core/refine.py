@@ -35,9 +35,9 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -45,6 +45,10 @@ from scipy.spatial.transform import Rotation
 
 from annotator.core.priors import ParameterCovariance, Priors
 from annotator.vision.geometry import marker_corners_local
+
+if TYPE_CHECKING:
+    from annotator.core.experiment import CameraCalibration, Experiment, RigCamera
+    from annotator.core.uncertainty import VideoFrames
 
 log = logging.getLogger(__name__)
 
@@ -542,11 +546,11 @@ def solve(prob: Problem, settings: RefineSettings | None = None,
     x, _ = lm.solve(x, 5)
     lm._priors()
     _, uv_before = lm.cost(x)
-    for mid, (R, c) in (starts or {}).items():
+    for mid, (R, centre) in (starts or {}).items():
         m = prob.markers.index(mid)
         b = layout.n_pose + layout.static_slices()["marker"][0] + 6 * m
         x[b:b + 3] = Rotation.from_matrix(R @ prob.R_m[m].T).as_rotvec()
-        x[b + 3:b + 6] = c - prob.t_m[m]
+        x[b + 3:b + 6] = centre - prob.t_m[m]
     rms_before = _rms_per_camera(uv_before, prob.obs, prob.cameras, s.huber_px)
     # 1: a first solve with a conservative noise level; 2: markers whose survey the data contradict
     # lose their prior ("moved since the survey?"), the noise is re-estimated, solve again.
@@ -666,7 +670,10 @@ def _covariance(cov: np.ndarray, layout: _Layout, prob: Problem, lm: _LM) -> tup
         b = off + 6 * m
         markers[mid] = cov[b:b + 6, b:b + 6].copy()
         msig[m] = math.sqrt(np.trace(markers[mid][3:, 3:]) / 3)
-    rig, intr, dist, readout = {}, {}, {}, {}
+    rig: dict[str, np.ndarray] = {}
+    intr: dict[str, np.ndarray] = {}
+    dist: dict[str, np.ndarray] = {}
+    readout: dict[str, np.ndarray] = {}
     for c, cam in enumerate(prob.cameras):
         for name, target in ((RIG, rig), (INTR, intr), (DIST, dist), (READOUT, readout)):
             if name not in sl:
@@ -707,7 +714,7 @@ class Keyframe:
     views: list[FrameView]
 
 
-def _calibration(cam: CameraParams):  # noqa: ANN202 - CameraCalibration, imported lazily
+def _calibration(cam: CameraParams) -> CameraCalibration:
     from annotator.core.experiment import CameraCalibration
 
     return CameraCalibration(cam.K, np.asarray(cam.dist, float), 0, cam.height, "", cam.model, cam.readout_s)
@@ -877,14 +884,14 @@ def blur_weight(smear_px: float, scale_px: float = 2.0) -> float:
     return 1.0 / (1.0 + (smear_px / scale_px) ** 2)
 
 
-def camera_params(rig_cam) -> CameraParams:  # noqa: ANN001 - annotator.io.experiment.RigCamera
+def camera_params(rig_cam: RigCamera) -> CameraParams:
     cal = rig_cam.calibration
     return CameraParams(rig_cam.name, rig_cam.R_bundle_camera, rig_cam.t_bundle_camera, cal.camera_matrix,
                         np.asarray(cal.dist_coeffs, float), cal.model, cal.readout_s, cal.height,
                         cal.corner_bias_px)
 
 
-def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,  # noqa: ANN001
+def select_keyframes(frames: Sequence[VideoFrames], exp: Experiment, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
                      settings: RefineSettings) -> list[Keyframe]:
     """Keyframes over the capture: frames of the first camera with the other cameras' nearest
     frames, where the first pass has a pose, enough markers are seen and blur is small."""
@@ -911,7 +918,7 @@ def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: 
     # Prefer sharp frames: drop the candidates whose predicted smear is too large.
     room_centres = {int(m): np.asarray(p.position, float) for m, p in exp.markers.markers.items()}
     sharp = []
-    for k in cand:
+    for k in cand.tolist():
         det = base.detections[k]
         pts = np.array([room_centres[int(i)] for i in det.ids if int(i) in room_centres]).reshape(-1, 3)
         smear = predicted_smear_px(pts, Rk[k], pk[k], om[k], vel[k], cams[0].R_bundle_camera,
@@ -920,7 +927,7 @@ def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: 
             sharp.append((k, smear))
     if len(sharp) < max(10, len(cand) // 5):  # a fast walk throughout: take the sharpest fifth
         sharp = []
-        for k in cand:
+        for k in cand.tolist():
             sharp.append((k, 0.0))
     pick = np.linspace(0, len(sharp) - 1, min(settings.max_keyframes, len(sharp))).round().astype(int)
     chosen = [sharp[i] for i in np.unique(pick)]
@@ -928,16 +935,16 @@ def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: 
     Rj, pj, omj, velj, okj = motion_at(times, t_grid, pos, R)
     out, n = [], 0
     for k, smear in chosen:
-        views = []
+        kf_views = []
         R0, p0 = Rk[k], pk[k]
         for ci, j in partner[k]:
             i, n = n, n + 1
             if not okj[i]:
                 continue
             det = frames[ci].detections[j]
-            views.append(FrameView(ci, det.ids, det.corners, R0.T @ Rj[i], R0.T @ (pj[i] - p0), R0.T @ omj[i],
-                                   R0.T @ velj[i], blur_weight(smear)))
-        out.append(Keyframe(R0, p0, views))
+            kf_views.append(FrameView(ci, det.ids, det.corners, R0.T @ Rj[i], R0.T @ (pj[i] - p0), R0.T @ omj[i],
+                                      R0.T @ velj[i], blur_weight(smear)))
+        out.append(Keyframe(R0, p0, kf_views))
     return out
 
 
@@ -945,14 +952,14 @@ def select_keyframes(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: 
 class Refinement:
     """What refining a capture produced: the experiment to track with, the record, covariances."""
 
-    experiment: object  # annotator.io.experiment.Experiment with the refined map, rig and calibrations
+    experiment: Experiment  # with the refined map, rig and calibrations
     solution: Solution
     covariance: ParameterCovariance
-    report: dict
+    report: dict[str, Any]
     mapped: list[int]  # markers the survey did not give, now mapped from the video
 
 
-def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,  # noqa: ANN001
+def refine_capture(frames: Sequence[VideoFrames], exp: Experiment, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
                    settings: RefineSettings | None = None,
                    initial: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> Refinement | None:
     """Refine the experiment's map (mode map) and rig, lenses, readouts (mode all) from a first pass.
@@ -982,7 +989,7 @@ def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np
     for m, mid in enumerate(prob.markers):
         if mid not in markers:
             mapped.append(mid)
-        markers[mid] = MarkerPose(mid, tuple(float(v) for v in sol.t_m[m]), tuple(float(v) for v in euler[m]))
+        markers[mid] = MarkerPose.from_values(mid, sol.t_m[m], euler[m])
     rig = dict(exp.rig.cameras)
     for c, cf in enumerate(frames):
         rc, new = rig[cf.camera], sol.cameras[c]
@@ -998,8 +1005,8 @@ def refine_capture(frames: list, exp, t_grid: np.ndarray, pos: np.ndarray, R: np
     return Refinement(refined, sol, sol.covariance, report, mapped)
 
 
-def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], exp, s: RefineSettings,  # noqa: ANN001
-                      n_keyframes: int, mapped: list[int], seconds: float) -> dict:
+def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], exp: Experiment, s: RefineSettings,
+                      n_keyframes: int, mapped: list[int], seconds: float) -> dict[str, Any]:
     """report.json's ``refinement`` section."""
     cameras = {}
     for a, b in zip(cams, sol.cameras, strict=True):
@@ -1026,4 +1033,3 @@ def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], ex
             "iterations": sol.iterations, "seconds": round(seconds, 2), "corner_sigma_px": round(sol.sigma_px, 3),
             "cameras": cameras, "markers_mapped": [int(m) for m in mapped],
             "markers_moved": moved}
-

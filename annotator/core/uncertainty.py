@@ -34,8 +34,9 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from scipy.linalg import block_diag
@@ -47,9 +48,32 @@ from annotator.core.priors import ParameterCovariance
 from annotator.vision.geometry import MarkerRoom, marker_corners_local
 from annotator.vision.lens import undistort_points
 
+if TYPE_CHECKING:
+    from annotator.vision.detection import Detections
+
 log = logging.getLogger(__name__)
 
 BLOCKS = ("markers", "rig", "intrinsics", "readout")
+
+
+class VideoFrames(Protocol):
+    """What this module reads of one camera's frames (the pipeline's CameraFrames)."""
+
+    @property
+    def camera(self) -> str: ...
+    @property
+    def t(self) -> np.ndarray: ...  # (N,) wall-clock seconds
+    @property
+    def detections(self) -> Sequence[Detections]: ...
+    @property
+    def frame_interval(self) -> float: ...
+
+
+class VideoClock(Protocol):
+    """What :func:`sync_time_sigma` reads of a camera's clock map (``annotator.core.sync.ClockMap``)."""
+
+    def to_video(self, t_rssi: np.ndarray | float) -> np.ndarray: ...
+    def sigma_at(self, pts: np.ndarray | float) -> np.ndarray: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -224,7 +248,7 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
             Km[at] -= steps[j]
             dxn = (_undistort(v.cal, pix, Kp) - _undistort(v.cal, pix, Km)).reshape(-1, 2) / (2 * steps[j])
             Bi[:, j] = -focal * dxn.ravel()
-    if nd:
+    if dist_cov is not None and nd:
         steps = np.sqrt(np.maximum(np.diag(dist_cov), 1e-12)) * 0.1
         for j in range(min(nd, len(v.cal.dist_coeffs))):
             dp_, dm_ = v.cal.dist_coeffs.astype(float), v.cal.dist_coeffs.astype(float)
@@ -241,14 +265,26 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
                       np.linalg.norm(img_vel, axis=1), len(ids))
 
 
+@dataclass(frozen=True, eq=False)
+class FrameJacobians:
+    """Residuals, weights and the pose / parameter Jacobians of one output row's frames."""
+
+    r: np.ndarray  # (m,) pixel residuals
+    w: np.ndarray  # (m,) robust weights
+    J: np.ndarray  # (m, 6) w.r.t. the bundle pose
+    B: dict[str, np.ndarray]  # block -> (m, k) w.r.t. the block's parameters
+    L: dict[str, np.ndarray]  # block -> (k, k) square root of the block's covariance
+    image_speed: np.ndarray  # (m/2,) px/s
+    noise2: float  # corner noise variance, px^2
+
+
 def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: ParameterCovariance,
                     readout_sigma_s: float, settings: UncertaintySettings,
-                    cache: dict[int, _ViewBlock | None] | None = None) -> dict[str, object] | None:
+                    cache: dict[int, _ViewBlock | None] | None = None) -> FrameJacobians | None:
     """Residuals, weights and the pose / parameter Jacobians of one output row's frames.
 
-    Returns None without usable corners. Keys: r (m,), w (m,), J (m, 6), B {block: (m, k)},
-    L {block: (k, k) square root of the block's covariance}, image_speed (m/2,) px/s, noise2 (corner noise variance, px^2).
-    ``cache`` keeps each view's blocks between the rows that share it.
+    Returns None without usable corners. ``cache`` keeps each view's blocks between the rows
+    that share it.
     """
     blocks = []
     for v in views:
@@ -291,7 +327,7 @@ def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: Parame
     cams = sorted({b.camera for b in blocks})
     Brig = np.zeros((n0, 6 * len(cams)))
     width = {c: next(b.Bi.shape[1] for b in blocks if b.camera == c) for c in cams}
-    first = dict(zip(cams, np.cumsum([0] + [width[c] for c in cams])[:-1], strict=True))
+    col0 = dict(zip(cams, np.cumsum([0] + [width[c] for c in cams])[:-1], strict=True))
     Bint = np.zeros((n0, sum(width.values())))
     readouts = _readout(params)
     Bro = np.zeros((n0, len(cams) if readouts else 1))
@@ -299,7 +335,7 @@ def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: Parame
         c = cams.index(b.camera)
         a1 = a0 + len(b.r)
         Brig[a0:a1, 6 * c:6 * c + 6] = b.Br
-        Bint[a0:a1, first[b.camera]:first[b.camera] + width[b.camera]] = b.Bi
+        Bint[a0:a1, col0[b.camera]:col0[b.camera] + width[b.camera]] = b.Bi
         Bro[a0:a1, c if readouts else 0] = b.Bro
     B["rig"] = Brig
     L["rig"] = block_diag(*[_sqrt_psd(params.rig[c]) if c in params.rig else np.zeros((6, 6)) for c in cams])
@@ -315,17 +351,16 @@ def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: Parame
     L["readout"] = (np.diag([math.sqrt(float(np.ravel(readouts[c])[0])) if c in readouts else 0.0 for c in cams])
                     if readouts else np.array([[readout_sigma_s]]))
     speeds = np.concatenate([b.speed for b in blocks])
-    return {"r": r, "w": w, "J": J, "B": B, "L": L, "image_speed": speeds,
-            "noise2": float(e_inner.sum()) / max(2 * len(e_inner), 1)}
+    return FrameJacobians(r, w, J, B, L, speeds, float(e_inner.sum()) / max(2 * len(e_inner), 1))
 
 
-def propagate(jac: dict[str, object]) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+def propagate(jac: FrameJacobians) -> tuple[np.ndarray, np.ndarray, float, float] | None:
     """(4,) per-axis position variance per block, (4,) predicted residual energy per block, the
     observed residual energy after a per-frame fit beyond the corner noise's share, and the noise's
     degrees of freedom."""
-    r, w, J = jac["r"], jac["w"], jac["J"]  # type: ignore[misc]
-    sw = np.sqrt(w)  # type: ignore[arg-type]
-    Jw = J * sw[:, None]  # type: ignore[index]
+    r, w, J = jac.r, jac.w, jac.J
+    sw = np.sqrt(w)
+    Jw = J * sw[:, None]
     H = Jw.T @ Jw
     try:
         Hinv = np.linalg.inv(H + 1e-12 * np.eye(6))
@@ -333,41 +368,41 @@ def propagate(jac: dict[str, object]) -> tuple[np.ndarray, np.ndarray, float, fl
         return None
     if not np.all(np.isfinite(Hinv)):
         return None
-    rw = r * sw  # type: ignore[operator]
+    rw = r * sw
     proj = Jw @ (Hinv @ (Jw.T @ rw))
     e_obs = float(np.sum((rw - proj) ** 2))
-    dof = float(np.sum(w) - 6)  # type: ignore[arg-type]
+    dof = float(np.sum(w) - 6)
     var = np.zeros(4)
     q = np.zeros(4)
     for k, name in enumerate(BLOCKS):
-        Bk = jac["B"].get(name)  # type: ignore[union-attr]
+        Bk = jac.B.get(name)
         if Bk is None or Bk.shape[1] == 0:
             continue
-        BL = (Bk * sw[:, None]) @ jac["L"][name]  # type: ignore[index]
+        BL = (Bk * sw[:, None]) @ jac.L[name]
         A = Hinv @ (Jw.T @ BL)  # (6, k) pose change per unit-sigma parameter
         var[k] = float(np.sum(A[3:] ** 2)) / 3
         resid = BL - Jw @ A
         q[k] = float(np.sum(resid ** 2))
-    return var, q, e_obs - float(jac["noise2"]) * dof, dof  # type: ignore[arg-type]
+    return var, q, e_obs - jac.noise2 * dof, dof
 
 
-def _views_at(frames: Sequence[object], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
+def _views_at(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
               omega: np.ndarray, vel: np.ndarray) -> list[list[FrameView]]:
     """Each output row's frames (every camera's frame within half a frame), each at its own pose."""
     rows: list[list[FrameView]] = [[] for _ in t_out]
     ok = np.isfinite(pos).all(1) & np.isfinite(R).all((1, 2))
     for cf in frames:
-        cam = exp.rig.cameras[cf.camera]  # type: ignore[attr-defined]
-        times = np.asarray(cf.t, float)  # type: ignore[attr-defined]
-        half = 0.5 * float(cf.frame_interval)  # type: ignore[attr-defined]
+        cam = exp.rig.cameras[cf.camera]
+        times = np.asarray(cf.t, float)
+        half = 0.5 * float(cf.frame_interval)
         at = np.clip(np.searchsorted(t_out, times), 0, len(t_out) - 1)
         exact = np.abs(t_out[at] - times) < 1e-6
         for j in np.flatnonzero(exact):
             k = at[j]
-            det = cf.detections[j]  # type: ignore[attr-defined]
+            det = cf.detections[int(j)]
             if not ok[k] or not len(det.ids) or not np.isfinite(vel[k]).all():
                 continue
-            view = FrameView(cf.camera, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera,  # type: ignore[attr-defined]
+            view = FrameView(cf.camera, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera,
                              np.asarray(det.ids), np.asarray(det.corners, float).reshape(-1, 4, 2), R[k], pos[k],
                              np.concatenate([omega[k], vel[k]]))
             lo = np.searchsorted(t_out, times[j] - half)
@@ -422,7 +457,7 @@ def _scales(var: np.ndarray, q: np.ndarray, e: np.ndarray, dof: np.ndarray,
     return out
 
 
-def row_uncertainty(frames: Sequence[object], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
+def row_uncertainty(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
                     params: ParameterCovariance | None = None,
                     settings: UncertaintySettings | None = None) -> RowUncertainty:
     """Parameter, blur and smear figures of every trajectory row (pose of the smoothed trajectory).
@@ -456,8 +491,7 @@ def row_uncertainty(frames: Sequence[object], exp: Experiment, t_out: np.ndarray
         if out is None:
             continue
         var[k], q[k], e[k], dof[k] = out
-        sp = jac["image_speed"]
-        smear[k] = float(np.median(sp)) * max(exposure[v.camera] for v in views[k])  # type: ignore[arg-type]
+        smear[k] = float(np.median(jac.image_speed)) * max(exposure[v.camera] for v in views[k])
     scales = _scales(var, q, e, dof, s, shrink=params is None)
     var = var * np.array([scales[b] ** 2 for b in BLOCKS])[None, :]
     if log.isEnabledFor(logging.DEBUG) and np.isfinite(var).any():
@@ -510,7 +544,7 @@ def _fill_nearest(t: np.ndarray, x: np.ndarray, want: np.ndarray) -> np.ndarray:
     return out
 
 
-def row_smear(frames: Sequence[object], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
+def row_smear(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
               settings: UncertaintySettings | None = None) -> np.ndarray:
     """Predicted corner smear (px) of every row's frames: median image speed of the detected
     corners under the trajectory's motion, times the exposure (worst camera of the row)."""
@@ -541,12 +575,12 @@ def image_speed(view: FrameView, room: MarkerRoom) -> np.ndarray:
     return np.zeros(0) if J is None else np.linalg.norm(J @ view.twist, axis=1)
 
 
-def _exposures(frames: Sequence[object], exp: Experiment, s: UncertaintySettings) -> dict[str, float]:
+def _exposures(frames: Sequence[VideoFrames], exp: Experiment, s: UncertaintySettings) -> dict[str, float]:
     out = {}
     for cf in frames:
-        cal = exp.rig.cameras[cf.camera].calibration  # type: ignore[attr-defined]
+        cal = exp.rig.cameras[cf.camera].calibration
         given = getattr(cal, "exposure_s", None)
-        out[cf.camera] = float(given) if given is not None else s.default_exposure_frac * float(cf.frame_interval)  # type: ignore[attr-defined]
+        out[cf.camera] = float(given) if given is not None else s.default_exposure_frac * float(cf.frame_interval)
     return out
 
 
@@ -590,13 +624,13 @@ def total_sigma(smoother_m: np.ndarray, u: RowUncertainty, settings: Uncertainty
     return out
 
 
-def sync_time_sigma(clocks: dict[str, object], t_rssi: np.ndarray) -> np.ndarray:
+def sync_time_sigma(clocks: Mapping[str, VideoClock], t_rssi: np.ndarray) -> np.ndarray:
     """1-sigma uncertainty (s) of each RSSI time against the video clock: the worst camera's clock
     map at that time (``annotator.core.sync.ClockMap.sigma_at``); 0 where no camera states one (manual
     sync states none)."""
     t = np.asarray(t_rssi, dtype=float)
     out = np.zeros(t.shape)
     for cm in clocks.values():
-        sig = np.asarray(cm.sigma_at(cm.to_video(t)), dtype=float)  # type: ignore[attr-defined]
+        sig = np.asarray(cm.sigma_at(cm.to_video(t)), dtype=float)
         out = np.fmax(out, np.broadcast_to(sig, t.shape))
     return out

@@ -40,7 +40,7 @@ def _yaml_loader() -> type:
     class _Loader(SafeLoader):
         """The bounded safe loader, also understanding OpenCV's !!opencv-matrix tag."""
 
-    def _matrix(loader: yaml.SafeLoader, node: yaml.Node) -> dict[str, Any]:
+    def _matrix(loader: yaml.SafeLoader, node: yaml.MappingNode) -> dict[Any, Any]:
         return dict(loader.construct_mapping(node, deep=True))
 
     _Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", _matrix)

@@ -275,7 +275,7 @@ def make_grid(h: FingerprintHistograms, cell: float | None, occupancy: Occupancy
         x0, y0, x1, y1 = site.params.limits
         limits = ((x0, y0), (x1, y1))
     else:
-        pts = [p[:2] for p in h.fingerprints]
+        pts: list[Sequence[float]] = [p[:2] for p in h.fingerprints]
         pts += [d.position[:2] for d in h.devices.dongles.values() if len(d.position) >= 2]
         if not pts:
             raise NoDataError("the fingerprint file holds no fingerprints")
@@ -284,9 +284,9 @@ def make_grid(h: FingerprintHistograms, cell: float | None, occupancy: Occupancy
         hi = a.max(axis=0)
         hi = np.where(hi > lo, hi, lo + cell)
         limits = ((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
-    xs, ys = grid_corners(limits, cell)
-    return Grid(limits, float(cell), np.asarray(xs), np.asarray(ys),
-                np.ones((len(ys), len(xs)), dtype=bool))
+    x_lo, y_lo = grid_corners(limits, cell)
+    return Grid(limits, float(cell), np.asarray(x_lo), np.asarray(y_lo),
+                np.ones((len(y_lo), len(x_lo)), dtype=bool))
 
 
 @dataclass(frozen=True, slots=True)

@@ -7,6 +7,7 @@ map of a built-in site is used as background when the experiment's marker map is
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -109,7 +110,7 @@ def plot_trajectory_map(path: str | Path, positions: np.ndarray, *, floor: Floor
 
 
 def plot_rssi_time(path: str | Path, t: np.ndarray, rssi: np.ndarray, sensor: np.ndarray, *,
-                   events: list[tuple[float, float]] = (), span: tuple[float, float] | None = None,
+                   events: Sequence[tuple[float, float]] = (), span: tuple[float, float] | None = None,
                    aliases: dict[str, str] | None = None, t0: float | None = None) -> Path:
     """RSSI over time, one panel per sensor; shaded: the sync event(s); dashed: the tracked span.
 

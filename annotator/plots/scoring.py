@@ -94,7 +94,7 @@ def plot_floor(path: Path, s: Score, est_position: np.ndarray, truth: Truth) -> 
         ex, ey = xy(est[ok])
         tx, ty = xy(s.truth_at_estimates[ok])
         segs = np.stack([np.column_stack([ex, ey]), np.column_stack([tx, ty])], axis=1)
-        ax.add_collection(LineCollection(segs, colors="tab:red", linewidths=0.4, alpha=0.4, zorder=1))
+        ax.add_collection(LineCollection(list(segs), colors="tab:red", linewidths=0.4, alpha=0.4, zorder=1))
     gx, gy = xy(tp)
     ax.plot(gx, gy, color="black", lw=2, zorder=2, label="ground truth")
     fe = np.isfinite(est[:, :2]).all(axis=1)

@@ -63,8 +63,7 @@ def perturb_markers(markers: dict[int, MarkerPose], sigma_m: float, sigma_deg: f
             out[mid] = m
             continue
         rot = Rotation.from_rotvec(d_rot) * Rotation.from_euler("xyz", m.euler_xyz)
-        out[mid] = MarkerPose(mid, tuple(float(v) for v in np.asarray(m.position) + d_pos),
-                              tuple(float(v) for v in rot.as_euler("xyz")))
+        out[mid] = MarkerPose.from_values(mid, np.asarray(m.position) + d_pos, rot.as_euler("xyz"))
     return out
 
 
