@@ -226,14 +226,15 @@ def single_solver(exp: Experiment, room: MarkerRoom, settings: TrackSettings,
     """A frame's single-camera pose: the first pass's, or (resolve) solved again with ``exp``'s
     parameters (after refinement the first pass's poses carry the old map, rig and lenses)."""
     def single(cf: CameraFrames, j: int) -> BundlePose | None:
-        if not resolve or (cf.poses[j] is None and not len(cf.detections[j].ids)):
-            return cf.poses[j]
+        first = cf.poses[j]
+        if not resolve or (first is None and not len(cf.detections[j].ids)):
+            return first
         cam = exp.rig.cameras[cf.camera]
         obs = observe(cf.detections[j], room, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera)
         # A frame the first pass could not solve may see markers the refinement mapped.
-        if cf.poses[j] is None:
+        if first is None:
             return solve_bundle_pose([obs], room, settings.solver)
-        prior = (cf.poses[j].R_wb, cf.poses[j].t_wb)
+        prior = (first.R_wb, first.t_wb)
         return solve_bundle_pose([obs], room, settings.solver, prior, prior_first=True)
     return single
 
