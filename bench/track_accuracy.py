@@ -20,8 +20,9 @@ import numpy as np
 
 from annotator.commands.evaluate import load_waypoints
 from annotator.core.evaluate import compare_to_path, compare_to_truth
+from annotator.core.trajectory import Trajectory
 from annotator.io.experiment import load_experiment
-from annotator.io.trajectory import Trajectory, read_trajectory
+from annotator.io.trajectory import read_trajectory
 from annotator.pipeline import TrackSettings, track_experiment
 
 

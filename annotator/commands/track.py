@@ -130,7 +130,7 @@ def _report_refinement(out: Path, refinement: Refinement, console: Console) -> N
     import json
     import math
 
-    from annotator.core.refine import write_refined
+    from annotator.io.refined import write_refined
 
     write_refined(out / "refined", refinement)
     rep = refinement.report

@@ -8,6 +8,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from annotator.core.trajectory import Trajectory
+
 
 @dataclass(frozen=True)
 class ErrorStats:
@@ -30,33 +32,6 @@ def error_stats(errors: np.ndarray) -> ErrorStats:
         return ErrorStats(0, *(5 * [float("nan")]))
     p50, p75, p95 = np.percentile(e, [50, 75, 95])
     return ErrorStats(int(len(e)), float(p50), float(e.mean()), float(p75), float(p95), float(e.max()))
-
-
-def interpolate_poses(ref_t: np.ndarray, ref_pos: np.ndarray, ref_rot: np.ndarray,
-                      t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Reference pose at times t: positions linearly, rotations by slerp between the two
-    neighbouring samples. Returns (positions (M,3), rotations (M,3,3), ok mask); outside the
-    reference's time range or next to a NaN reference row, ok is False and the pose NaN."""
-    ref_t = np.asarray(ref_t, float)
-    t = np.asarray(t, float)
-    m = len(t)
-    pos = np.full((m, 3), np.nan)
-    rot = np.full((m, 3, 3), np.nan)
-    if len(ref_t) < 2:
-        return pos, rot, np.zeros(m, bool)
-    ref_ok = np.isfinite(ref_pos).all(1) & np.isfinite(ref_rot).all((1, 2))
-    i0 = np.clip(np.searchsorted(ref_t, t, side="right") - 1, 0, len(ref_t) - 2)
-    i1 = i0 + 1
-    ok = np.isfinite(t) & (t >= ref_t[0]) & (t <= ref_t[-1]) & ref_ok[i0] & ref_ok[i1]
-    if not ok.any():
-        return pos, rot, ok
-    a, b, tt = i0[ok], i1[ok], t[ok]
-    frac = ((tt - ref_t[a]) / (ref_t[b] - ref_t[a]))[:, None]
-    pos[ok] = ref_pos[a] * (1 - frac) + ref_pos[b] * frac
-    # from_matrix projects to the nearest rotation: published references are not always orthonormal.
-    r0, r1 = Rotation.from_matrix(ref_rot[a]), Rotation.from_matrix(ref_rot[b])
-    rot[ok] = (r0 * Rotation.from_rotvec((r0.inv() * r1).as_rotvec() * frac)).as_matrix()
-    return pos, rot, ok
 
 
 def rotation_angles_deg(rot_a: np.ndarray, rot_b: np.ndarray) -> np.ndarray:
@@ -92,7 +67,7 @@ def compare_to_truth(t: np.ndarray, pos: np.ndarray, rot: np.ndarray, ref_t: np.
                      ref_pos: np.ndarray, ref_rot: np.ndarray) -> TruthComparison:
     """Per-row errors of an estimate against a reference interpolated to its times; no alignment."""
     has_pose = np.isfinite(pos).all(1) & np.isfinite(rot).all((1, 2))
-    ref_p, ref_r, ok = interpolate_poses(ref_t, ref_pos, ref_rot, t)
+    ref_p, ref_r, ok = Trajectory(np.asarray(ref_t, float), ref_pos, ref_rot).interpolate(t)
     use = has_pose & ok
     perr = np.full(len(t), np.nan)
     perr[use] = np.linalg.norm(pos[use] - ref_p[use], axis=1)

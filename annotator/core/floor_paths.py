@@ -12,21 +12,13 @@ bgt_core.formats.occ).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from bgt_core.formats.occ import Occupancy, read_occ
-
-
-def site_occupancy(name: str = "tetam", cell: float = 0.5) -> Occupancy:
-    """The occupancy grid shipped with a built-in site (tetam: the published 0.5 m grid)."""
-    from bgt_core.sites import site_dir
-
-    return read_occ(Path(site_dir(name)) / f"{name}_{cell:g}.occ")
+from bgt_core.formats.occ import Occupancy
 
 
 @dataclass(frozen=True)

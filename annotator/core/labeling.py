@@ -1,7 +1,7 @@
 """Labelling RSSI readings with the bundle pose at their own timestamps.
 
 Pure: positions are interpolated linearly and rotations by Slerp between the two poses that
-bracket each reading. Readings before/after the tracked span or inside a long tracking gap are
+bracket each reading (annotator.core.trajectory's ``bracket`` and ``blend``). Readings before/after the tracked span or inside a long tracking gap are
 left unlabelled (NaN), never extrapolated.
 """
 
@@ -12,7 +12,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+
+from annotator.core.trajectory import Trajectory, blend, bracket
 
 log = logging.getLogger(__name__)
 
@@ -21,35 +22,6 @@ LABELLED, BEFORE_SPAN, AFTER_SPAN, IN_GAP, COVERED = 0, 1, 2, 3, 4
 REASONS = {LABELLED: "labelled", BEFORE_SPAN: "before the tracked span",
            AFTER_SPAN: "after the tracked span", IN_GAP: "inside a tracking gap",
            COVERED: "during a cover event"}
-
-
-@dataclass(frozen=True, eq=False)
-class Poses:
-    """A trajectory: wall-clock seconds, positions (N, 3), R_world_bundle (N, 3, 3).
-
-    A row whose position or rotation holds a NaN is a frame without a pose (a gap). ``sigma``
-    (position 1-sigma, m) and ``markers`` (markers used) are optional per-pose quality arrays.
-    """
-
-    t: np.ndarray
-    positions: np.ndarray
-    rotations: np.ndarray
-    sigma: np.ndarray | None = None
-    markers: np.ndarray | None = None
-
-    @classmethod
-    def from_rotation(cls, t: np.ndarray, positions: np.ndarray, rotation: Rotation,
-                      sigma: np.ndarray | None = None, markers: np.ndarray | None = None) -> Poses:
-        """Build from a scipy Rotation; gaps are the rows with a NaN position."""
-        mats = np.array(rotation.as_matrix(), dtype=float).reshape(-1, 3, 3)
-        gap = ~np.all(np.isfinite(np.asarray(positions, dtype=float)), axis=1)
-        mats[gap] = np.nan
-        return cls(np.asarray(t, dtype=float), np.asarray(positions, dtype=float), mats, sigma, markers)
-
-    def valid(self) -> np.ndarray:
-        p = np.all(np.isfinite(self.positions), axis=1)
-        r = np.all(np.isfinite(self.rotations.reshape(-1, 9)), axis=1)
-        return p & r & np.isfinite(self.t)
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,10 +41,13 @@ class Labels:
         return self.reason == LABELLED
 
 
-def label_readings(poses: Poses, t_ns: np.ndarray, *, max_gap: float = 0.5,
+def label_readings(poses: Trajectory, t_ns: np.ndarray, *, max_gap: float = 0.5,
                    exclude: Sequence[tuple[float, float]] = (),
                    time_sigma: float | np.ndarray | None = None) -> Labels:
     """Pose of the bundle at each reading time ``t_ns`` (int64 Unix ns).
+
+    ``poses``' rows without a pose are gaps; its optional quality arrays ``sigma_m`` (position
+    1-sigma, m) and ``markers`` (markers used) give the readings' ``sigma`` and ``markers``.
 
     A reading is labelled when it lies inside [first pose, last pose] and the two poses around it
     are at most ``max_gap`` seconds apart. Position: linear interpolation; rotation: Slerp.
@@ -84,14 +59,9 @@ def label_readings(poses: Poses, t_ns: np.ndarray, *, max_gap: float = 0.5,
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     m = t_ns.size
-    ok = poses.valid()
-    tp = poses.t[ok]
-    order = np.argsort(tp, kind="stable")
-    tp = tp[order]
-    # Duplicate times (e.g. two cameras' frames fused) would make Slerp ill-posed: keep the first.
-    keep = np.concatenate([[True], np.diff(tp) > 0]) if tp.size else np.zeros(0, dtype=bool)
-    idx = np.flatnonzero(ok)[order][keep]
-    tp = tp[keep]
+    # Only the rows with a pose, in time order, one per time (two cameras' frames fused at one time).
+    poses = poses.compact()
+    tp = poses.t
     out_pos = np.full((m, 3), np.nan)
     out_rot = np.full((m, 3, 3), np.nan)
     out_sig = np.full(m, np.nan)
@@ -107,14 +77,11 @@ def label_readings(poses: Poses, t_ns: np.ndarray, *, max_gap: float = 0.5,
     tpr = tp - tp[0]
     reason[tr > tpr[-1]] = AFTER_SPAN
     inside = (tr >= 0.0) & (tr <= tpr[-1])
-    hi = np.clip(np.searchsorted(tpr, tr, side="right"), 1, max(tpr.size - 1, 1))
-    lo = hi - 1
-    if tpr.size == 1:
-        hi = lo = np.zeros(m, dtype=int)
-    bracket = tpr[hi] - tpr[lo]
+    lo, hi, w = bracket(tpr, tr)
+    span = tpr[hi] - tpr[lo]
     near = np.minimum(np.abs(tr - tpr[lo]), np.abs(tpr[hi] - tr))
     gap_s[inside] = near[inside]
-    good = inside & (bracket <= max_gap)
+    good = inside & (span <= max_gap)
     reason[inside & ~good] = IN_GAP
     for a, b in exclude:
         lo_ns = -(2**62) if a == -np.inf else int(round(a * 1e9))
@@ -126,26 +93,20 @@ def label_readings(poses: Poses, t_ns: np.ndarray, *, max_gap: float = 0.5,
     if not good.any():
         return Labels(out_pos, out_rot, out_sig, out_mk, gap_s, reason, _count(reason))
 
-    g_lo, g_hi, g_t = lo[good], hi[good], tr[good]
-    span = tpr[g_hi] - tpr[g_lo]
-    w = np.divide(g_t - tpr[g_lo], span, out=np.zeros_like(g_t), where=span > 0)
-    P = poses.positions[idx]
-    out_pos[good] = P[g_lo] + (P[g_hi] - P[g_lo]) * w[:, None]
-    rots = Rotation.from_matrix(poses.rotations[idx])
-    if tpr.size >= 2:
-        out_rot[good] = Slerp(tpr, rots)(g_t).as_matrix()
-    else:
-        out_rot[good] = rots[0].as_matrix()
-    if poses.sigma is not None:
-        S = np.asarray(poses.sigma, dtype=float)[idx]
+    g_lo, g_hi, w, span = lo[good], hi[good], w[good], span[good]
+    P = poses.position
+    out_pos[good], out_rot[good] = blend(P, poses.rotation, g_lo, g_hi, w)
+    sigma, markers = poses.quality.get("sigma_m"), poses.quality.get("markers")
+    if sigma is not None:
+        S = np.asarray(sigma, dtype=float)
         out_sig[good] = S[g_lo] + (S[g_hi] - S[g_lo]) * w
         if time_sigma is not None:
             ts = np.broadcast_to(np.nan_to_num(np.asarray(time_sigma, dtype=float), nan=0.0), (m,))[good]
             speed = np.divide(np.linalg.norm(P[g_hi] - P[g_lo], axis=1), span, out=np.zeros_like(span),
                               where=span > 0)
             out_sig[good] = np.hypot(out_sig[good], speed * ts)
-    if poses.markers is not None:
-        M = np.asarray(poses.markers)[idx]
+    if markers is not None:
+        M = np.asarray(markers)
         nearest = np.where(w <= 0.5, g_lo, g_hi)
         out_mk[good] = np.nan_to_num(M[nearest].astype(float), nan=-1).astype(np.int64)
     labels = Labels(out_pos, out_rot, out_sig, out_mk, gap_s, reason, _count(reason))

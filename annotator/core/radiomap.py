@@ -116,9 +116,3 @@ def mean_rssi(hists: np.ndarray, edges: np.ndarray) -> np.ndarray:
     edges = np.asarray(edges, dtype=float)
     centres = 0.5 * (edges[:-1] + edges[1:])
     return np.asarray(hists, dtype=float) @ centres
-
-
-def cell_centres(xs: np.ndarray, ys: np.ndarray, cell: float) -> np.ndarray:
-    """Centres (M, 2) of the grid whose lower-left corners are ``xs`` x ``ys``, x fastest."""
-    gx, gy = np.meshgrid(np.asarray(xs, dtype=float), np.asarray(ys, dtype=float))
-    return np.column_stack([gx.ravel() + cell / 2, gy.ravel() + cell / 2])

@@ -47,8 +47,8 @@ from annotator.core.priors import ParameterCovariance, Priors
 from annotator.vision.geometry import marker_corners_local
 
 if TYPE_CHECKING:
+    from annotator.core.experiment import CameraCalibration, Experiment, RigCamera
     from annotator.core.uncertainty import VideoFrames
-    from annotator.io.experiment import CameraCalibration, Experiment, RigCamera
 
 log = logging.getLogger(__name__)
 
@@ -715,7 +715,7 @@ class Keyframe:
 
 
 def _calibration(cam: CameraParams) -> CameraCalibration:
-    from annotator.io.experiment import CameraCalibration
+    from annotator.core.experiment import CameraCalibration
 
     return CameraCalibration(cam.K, np.asarray(cam.dist, float), 0, cam.height, "", cam.model, cam.readout_s)
 
@@ -841,12 +841,13 @@ def build_problem(survey: dict[int, tuple[np.ndarray, np.ndarray]], length: floa
 def motion_at(times: np.ndarray, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
               dt: float = 1 / 60) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Bundle pose and velocity at ``times`` from a trajectory: (R, p, omega_world, v_world, ok)."""
-    from annotator.pipeline import interp_poses
+    from annotator.core.trajectory import Trajectory
 
     times = np.asarray(times, float)
-    R0, p0, ok0 = interp_poses(times, t_grid, pos, R)
-    Ra, pa, oka = interp_poses(times - dt, t_grid, pos, R)
-    Rb, pb, okb = interp_poses(times + dt, t_grid, pos, R)
+    traj = Trajectory(np.asarray(t_grid, float), pos, R)
+    p0, R0, ok0 = traj.interpolate(times)
+    pa, Ra, oka = traj.interpolate(times - dt)
+    pb, Rb, okb = traj.interpolate(times + dt)
     ok = ok0 & oka & okb
     omega = np.zeros((len(times), 3))
     vel = np.zeros((len(times), 3))
@@ -967,7 +968,7 @@ def refine_capture(frames: Sequence[VideoFrames], exp: Experiment, t_grid: np.nd
     earlier round."""
     from dataclasses import replace
 
-    from annotator.io.experiment import MarkerSetup, Rig
+    from annotator.core.experiment import MarkerSetup, Rig
     from annotator.vision.geometry import MarkerRoom
     from bgt_core.formats.markers import MarkerPose
 
@@ -1032,68 +1033,3 @@ def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], ex
             "iterations": sol.iterations, "seconds": round(seconds, 2), "corner_sigma_px": round(sol.sigma_px, 3),
             "cameras": cameras, "markers_mapped": [int(m) for m in mapped],
             "markers_moved": moved}
-
-
-# --- the refined files ----------------------------------------------------------------------
-
-def _write_calibration(path: object, cal: CameraCalibration) -> None:
-    import cv2
-
-    from annotator.io.experiment import CORNER_BIAS_KEY, READOUT_KEY
-
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    try:
-        fs.write("image_width", int(cal.width))
-        fs.write("image_height", int(cal.height))
-        fs.write("camera_matrix", np.asarray(cal.camera_matrix, float))
-        fs.write("distortion_coefficients", np.asarray(cal.dist_coeffs, float).reshape(1, -1))
-        if cal.model != "radtan":
-            fs.write("distortion_model", cal.model)
-        fs.write(READOUT_KEY, float(cal.readout_s))
-        if cal.corner_bias_px:
-            fs.write(CORNER_BIAS_KEY, float(cal.corner_bias_px))
-    finally:
-        fs.release()
-
-
-def write_refined(folder: object, refinement: Refinement) -> dict[str, str]:
-    """The refined map (marker_positions.dat and markers.yaml with a sigma per marker), rig.yaml
-    and one calibration per camera into ``folder``; returns {what: file name}."""
-    from pathlib import Path
-
-    import yaml
-
-    from bgt_core.formats.markers import format_dat
-
-    out = Path(str(folder))
-    out.mkdir(parents=True, exist_ok=True)
-    exp = refinement.experiment
-    markers = exp.markers.markers
-    (out / "marker_positions.dat").write_text(format_dat(markers), encoding="utf-8")
-    cov = refinement.covariance.markers
-    moved = {m["id"] for m in refinement.report["markers_moved"]}
-    rows = []
-    for mid in sorted(markers):
-        m = markers[mid]
-        c = cov.get(mid)
-        rows.append({
-            "id": int(mid), "position": [round(float(v), 5) for v in m.position],
-            "rotation_xyz": [round(float(v), 6) for v in m.euler_xyz],
-            "sigma_m": None if c is None else round(math.sqrt(float(np.trace(c[3:, 3:])) / 3), 5),
-            "sigma_deg": None if c is None else round(math.degrees(math.sqrt(float(np.trace(c[:3, :3])) / 3)), 4),
-            "source": "video" if mid in refinement.mapped else ("video, moved since the survey?" if mid in moved
-                                                                 else "survey + video"),
-        })
-    header = ("# Marker map refined from the capture (annotator.core.refine). sigma_*: 1-sigma per axis.\n"
-              f"# dictionary {exp.markers.dictionary}, marker length {exp.markers.length} m\n")
-    (out / "markers.yaml").write_text(header + yaml.safe_dump({"markers": rows}, sort_keys=False), encoding="utf-8")
-    lines = ["# Rig refined from the capture (annotator.core.refine).", "cameras:"]
-    for name, cam in exp.rig.cameras.items():
-        _write_calibration(out / f"{name}.yaml", cam.calibration)
-        rows_r = ", ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in cam.R_bundle_camera)
-        lines += [f"  {name}:", f"    calibration: {name}.yaml", f"    R_bundle_camera: [{rows_r}]",
-                  "    t_bundle_camera: [" + ", ".join(repr(float(v)) for v in cam.t_bundle_camera) + "]"]
-    (out / "rig.yaml").write_text("\n".join(lines) + "\n", encoding="utf-8")
-    files = {"marker_positions": "marker_positions.dat", "markers": "markers.yaml", "rig": "rig.yaml"}
-    files.update({f"calibration_{n}": f"{n}.yaml" for n in exp.rig.cameras})
-    return files

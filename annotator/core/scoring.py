@@ -20,6 +20,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from annotator.core.trajectory import bracket
+
 DEFAULT_MAX_GAP_S = 1.0  # truth samples further apart than this are a gap, not interpolated
 DEFAULT_COVERAGE_WINDOW_S = 1.0  # a truth instant is "covered" by an estimate this close in time
 LATENCY_MIN_ESTIMATES = 10
@@ -102,10 +104,8 @@ def interpolate_truth(truth: Truth, t: np.ndarray, *, max_gap_s: float = DEFAULT
         if vs is not None:
             sig[ok] = vs[0]
         return pos, sig
-    i0 = np.clip(np.searchsorted(vt, q, side="right") - 1, 0, len(vt) - 2)
-    i1 = i0 + 1
+    i0, i1, frac = bracket(vt, q)  # the trajectory's bracketing (vt is unique: no empty span)
     span = vt[i1] - vt[i0]
-    frac = (q - vt[i0]) / span
     on_sample = (frac == 0.0) | (frac == 1.0)
     # a gap in the truth: the valid neighbours are far apart in time, or NaN rows lie between them
     nan_between = np.searchsorted(tt, vt[i1]) - np.searchsorted(tt, vt[i0]) > 1

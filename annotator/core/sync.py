@@ -38,10 +38,6 @@ class CoverEvent:
         return [(t, s) for t, s in ((self.cover, self.cover_sigma), (self.release, self.release_sigma))
                 if math.isfinite(t)]
 
-    def shifted(self, dt: float) -> CoverEvent:
-        return CoverEvent(self.cover + dt, self.release + dt, self.cover_sigma, self.release_sigma,
-                          self.source)
-
 
 @dataclass(frozen=True, slots=True)
 class ClockMap:

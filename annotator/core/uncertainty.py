@@ -43,8 +43,8 @@ from scipy.linalg import block_diag
 from scipy.optimize import nnls
 from scipy.spatial.transform import Rotation
 
+from annotator.core.experiment import CameraCalibration, Experiment
 from annotator.core.priors import ParameterCovariance
-from annotator.io.experiment import CameraCalibration, Experiment
 from annotator.vision.geometry import MarkerRoom, marker_corners_local
 from annotator.vision.lens import undistort_points
 

@@ -1,4 +1,5 @@
-"""Loading an experiment: experiment.yaml, the rig, camera calibrations and the marker map.
+"""Loading an experiment: experiment.yaml, the rig, camera calibrations and the marker map (the
+types they load into are in annotator.core.experiment).
 
 Every path inside a YAML file is relative to that file; every problem is one ConfigError line.
 """
@@ -8,76 +9,25 @@ from __future__ import annotations
 import logging
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from annotator.core.priors import Priors, parse_priors
+from annotator.core.experiment import (
+    CameraCalibration,
+    Experiment,
+    MarkerSetup,
+    Rig,
+    RigCamera,
+    SyncSettings,
+)
+from annotator.core.priors import parse_priors
 from annotator.errors import ConfigError
-from bgt_core.formats.markers import MarkerPose, read_marker_map
+from bgt_core.formats.markers import read_marker_map
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True, eq=False)
-class CameraCalibration:
-    """Pinhole intrinsics, a lens model with its coefficients, and the rolling-shutter readout.
-
-    ``model`` is "radtan" (OpenCV's radial-tangential: k1 k2 p1 p2 [k3 ...]) or "fisheye"
-    (OpenCV's equidistant fisheye: k1 k2 k3 k4). ``readout_s`` is the time from the first image
-    row to the last (0 = global shutter): row v of a frame stamped t is seen at
-    t + readout_s * v / height.
-    """
-
-    camera_matrix: np.ndarray  # 3x3
-    dist_coeffs: np.ndarray  # (n,) in the order of `model`
-    width: int
-    height: int
-    source: str = ""
-    model: str = "radtan"
-    readout_s: float = 0.0
-    exposure_s: float | None = None  # optional: exposure time, for the motion-blur measure
-    # Detected marker corners sit this far (px) outward (+) or inward (-) of the true corner along
-    # the square's diagonal; estimated by the self-calibration (annotator.core.refine), 0 otherwise.
-    corner_bias_px: float = 0.0
-
-
-@dataclass(frozen=True, eq=False)
-class RigCamera:
-    """One camera of the bundle: its calibration and where it sits on the bundle."""
-
-    name: str
-    calibration: CameraCalibration
-    R_bundle_camera: np.ndarray  # camera-frame vectors -> bundle frame
-    t_bundle_camera: np.ndarray  # camera centre in the bundle frame, metres
-
-
-@dataclass(frozen=True, eq=False)
-class Rig:
-    cameras: dict[str, RigCamera]
-    source: str = ""
-
-
-@dataclass(frozen=True, eq=False)
-class MarkerSetup:
-    markers: dict[int, MarkerPose]
-    dictionary: str  # e.g. "DICT_6X6_50"
-    length: float  # printed outer black square, metres
-
-
-@dataclass(frozen=True, eq=False)
-class Experiment:
-    path: Path
-    markers: MarkerSetup
-    rig: Rig
-    videos: dict[str, Path]
-    rssi: Path | None
-    sync_mode: str
-    video_start: dict[str, float] | None  # wall time of each video's first frame (manual sync)
-    sync: dict[str, Any] = field(default_factory=dict)  # the raw sync section, for auto sync
-    priors: Priors = field(default_factory=Priors)  # the `refine:` section: survey/rig/lens sigmas
 
 
 # --- YAML plumbing --------------------------------------------------------------------------
@@ -282,17 +232,16 @@ def _markers(value: Any, base: Path, source: str) -> MarkerSetup:
     return MarkerSetup(read_marker_map(base / str(d["file"])), dictionary, length)
 
 
-# The `sync:` section: every key it may hold, and the defaults of the optional numbers.
-SYNC_KEYS = ("mode", "video_start", "beacon", "min_cover_s", "max_cover_s", "max_start_error")
-SYNC_DEFAULTS = {"min_cover_s": 0.3, "max_cover_s": 10.0, "max_start_error": 60.0}
+# The `sync:` section: every key it may hold.
+SYNC_KEYS = tuple(f.name for f in fields(SyncSettings))
 # A video's start is Unix seconds between 1970 and 2100.
 UNIX_S_MAX = 4_102_444_800.0
 
 
-def parse_sync(obj: Any, source: str, cameras: list[str]) -> tuple[str, dict[str, float] | None, dict[str, Any]]:
-    """The `sync:` section -> (mode, video_start per camera or None, the section with its values
-    checked and normalised: numbers as floats, the beacon as a 12-hex MAC). Unknown keys, values
-    that are not numbers, NaN, infinities and times outside 1970..2100 are one ConfigError line."""
+def parse_sync(obj: Any, source: str, cameras: list[str]) -> SyncSettings:
+    """The `sync:` section, checked and normalised: numbers as floats, the beacon as a 12-hex MAC.
+    Unknown keys, values that are not numbers, NaN, infinities and times outside 1970..2100 are one
+    ConfigError line naming the field."""
     from bgt_core.wire import WireError, normalize_mac
 
     sync = dict(_mapping(obj, source, "sync"))
@@ -318,8 +267,8 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> tuple[str, dict[str
     for key in ("min_cover_s", "max_cover_s", "max_start_error"):
         if key in sync:
             sync[key] = _number(sync[key], f"{source}: sync.{key}", 1e-3, 86_400.0)
-    lo = sync.get("min_cover_s", SYNC_DEFAULTS["min_cover_s"])
-    hi = sync.get("max_cover_s", SYNC_DEFAULTS["max_cover_s"])
+    lo = sync.get("min_cover_s", SyncSettings.min_cover_s)
+    hi = sync.get("max_cover_s", SyncSettings.max_cover_s)
     if not lo < hi:
         raise ConfigError(f"{source}: sync.min_cover_s ({lo:g}) must be less than sync.max_cover_s ({hi:g})")
     if sync.get("beacon") is not None:
@@ -327,7 +276,7 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> tuple[str, dict[str
             sync["beacon"] = normalize_mac(sync["beacon"])
         except WireError:
             raise ConfigError(f"{source}: sync.beacon: not a MAC address: {sync['beacon']!r:.40}") from None
-    return str(mode), video_start, sync
+    return SyncSettings(**sync)
 
 
 def parse_experiment(obj: Any, path: Path) -> Experiment:
@@ -354,9 +303,9 @@ def parse_experiment(obj: Any, path: Path) -> Experiment:
             raise ConfigError(f"{source}: videos.{name}: no such file {vp}")
     rssi = base / str(d["rssi"]) if d.get("rssi") is not None else None
 
-    mode, video_start, sync = parse_sync(d.get("sync", {"mode": "manual"}), source, list(videos))
+    sync = parse_sync(d.get("sync", {"mode": "manual"}), source, list(videos))
     priors = parse_priors(d.get("refine"), source)
-    return Experiment(path, markers, rig, videos, rssi, mode, video_start, sync, priors)
+    return Experiment(path, markers, rig, videos, rssi, sync.video_start, sync, priors)
 
 
 def load_experiment(path: str | Path) -> Experiment:

@@ -25,7 +25,6 @@ log = logging.getLogger(__name__)
 
 POSITION_DECIMALS = 5  # 10 um: well below the tracking error, short lines
 ROTATION_DECIMALS = 6
-QUALITY_COLUMNS = ["pos_sigma", "markers_used", "gap_s"]
 ALL_SENSORS = "all_sensors.mbd"
 
 

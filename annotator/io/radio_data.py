@@ -78,6 +78,13 @@ def builtin_devices(name: str = "tetam") -> Devices:
     return read_dev(site_dir(name) / f"{name}.dev")
 
 
+def site_occupancy(name: str = "tetam", cell: float = 0.5) -> Occupancy:
+    """The occupancy grid shipped with a built-in site (tetam: the published 0.5 m grid)."""
+    from bgt_core.formats.occ import read_occ
+
+    return read_occ(site_dir(name) / f"{name}_{cell:g}.occ")
+
+
 def _complete_devices(given: Devices | None, seen_sensors: dict[str, str],
                       seen_beacons: Iterable[str]) -> Devices:
     """The devices written into the .hst: the given file's (or the built-in tetam site's when it

@@ -1,35 +1,21 @@
 """trajectory.csv: ``t,x,y,z,r11..r33`` then optional quality columns; NaN rows are gaps.
 
-R is R_world_bundle, row-major; t is wall-clock Unix seconds.
+R is R_world_bundle, row-major; t is wall-clock Unix seconds. The type itself is
+annotator.core.trajectory.Trajectory.
 """
 
 from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from annotator.core.trajectory import Trajectory
 from annotator.errors import AnnotatorError
 
 POSE_COLUMNS = ("t", "x", "y", "z", "r11", "r12", "r13", "r21", "r22", "r23", "r31", "r32", "r33")
-
-
-@dataclass(frozen=True, eq=False)
-class Trajectory:
-    t: np.ndarray  # (N,) Unix seconds, sorted
-    position: np.ndarray  # (N, 3) metres; NaN where no pose
-    rotation: np.ndarray  # (N, 3, 3) R_world_bundle; NaN where no pose
-    quality: dict[str, np.ndarray] = field(default_factory=dict)  # extra per-row columns
-
-    def __len__(self) -> int:
-        return len(self.t)
-
-    @property
-    def valid(self) -> np.ndarray:
-        return np.isfinite(self.position).all(1) & np.isfinite(self.rotation).all((1, 2))
 
 
 def _fmt(v: float, digits: int) -> str:

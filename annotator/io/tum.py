@@ -5,41 +5,34 @@ published tracks and on any localizer's estimates."""
 from __future__ import annotations
 
 import logging
-import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from annotator.core.trajectory import Trajectory, blend, bracket
 from annotator.errors import AnnotatorError, NoDataError
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True, slots=True)
-class PoseSeries:
-    t: np.ndarray  # (N,) Unix seconds, sorted
-    position: np.ndarray  # (N, 3); NaN rows are gaps (not written)
-    quat_xyzw: np.ndarray  # (N, 4) scalar-last, as TUM writes them
-
-
-def _quats(rot: np.ndarray) -> tuple[np.ndarray, int]:
-    """Quaternions of (N, 3, 3) matrices, projected to the nearest rotation (published tracks
-    hold matrices that are not rotations); matrices with no nearby rotation (det <= 0, NaN)
-    become identity. Returns the quaternions and how many were replaced."""
-    q = np.tile([0.0, 0.0, 0.0, 1.0], (len(rot), 1))
+def _rotations(rot: np.ndarray) -> tuple[np.ndarray, int]:
+    """(N, 3, 3) matrices projected to the nearest rotation (published tracks hold matrices that
+    are not rotations); matrices with no nearby rotation (det <= 0, NaN) become identity.
+    Returns the rotations and how many were replaced."""
+    out = np.tile(np.eye(3), (len(rot), 1, 1))
     ok = np.isfinite(rot).all(axis=(1, 2))
     ok[ok] = np.linalg.det(rot[ok]) > 1e-6
     if ok.any():
-        q[ok] = Rotation.from_matrix(rot[ok]).as_quat()
-    return q, int((~ok).sum())
+        out[ok] = Rotation.from_matrix(rot[ok]).as_matrix()
+    return out, int((~ok).sum())
 
 
-def read_poses(path: str | Path) -> PoseSeries:
+def read_poses(path: str | Path) -> Trajectory:
     """A trajectory.csv (full pose), an annotated run directory (its trajectory.csv), a track
     .mbd file or folder (pose of each timestamp), or an estimates CSV ``t,x,y[,z]`` (identity
-    orientation, z 0 when absent)."""
+    orientation, z 0 when absent). Rows without a position are gaps (not written); every row's
+    rotation is a proper rotation."""
     from annotator.io.scoring import read_estimates
 
     path = Path(path)
@@ -52,14 +45,14 @@ def read_poses(path: str | Path) -> PoseSeries:
             from annotator.io.trajectory import read_trajectory
 
             traj = read_trajectory(path)
-            q, bad = _quats(traj.rotation)
+            rot, bad = _rotations(traj.rotation)
             pos = np.where(traj.valid[:, None], traj.position, np.nan)
-            return PoseSeries(traj.t, pos, q)
+            return Trajectory(traj.t, pos, rot)
         est = read_estimates(path)
         pos = est.position.copy()
         if not est.has_z:
             pos[:, 2] = np.where(np.isfinite(pos[:, :2]).all(axis=1), 0.0, np.nan)
-        return PoseSeries(est.t, pos, np.tile([0.0, 0.0, 0.0, 1.0], (len(est.t), 1)))
+        return Trajectory(est.t, pos, np.tile(np.eye(3), (len(est.t), 1, 1)))
     from annotator.io.radio_data import annotated_files
     from bgt_core.formats.tables import load_mbd
 
@@ -70,17 +63,21 @@ def read_poses(path: str | Path) -> PoseSeries:
         raise AnnotatorError(f"{path}: rows carry no positions (not an annotated track)")
     df = df.sort_values("t_ns", kind="stable").drop_duplicates("t_ns")
     rot = df[["r11", "r12", "r13", "r21", "r22", "r23", "r31", "r32", "r33"]].to_numpy(float)
-    q, bad = _quats(rot.reshape(-1, 3, 3))
+    rot, bad = _rotations(rot.reshape(-1, 3, 3))
     if bad:
         log.warning("%s: %d orientations are not near any rotation; written as identity", path, bad)
-    return PoseSeries(df["t_ns"].to_numpy() / 1e9, df[["x", "y", "z"]].to_numpy(float), q)
+    return Trajectory(df["t_ns"].to_numpy() / 1e9, df[["x", "y", "z"]].to_numpy(float), rot)
 
 
-def format_tum(p: PoseSeries, *, flat: bool = False) -> str:
+def format_tum(p: Trajectory, *, flat: bool = False) -> str:
     """TUM lines for the rows with a position; ``flat`` writes z = 0 (for 2-D comparisons)."""
     lines = []
-    for t, xyz, q in zip(p.t, p.position, p.quat_xyzw, strict=True):
-        if not all(math.isfinite(v) for v in xyz):
+    has = np.isfinite(p.position).all(axis=1)
+    quats = np.tile([0.0, 0.0, 0.0, 1.0], (len(p.t), 1))
+    if has.any():
+        quats[has] = Rotation.from_matrix(_rotations(p.rotation[has])[0]).as_quat()
+    for t, xyz, q, ok in zip(p.t, p.position, quats, has, strict=True):
+        if not ok:
             continue
         z = 0.0 if flat else xyz[2]
         lines.append(f"{float(t)!r} {float(xyz[0])!r} {float(xyz[1])!r} {float(z)!r} "
@@ -88,7 +85,7 @@ def format_tum(p: PoseSeries, *, flat: bool = False) -> str:
     return "".join(lines)
 
 
-def write_tum(path: str | Path, p: PoseSeries, *, flat: bool = False) -> int:
+def write_tum(path: str | Path, p: Trajectory, *, flat: bool = False) -> int:
     text = format_tum(p, flat=flat)
     if not text:
         raise NoDataError(f"{path}: no pose to write")
@@ -99,19 +96,19 @@ def write_tum(path: str | Path, p: PoseSeries, *, flat: bool = False) -> int:
     return text.count("\n")
 
 
-def resample(p: PoseSeries, t: np.ndarray, *, max_gap_s: float) -> PoseSeries:
+def resample(p: Trajectory, t: np.ndarray, *, max_gap_s: float) -> Trajectory:
     """Positions interpolated at ``t`` as `annotator score` does (never extrapolated, no bridging
-    of gaps); orientations by slerp between the same two samples. Unscored times are gaps."""
+    of gaps); orientations by slerp between the same two samples (core.trajectory's bracket and
+    blend). Unscored times are gaps."""
     from annotator.core.scoring import Truth, interpolate_truth
 
+    t = np.asarray(t, dtype=float)
     truth = Truth.from_samples(p.t, p.position)
     pos, _ = interpolate_truth(truth, t, max_gap_s=max_gap_s)
-    q = np.tile([0.0, 0.0, 0.0, 1.0], (len(t), 1))
+    rot = np.tile(np.eye(3), (len(t), 1, 1))
     ok = np.isfinite(pos).all(axis=1)
-    if ok.any() and len(p.t) > 1:
-        from scipy.spatial.transform import Slerp
-
-        keep = np.isfinite(p.position).all(axis=1)
-        slerp = Slerp(p.t[keep], Rotation.from_quat(p.quat_xyzw[keep]))
-        q[ok] = slerp(np.clip(t[ok], p.t[keep][0], p.t[keep][-1])).as_quat()
-    return PoseSeries(np.asarray(t, dtype=float), pos, q)
+    known = p.compact()  # the rows with a pose, one per time
+    if ok.any() and len(known.t):
+        lo, hi, w = bracket(known.t, np.clip(t[ok], known.t[0], known.t[-1]))
+        rot[ok] = blend(known.position, known.rotation, lo, hi, w)[1]
+    return Trajectory(t, pos, rot)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from annotator.io.experiment import RigCamera
+from annotator.core.experiment import RigCamera
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom, camera_to_bundle, ippe_square
 

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from annotator.io.experiment import CameraCalibration, RigCamera
+from annotator.core.experiment import CameraCalibration, RigCamera
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom
 from bgt_core.formats.markers import read_marker_map

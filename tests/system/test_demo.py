@@ -69,7 +69,8 @@ def test_bundle_pose_follows_the_path_and_heads_along_it() -> None:
 def test_demo_walk_keeps_off_desks_and_walls() -> None:
     # Sampled every 2 cm of walking over a whole lap: never inside an occupied cell of the
     # site's occupancy grid, and at least 0.3 m from any (the planner keeps 0.4 m on straights).
-    from annotator.core.floor_paths import FloorGrid, site_occupancy
+    from annotator.core.floor_paths import FloorGrid
+    from annotator.io.radio_data import site_occupancy
 
     path = demo_path(0.4)
     grid = FloorGrid.from_occupancy(site_occupancy())

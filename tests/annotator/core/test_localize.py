@@ -15,7 +15,7 @@ from annotator.core.localize import RadioMapArrays, Readings, grid_hmm, knn
 from annotator.io.localize import radiomap_arrays
 from bgt_core.formats.grd import RadioMapGrid
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "dataset"
+DATA = Path(__file__).resolve().parents[2] / "data" / "dataset"
 EDGES = np.arange(-100.0, -19.0)
 SENSORS = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
 

@@ -15,7 +15,7 @@ from annotator.core import radiomap as rm
 from annotator.io import radio_data
 from bgt_core.formats import devices, grd, hst, occ
 
-DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
+DATASET = Path(__file__).resolve().parents[2] / "data" / "dataset"
 EDGES = np.arange(-100.0, -19.0)
 CENTRES = EDGES[:-1] + 0.5
 BEACON = "e78f135624ce"

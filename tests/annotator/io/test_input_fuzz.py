@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 from annotator.cli import app
 from bgt_core.sites import site_dir
 
-DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
+DATASET = Path(__file__).resolve().parents[2] / "data" / "dataset"
 T0 = 1_700_000_000.0
 
 CALIBRATION = """\
@@ -96,6 +96,8 @@ EXPERIMENT_CASES = [
     ("video_start bool", sync("  mode: manual\n  video_start: {front: true}\n"), "must be a number"),
     ("sync key typo", sync(f"  mode: manual\n  video_strat: {{front: {T0}}}\n"), "unknown key 'video_strat'"),
     ("sync cover NaN", sync(f"  mode: auto\n  video_start: {{front: {T0}}}\n  min_cover_s: .nan\n"), "sync.min_cover_s"),
+    ("sync number text", sync(f"  mode: auto\n  video_start: {{front: {T0}}}\n  max_start_error: abc\n"),
+     "sync.max_start_error: must be a number, not 'abc'"),
     ("sync cover order", sync("  mode: auto\n  min_cover_s: 5\n  max_cover_s: 1\n"), "less than sync.max_cover_s"),
     ("sync beacon", sync(f"  mode: manual\n  video_start: {{front: {T0}}}\n  beacon: nope\n"), "sync.beacon"),
     ("marker pose NaN", write("marker_positions.dat", DAT_ROW + "1: [NaN, 5.59, 2.00]:[0, 0, 0]\n"), "marker_positions.dat:2"),
@@ -171,15 +173,15 @@ def test_the_template_experiment_is_valid(experiment: Path):
 
 def test_sync_values_are_checked_and_normalised(experiment: Path):
     """Good values pass and come out as the pipeline reads them: floats and a 12-hex MAC."""
-    from annotator.io.experiment import load_experiment
+    from annotator.io.experiment import SyncSettings, load_experiment
 
     sync("  mode: auto\n  video_start: {front: 1.7e9}\n  beacon: 'AA:BB:CC:DD:EE:FF'\n"
          "  min_cover_s: 1\n  max_cover_s: 4\n  max_start_error: 30\n")(experiment)
     exp = load_experiment(experiment / "experiment.yaml")
     assert exp.sync_mode == "auto"
     assert exp.video_start == {"front": 1.7e9}  # YAML 1.1 reads 1.7e9 as a string: accepted
-    assert exp.sync == {"mode": "auto", "video_start": {"front": 1.7e9}, "beacon": "aabbccddeeff",
-                        "min_cover_s": 1.0, "max_cover_s": 4.0, "max_start_error": 30.0}
+    assert exp.sync == SyncSettings(mode="auto", video_start={"front": 1.7e9}, beacon="aabbccddeeff",
+                                    min_cover_s=1.0, max_cover_s=4.0, max_start_error=30.0)
 
 
 @pytest.mark.parametrize(("mutate", "message"), [c[1:] for c in EXPERIMENT_CASES],

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from annotator.core.trajectory import Trajectory
 from annotator.errors import AnnotatorError, ConfigError
 from annotator.io.experiment import load_calibration, load_experiment
-from annotator.io.trajectory import Trajectory, read_trajectory, write_trajectory
+from annotator.io.trajectory import read_trajectory, write_trajectory
 from annotator.io.video import iter_frames
 from bgt_core.sites import site_dir
 

@@ -12,10 +12,10 @@ from annotator.core.labeling import (
     COVERED,
     IN_GAP,
     LABELLED,
-    Poses,
     label_readings,
     tracked_span_coverage,
 )
+from annotator.core.trajectory import Trajectory
 
 T0 = 1_700_000_000.0
 VEL = np.array([0.4, -0.1, 0.02])  # m/s
@@ -31,7 +31,7 @@ def truth(t_rel: np.ndarray) -> tuple[np.ndarray, Rotation]:
 
 
 def make_poses(n: int = 151, dt: float = 1 / 30, *, gaps: list[tuple[float, float]] = (),
-               t0: float = T0) -> Poses:
+               t0: float = T0) -> Trajectory:
     t_rel = np.arange(n) * dt
     p, r = truth(t_rel)
     p = p.copy()
@@ -39,7 +39,7 @@ def make_poses(n: int = 151, dt: float = 1 / 30, *, gaps: list[tuple[float, floa
         p[(t_rel >= a) & (t_rel <= b)] = np.nan
     sigma = 0.005 + 0.001 * t_rel
     markers = (np.arange(n) % 5) + 1
-    return Poses.from_rotation(t0 + t_rel, p, r, sigma=sigma, markers=markers)
+    return Trajectory.from_rotation(t0 + t_rel, p, r, {"sigma_m": sigma, "markers": markers})
 
 
 def to_ns(t_rel: np.ndarray, t0: float = T0) -> np.ndarray:
@@ -76,8 +76,8 @@ def test_nothing_outside_the_span_is_labelled() -> None:
     assert np.isnan(labels.positions[~labels.labelled]).all()
     assert np.isnan(labels.rotations[~labels.labelled]).all()
     # The span ends are the poses themselves, exactly.
-    np.testing.assert_allclose(labels.positions[2], poses.positions[0], atol=1e-12)
-    np.testing.assert_allclose(labels.positions[4], poses.positions[-1], atol=1e-9)
+    np.testing.assert_allclose(labels.positions[2], poses.position[0], atol=1e-12)
+    np.testing.assert_allclose(labels.positions[4], poses.position[-1], atol=1e-9)
 
 
 def test_gaps_longer_than_the_threshold_are_not_labelled() -> None:
@@ -105,11 +105,11 @@ def test_quality_columns() -> None:
 
 def test_nan_rotation_row_is_a_gap_and_duplicates_are_ignored() -> None:
     poses = make_poses(n=31)
-    rot = poses.rotations.copy()
+    rot = poses.rotation.copy()
     rot[10] = np.nan
     t = poses.t.copy()
     t[20] = t[19]  # a duplicated timestamp
-    p2 = Poses(t, poses.positions, rot)
+    p2 = Trajectory(t, poses.position, rot)
     labels = label_readings(p2, to_ns(np.array([10 / 30, 0.2])))
     assert labels.labelled.all()
     p, _ = truth(np.array([10 / 30, 0.2]))
@@ -135,12 +135,12 @@ def test_cover_events_are_excluded_and_not_counted_against_coverage() -> None:
 
 
 def test_sync_uncertainty_adds_speed_times_time_sigma_to_each_reading():
-    from annotator.core.labeling import Poses, label_readings
+    from annotator.core.labeling import label_readings
 
     t = np.arange(0.0, 2.0, 0.1)
     pos = np.stack([1.5 * t, np.zeros_like(t), np.ones_like(t)], 1)  # 1.5 m/s along x
     rot = np.repeat(np.eye(3)[None], len(t), axis=0)
-    poses = Poses(t, pos, rot, sigma=np.full(len(t), 0.004))
+    poses = Trajectory(t, pos, rot, {"sigma_m": np.full(len(t), 0.004)})
     t_ns = np.array([0.35e9, 1.25e9], dtype=np.int64)
     plain = label_readings(poses, t_ns)
     synced = label_readings(poses, t_ns, time_sigma=0.01)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from annotator.core.floor_paths import FloorGrid, PlanError, plan_route, site_occupancy
+from annotator.core.floor_paths import FloorGrid, PlanError, plan_route
+from annotator.io.radio_data import site_occupancy
 from bgt_core.formats.occ import Occupancy
 
 

@@ -15,9 +15,9 @@ from annotator.core.evaluate import (
     compare_to_path,
     compare_to_truth,
     error_stats,
-    interpolate_poses,
 )
-from annotator.io.trajectory import Trajectory, write_trajectory
+from annotator.core.trajectory import Trajectory
+from annotator.io.trajectory import write_trajectory
 
 
 def make_truth(n: int = 101, dt: float = 0.1, t0: float = 1000.0) -> tuple[np.ndarray, np.ndarray, Rotation]:
@@ -37,7 +37,8 @@ def test_error_stats_known_numbers() -> None:
 
 def test_interpolation_between_samples() -> None:
     t, pos, rot = make_truth()
-    p, r, ok = interpolate_poses(t, pos, rot.as_matrix(), np.array([1000.05, 1000.0, 1010.0, 1010.01, 999.9]))
+    traj = Trajectory(t, pos, rot.as_matrix())
+    p, r, ok = traj.interpolate(np.array([1000.05, 1000.0, 1010.0, 1010.01, 999.9]))
     assert ok.tolist() == [True, True, True, False, False]
     np.testing.assert_allclose(p[0], [0.05, 0.0, 1.5], atol=1e-12)
     yaw = Rotation.from_matrix(r[:3]).as_euler("zyx", degrees=True)[:, 0]

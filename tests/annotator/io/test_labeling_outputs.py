@@ -12,7 +12,8 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from annotator.core.labeling import Poses, label_readings
+from annotator.core.labeling import label_readings
+from annotator.core.trajectory import Trajectory
 from annotator.errors import ConfigError, NoDataError
 from annotator.io.outputs import write_annotated_mbd, write_parquet, write_report
 from annotator.io.rssi import bundle_beacon, load_rssi
@@ -45,12 +46,12 @@ def write_run(run: Path, rng: np.random.Generator, n: int = 300, duration_s: flo
             encoding="utf-8")
 
 
-def make_poses(t0_s: float, n: int = 200, dt: float = 0.04) -> Poses:
+def make_poses(t0_s: float, n: int = 200, dt: float = 0.04) -> Trajectory:
     t = t0_s + np.arange(n) * dt
     p = np.column_stack([2 + 0.4 * (t - t0_s), 3 + np.sin(t - t0_s), np.full(n, 1.6)])
     p[80:110] = np.nan  # a 1.2 s tracking gap
     r = Rotation.from_euler("z", 0.5 * (t - t0_s)[:, None])
-    return Poses.from_rotation(t, p, r, sigma=np.full(n, 0.004), markers=np.full(n, 3))
+    return Trajectory.from_rotation(t, p, r, {"sigma_m": np.full(n, 0.004), "markers": np.full(n, 3)})
 
 
 def test_load_run_dir_and_plain_folder(tmp_path: Path) -> None:

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from annotator.core.experiment import CameraCalibration
 from annotator.core.priors import ParameterCovariance, Priors
 from annotator.core.uncertainty import (
     BLOCKS,
@@ -17,7 +18,6 @@ from annotator.core.uncertainty import (
     propagate,
     smear_weights,
 )
-from annotator.io.experiment import CameraCalibration
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom, marker_corners_local
 from annotator.vision.pose import observe, solve_bundle_pose

@@ -16,7 +16,7 @@ from annotator.cli import app
 from annotator.core import fingerprints as fp
 from bgt_core.formats.hst import read_hst
 
-DATASET = Path(__file__).resolve().parents[1] / "data" / "dataset"
+DATASET = Path(__file__).resolve().parents[2] / "data" / "dataset"
 FPT = DATASET / "fpt"
 BEACON = "e78f135624ce"
 runner = CliRunner()

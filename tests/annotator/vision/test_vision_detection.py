@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from annotator.io.experiment import CameraCalibration
+from annotator.core.experiment import CameraCalibration
 from annotator.vision.detection import DetectorSettings, MarkerDetector, auto_downscale
 from track_helpers import make_room
 

@@ -14,11 +14,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from annotator.core.scoring import interpolate_truth
+from annotator.core.trajectory import Trajectory
 from annotator.io.scoring import read_truth, write_estimates
-from annotator.io.trajectory import Trajectory, write_trajectory
+from annotator.io.trajectory import write_trajectory
 from annotator.io.tum import read_poses
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "dataset"
+DATA = Path(__file__).resolve().parents[2] / "data" / "dataset"
 TRACK = DATA / "trk" / "straight_01_all_sensors.mbd"
 BIN = Path(sys.executable).parent
 
@@ -49,7 +50,9 @@ def test_trajectory_export_keeps_pose_and_orientation(tmp_path: Path) -> None:
 def test_published_track_export_has_one_pose_per_timestamp() -> None:
     p = read_poses(TRACK)
     assert np.all(np.diff(p.t) > 0)
-    np.testing.assert_allclose(np.linalg.norm(p.quat_xyzw, axis=1), 1.0, atol=1e-12)
+    # every orientation is a proper rotation (a unit quaternion once written)
+    np.testing.assert_allclose(p.rotation @ p.rotation.transpose(0, 2, 1),
+                               np.broadcast_to(np.eye(3), p.rotation.shape), atol=1e-12)
 
 
 def _evo_stats(ref: Path, est: Path, tmp: Path, *extra: str) -> dict[str, float]:

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 
 from annotator.core.scoring import Truth, interpolate_truth, score, summarize
+from annotator.core.trajectory import Trajectory
 from annotator.io.scoring import read_estimates, read_truth, write_estimates
-from annotator.io.trajectory import Trajectory, write_trajectory
+from annotator.io.trajectory import write_trajectory
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "dataset"
+DATA = Path(__file__).resolve().parents[2] / "data" / "dataset"
 TRACK = DATA / "trk" / "straight_01_all_sensors.mbd"
 
 
