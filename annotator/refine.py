@@ -79,10 +79,7 @@ class RefineSettings:
     marker_floor_m: float = 0.005
     marker_floor_deg: float = 0.3
     exposure_s: float = 0.008  # assumed exposure for the motion-blur measure
-    # Keyframes whose predicted smear exceeds this are not used; below it, blur_weight down-weights
-    # their corners (1/17 at 8 px). A cut at 3 px left out the walk's turns, and with them views of
-    # the markers seen while turning (field renders: 0.1-0.15 cm of map error more).
-    max_smear_px: float = 8.0
+    max_smear_px: float = 3.0  # keyframes whose predicted smear exceeds this are not used
 
     def validate(self) -> RefineSettings:
         if self.mode not in ("map", "all"):
