@@ -357,8 +357,8 @@ def main() -> None:
         print(side_by_side(rows))
     print(f"conditions: {', '.join(names)} (see --help); errors in cm against the exact truth at the same time; "
           f"'<2.8sig' = share of posed rows with 3-D error < {COVERAGE_K} x sigma_m (~95 % if sigma is honest); "
-          f"'err/sig' = median of 3-D error / sigma_m (~1.5 if honest); 'floor' = median error the survey's "
-          f"datum alone leaves (cm, see --help).")
+          f"'err/sig' = median of 3-D error / sigma_m (~1.5 if honest); 'floor' = median error the survey's datum and the "
+          f"rig's mean position error leave (cm, see --help).")
     print()
     print("pooled over seeds (errors of one capture are correlated: judge sigma over many seeds):")
     for line in pooled_text(rows):
