@@ -1029,7 +1029,8 @@ def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], ex
         m = prob.markers.index(mid)
         moved.append({"id": int(mid), "offset_m": [round(float(v), 4) for v in sol.t_m[m] - prob.t_m[m]],
                       "survey_sigma_m": float(prob.marker_sigma[m, 1]), "note": "moved since the survey?"})
-    return {"mode": s.mode, "keyframes": n_keyframes, "corners": int(len(prob.obs.uv)),
+    seen = sorted(int(prob.markers[m]) for m in np.unique(prob.obs.marker))
+    return {"mode": s.mode, "keyframes": n_keyframes, "corners": int(len(prob.obs.uv)), "markers_seen": seen,
             "iterations": sol.iterations, "seconds": round(seconds, 2), "corner_sigma_px": round(sol.sigma_px, 3),
             "cameras": cameras, "markers_mapped": [int(m) for m in mapped],
             "markers_moved": moved}
