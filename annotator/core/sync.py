@@ -305,6 +305,38 @@ def _changepoint(t: np.ndarray, z: np.ndarray, lo: float, hi: float, grid: np.nd
     return mean, math.hypot(sd, step / math.sqrt(12.0)), best - float(ll_null)
 
 
+def _coarse_dips(t: np.ndarray, rssi: np.ndarray, codes: np.ndarray, *, name: str, bin_s: float,
+                 window_s: float, rate_drop: float, level_drop_db: float
+                 ) -> tuple[np.ndarray, list[tuple[int, int]], float]:
+    """Candidate covers: bin edges, runs of bins where the pooled rate or level dips, base rate.
+
+    The rate and the mean normalised level are taken in a sliding ``window_s`` window over
+    ``bin_s`` bins; nearby runs are merged.
+    """
+    t0, t1 = float(t[0]), float(t[-1])
+    nb = max(int(math.ceil((t1 - t0) / bin_s)), 1)
+    edges = t0 + bin_s * np.arange(nb + 1)
+    idx = np.clip(((t - t0) / bin_s).astype(int), 0, nb - 1)
+    z_all = _normalised_levels(rssi, codes, np.ones(t.size, dtype=bool))
+    counts = np.bincount(idx, minlength=nb).astype(float)
+    zsum = np.bincount(idx, weights=z_all, minlength=nb)
+    w = max(int(round(window_s / bin_s)), 1)
+    kern = np.ones(w)
+    cnt_w = np.convolve(counts, kern, mode="same")
+    z_w = np.convolve(zsum, kern, mode="same")
+    cover_w = np.convolve(np.ones(nb), kern, mode="same") * bin_s  # window length inside the record
+    rate = cnt_w / cover_w
+    with np.errstate(invalid="ignore", divide="ignore"):
+        level = np.where(cnt_w > 0, z_w / cnt_w, -np.inf)
+    base = float(np.median(rate))
+    if base <= 0:
+        raise NoDataError(f"{name}: no reading rate to speak of")
+    low = (rate < rate_drop * base) | (level < -level_drop_db)
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    runs = _merge_runs(_runs(low), centres, max_gap=window_s)
+    return edges, runs, base
+
+
 def detect_rssi_events(t: np.ndarray, rssi: np.ndarray, sensor: np.ndarray, *, name: str = "RSSI",
                        bin_s: float = 0.1, window_s: float = 0.5, min_duration: float = 0.3,
                        max_duration: float = 10.0, rate_drop: float = 0.5, level_drop_db: float = 6.0,
@@ -333,28 +365,10 @@ def detect_rssi_events(t: np.ndarray, rssi: np.ndarray, sensor: np.ndarray, *, n
     t, rssi = t[order], rssi[order]
     _, codes = np.unique(sensor[order], return_inverse=True)
 
-    # Coarse: rate and level in a sliding window over fixed bins.
     t0, t1 = float(t[0]), float(t[-1])
-    nb = max(int(math.ceil((t1 - t0) / bin_s)), 1)
-    edges = t0 + bin_s * np.arange(nb + 1)
-    idx = np.clip(((t - t0) / bin_s).astype(int), 0, nb - 1)
-    z_all = _normalised_levels(rssi, codes, np.ones(t.size, dtype=bool))
-    counts = np.bincount(idx, minlength=nb).astype(float)
-    zsum = np.bincount(idx, weights=z_all, minlength=nb)
-    w = max(int(round(window_s / bin_s)), 1)
-    kern = np.ones(w)
-    cnt_w = np.convolve(counts, kern, mode="same")
-    z_w = np.convolve(zsum, kern, mode="same")
-    cover_w = np.convolve(np.ones(nb), kern, mode="same") * bin_s  # window length inside the record
-    rate = cnt_w / cover_w
-    with np.errstate(invalid="ignore", divide="ignore"):
-        level = np.where(cnt_w > 0, z_w / cnt_w, -np.inf)
-    base = float(np.median(rate))
-    if base <= 0:
-        raise NoDataError(f"{name}: no reading rate to speak of")
-    low = (rate < rate_drop * base) | (level < -level_drop_db)
-    centres = 0.5 * (edges[:-1] + edges[1:])
-    runs = _merge_runs(_runs(low), centres, max_gap=window_s)
+    edges, runs, base = _coarse_dips(t, rssi, codes, name=name, bin_s=bin_s, window_s=window_s,
+                                     rate_drop=rate_drop, level_drop_db=level_drop_db)
+    nb = edges.size - 1
 
     events: list[CoverEvent] = []
     candidates = 0

@@ -119,13 +119,8 @@ EXPOSURE_KEY = "exposure_s"
 # Optional calibration key written by the refinement: the detector's corner bias, px.
 CORNER_BIAS_KEY = "marker_corner_bias_px"
 
-def parse_calibration(obj: Any, source: str) -> CameraCalibration:
-    """OpenCV FileStorage calibration or ROS camera_info, already parsed from YAML."""
-    d = _mapping(obj, source, "a camera calibration")
-    for key in ("camera_matrix", "distortion_coefficients", "image_width", "image_height"):
-        if key not in d:
-            raise ConfigError(f"{source}: missing '{key}' (need an OpenCV FileStorage or ROS camera_info calibration)")
-    K = _matrix(d["camera_matrix"], source, "camera_matrix", (3, 3))
+def _lens(d: dict[str, Any], source: str) -> tuple[str, np.ndarray]:
+    """The lens model and its distortion coefficients, checked against what OpenCV takes."""
     dist = _matrix(d["distortion_coefficients"], source, "distortion_coefficients").ravel()
     named = d.get("distortion_model", "plumb_bob")
     if named not in LENS_MODELS:
@@ -136,27 +131,47 @@ def parse_calibration(obj: Any, source: str) -> CameraCalibration:
                           f"not {dist.size}")
     if model == "radtan" and dist.size not in (0, 4, 5, 8, 12, 14):
         raise ConfigError(f"{source}: distortion_coefficients: {dist.size} values; OpenCV takes 4, 5, 8, 12 or 14")
-    readout = _number(d.get(READOUT_KEY, 0.0), f"{source}: {READOUT_KEY} (seconds)", -1e3, 1e3)
-    if not 0.0 <= readout < 1.0:
-        raise ConfigError(f"{source}: {READOUT_KEY} must be between 0 and 1 s, not {readout}")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
-        raise ConfigError(f"{source}: camera_matrix: need fx, fy > 0 and K[2][2] = 1")
+    return model, (np.zeros(5) if dist.size == 0 else dist)
+
+
+def _image_size(d: dict[str, Any], source: str) -> tuple[int, int]:
     try:
         width, height = int(d["image_width"]), int(d["image_height"])
     except (TypeError, ValueError, OverflowError):
         raise ConfigError(f"{source}: image_width / image_height must be integers") from None
     if not (0 < width <= 100_000 and 0 < height <= 100_000):
         raise ConfigError(f"{source}: image_width / image_height must be in 1..100000 pixels")
-    if dist.size == 0:
-        dist = np.zeros(5)
+    return width, height
+
+
+def _seconds_below_one(value: Any, source: str, key: str) -> float:
+    """A time in [0, 1) s (readout, exposure)."""
+    try:
+        seconds = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: {key} must be a number (seconds)") from None
+    if not 0.0 <= seconds < 1.0:
+        raise ConfigError(f"{source}: {key} must be between 0 and 1 s, not {seconds}")
+    return seconds
+
+
+def parse_calibration(obj: Any, source: str) -> CameraCalibration:
+    """OpenCV FileStorage calibration or ROS camera_info, already parsed from YAML."""
+    d = _mapping(obj, source, "a camera calibration")
+    for key in ("camera_matrix", "distortion_coefficients", "image_width", "image_height"):
+        if key not in d:
+            raise ConfigError(f"{source}: missing '{key}' (need an OpenCV FileStorage or ROS camera_info calibration)")
+    K = _matrix(d["camera_matrix"], source, "camera_matrix", (3, 3))
+    model, dist = _lens(d, source)
+    readout = _number(d.get(READOUT_KEY, 0.0), f"{source}: {READOUT_KEY} (seconds)", -1e3, 1e3)
+    if not 0.0 <= readout < 1.0:
+        raise ConfigError(f"{source}: {READOUT_KEY} must be between 0 and 1 s, not {readout}")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0:
+        raise ConfigError(f"{source}: camera_matrix: need fx, fy > 0 and K[2][2] = 1")
+    width, height = _image_size(d, source)
     exposure = d.get(EXPOSURE_KEY)
     if exposure is not None:
-        try:
-            exposure = float(exposure)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{source}: {EXPOSURE_KEY} must be a number (seconds)") from None
-        if not 0.0 <= exposure < 1.0:
-            raise ConfigError(f"{source}: {EXPOSURE_KEY} must be between 0 and 1 s, not {exposure}")
+        exposure = _seconds_below_one(exposure, source, EXPOSURE_KEY)
     try:
         bias = float(d.get(CORNER_BIAS_KEY, 0.0))
     except (TypeError, ValueError):
