@@ -78,7 +78,7 @@ class DemoSettings:
 # --- the scenario ---------------------------------------------------------------------------------
 
 # The demo loop goes round the desk block south of the central corridor, on the site's occupancy
-# grid (annotator.floor_paths): start in the middle of the bottom side, then these corners.
+# grid (annotator.core.floor_paths): start in the middle of the bottom side, then these corners.
 DEMO_START = (8.8, 4.5)
 DEMO_CORNERS = ((11.7, 4.5), (11.7, 9.0), (6.0, 9.0), (6.0, 4.5))
 DEMO_MARGIN_M = 0.4  # the planned route keeps this far from desks and walls
@@ -89,7 +89,8 @@ def demo_path(speed_mps: float = 0.4) -> PathModel:
     furniture: true circular corners of radius CORNER_RADIUS_M walked at constant speed, so
     neither the position nor the heading ever changes direction in an instant. Time 0 is in the
     middle of the bottom side."""
-    from annotator.floor_paths import FloorGrid, plan_route, site_occupancy
+    from annotator.core.floor_paths import FloorGrid, plan_route
+    from annotator.io.radio_data import site_occupancy
 
     route = plan_route(FloorGrid.from_occupancy(site_occupancy()), [DEMO_START, *DEMO_CORNERS],
                        margin=DEMO_MARGIN_M)
@@ -437,7 +438,8 @@ class DemoResult:
 def run_demo(settings: DemoSettings, progress: Progress | None = None, note: Note | None = None,
              on_capture: Callable[[Capture], None] | None = None) -> DemoResult:
     """The whole demo; writes OUT/capture, OUT/experiment, OUT/results and OUT/demo_summary.json."""
-    from annotator.experiment import load_experiment
+    from annotator.commands.run import write_run_outputs
+    from annotator.io.experiment import load_experiment
     from annotator.pipeline import RunSettings, TrackSettings, run_experiment
 
     out = settings.out
@@ -456,8 +458,9 @@ def run_demo(settings: DemoSettings, progress: Progress | None = None, note: Not
         on_capture(cap)
     exp_path = render(settings, path, cap.t0, cap.run_dir, progress)
     results = out / "results"
-    run = run_experiment(load_experiment(exp_path), results,
-                         RunSettings(track=TrackSettings(jobs=settings.jobs)), progress)
+    experiment = load_experiment(exp_path)
+    run = run_experiment(experiment, RunSettings(track=TrackSettings(jobs=settings.jobs)), progress)
+    report = write_run_outputs(results, experiment, run)
     true_starts = {"front": cap.t0, "back": cap.t0 + settings.start_offset_s}
     summary = score(run, path, cap.t0, true_starts, settings.duration_s)
     summary.update({
@@ -469,7 +472,7 @@ def run_demo(settings: DemoSettings, progress: Progress | None = None, note: Not
             for f in cap.files]},
         "experiment": str(exp_path),
         "results": str(results),
-        "plots": [str(results / p) for p in run.report.get("plots", {}).values()],
+        "plots": [str(results / p) for p in report.get("plots", {}).values()],
         "wall_time_s": time.monotonic() - started,
     })
     summary_path = out / "demo_summary.json"

@@ -1,14 +1,19 @@
-"""The one place that knows the order of the tracking stages: ``track_experiment``.
+"""The one place that knows the order of the stages: ``track`` and ``run_experiment``.
 
 Per video (in parallel processes with jobs > 1): decode by PTS -> detect markers -> per-frame
 bundle pose from that camera. Then, for method ``rig``: choose between mirror solutions of
 single-marker frames -> smooth (pass 1) -> joint two-camera solves of near-simultaneous frames,
 motion-compensated with the pass-1 trajectory -> smooth again -> (refine != none) self-calibration
-over keyframes (annotator.refine) -> joint solves with the refined map, rig and lenses (rolling
+over keyframes (annotator.core.refine) -> joint solves with the refined map, rig and lenses (rolling
 shutter from the previous pass's motion) -> smooth again. Method ``paper``: per-marker poses
 -> batches -> selection -> random-walk Kalman filter.
 With jobs > 1 one process pool serves the whole run: the videos, then the joint solves and the
 rotation half of each smoothing pass.
+
+Only the order lives here: the maths of each stage are in annotator.core (tracking, smoothing,
+refine, uncertainty, sync, labeling), the files are read by annotator.io. ``track`` returns a
+``TrackResult`` and ``run_experiment`` a ``RunResult``; neither writes a file, the commands
+(annotator.commands.track, annotator.commands.run) write the outputs.
 """
 
 from __future__ import annotations
@@ -23,75 +28,42 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing import Manager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from annotator.core.experiment import Experiment, MarkerSetup, RigCamera
+from annotator.core.priors import ParameterCovariance
+from annotator.core.refine import Refinement, RefineSettings, refine_capture
+from annotator.core.tracking import (
+    CameraFrames,
+    TrackSettings,
+    joint_measurements,
+    mapped_poses,
+    measurement_quality,
+    resolve_ambiguities,
+    smooth,
+    stack_poses,
+    track_paper,
+)
+from annotator.core.trajectory import Trajectory
+from annotator.core.uncertainty import row_uncertainty, sync_time_sigma, total_sigma
 from annotator.errors import NoDataError
-from annotator.experiment import Experiment, MarkerSetup, RigCamera
-from annotator.priors import ParameterCovariance
-from annotator.refine import (
-    Refinement,
-    RefineSettings,
-    blur_weight,
-    motion_at,
-    predicted_smear_px,
-    refine_capture,
-)
-from annotator.smoothing import SmootherSettings, smooth_positions, smooth_rotations, supported
-from annotator.trajectory_io import Trajectory
-from annotator.uncertainty import (
-    UncertaintySettings,
-    row_uncertainty,
-    sync_time_sigma,
-    total_sigma,
-)
-from annotator.video import iter_frames, video_info
-from annotator.vision.detection import Detections, DetectorSettings, MarkerDetector
+from annotator.io.video import iter_frames, video_info
+from annotator.vision.detection import MarkerDetector
 from annotator.vision.geometry import MarkerRoom
-from annotator.vision.paper import MarkerPoses, PaperSettings, marker_poses, paper_track
-from annotator.vision.pose import (
-    BundlePose,
-    CameraObservation,
-    SolverSettings,
-    observe,
-    solve_bundle_pose,
-)
+from annotator.vision.paper import marker_poses
+from annotator.vision.pose import observe, solve_bundle_pose
+
+if TYPE_CHECKING:
+    from annotator.core.labeling import Labels
+    from annotator.core.sync import SyncResult
+    from annotator.io.rssi import RssiTable
 
 log = logging.getLogger(__name__)
 
 Progress = Callable[[str, int, int], None]  # (camera, frames done, frames expected)
-
-
-@dataclass(frozen=True, slots=True)
-class TrackSettings:
-    method: str = "rig"  # rig | paper
-    jobs: int = 1
-    detector: DetectorSettings = field(default_factory=DetectorSettings)
-    solver: SolverSettings = field(default_factory=SolverSettings)
-    smoother: SmootherSettings = field(default_factory=SmootherSettings)
-    paper: PaperSettings = field(default_factory=PaperSettings)
-    joint: bool = True  # rig: joint two-camera solve of near-simultaneous frames
-    max_frames: int | None = None  # per video; for quick looks and benchmarks
-    uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)  # what sigma_m holds
-    # rig: self-calibration after the first pass (annotator.refine): none | map | all
-    refine: str = "all"
-    # Assumed exposure for the motion-blur measure (predicted smear, px, of each frame's markers).
-    exposure_s: float = 0.008
-
-
-@dataclass(frozen=True, eq=False)
-class CameraFrames:
-    """What one video yields: frame times, detections and (method rig) single-camera poses."""
-
-    camera: str
-    t: np.ndarray  # (N,) wall-clock seconds
-    detections: list[Detections]
-    poses: list[BundlePose | None]  # method rig
-    marker_poses: list[MarkerPoses]  # method paper
-    frame_interval: float
 
 
 # --- stage 1: one video -----------------------------------------------------------------------
@@ -194,220 +166,6 @@ def _worker_pool(settings: TrackSettings) -> Iterator[ProcessPoolExecutor | None
         cv2.setNumThreads(threads)
 
 
-# --- stage 2 (rig): ambiguity, smoothing, joint solves -----------------------------------------------
-
-@dataclass(frozen=True, eq=False)
-class Measurements:
-    t: np.ndarray  # (N,) sorted
-    R: np.ndarray  # (N, 3, 3)
-    p: np.ndarray  # (N, 3)
-    cov: np.ndarray  # (N, 6, 6)
-    n_markers: np.ndarray  # (N,)
-    rms_px: np.ndarray  # (N,)
-
-
-def _stack(items: list[tuple[float, BundlePose]]) -> Measurements:
-    items = sorted(items, key=lambda it: it[0])
-    if not items:
-        z = np.zeros(0)
-        return Measurements(z, np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 6, 6)), z, z)
-    return Measurements(np.array([t for t, _ in items]), np.array([p.R_wb for _, p in items]),
-                        np.array([p.t_wb for _, p in items]), np.array([p.cov for _, p in items]),
-                        np.array([p.n_markers for _, p in items]), np.array([p.rms_px for _, p in items]))
-
-
-def _select(m: Measurements, keep: np.ndarray) -> Measurements:
-    return Measurements(m.t[keep], m.R[keep], m.p[keep], m.cov[keep], m.n_markers[keep], m.rms_px[keep])
-
-
-def resolve_ambiguities(items: list[tuple[float, BundlePose]], window_s: float) -> list[tuple[float, BundlePose]]:
-    """For single-marker frames pick the mirror solution closest to unambiguous neighbours.
-
-    Frames with no unambiguous neighbour within ``window_s`` cannot be decided and are dropped.
-    """
-    sure = [(t, p) for t, p in items if not p.alternatives]
-    if len(sure) == len(items):
-        return items
-    t_sure = np.array([t for t, _ in sure])
-    out = list(sure)
-    for t, p in items:
-        if not p.alternatives:
-            continue
-        if len(t_sure) == 0:
-            continue
-        j = int(np.argmin(np.abs(t_sure - t)))
-        if abs(t_sure[j] - t) > window_s:
-            continue
-        ref = Rotation.from_matrix(sure[j][1].R_wb)
-        cands = (p, *p.alternatives)
-        angles = [(ref.inv() * Rotation.from_matrix(c.R_wb)).magnitude() for c in cands]
-        best = cands[int(np.argmin(angles))]
-        out.append((t, BundlePose(best.R_wb, best.t_wb, best.cov, best.rms_px, best.n_markers)))
-    return sorted(out, key=lambda it: it[0])
-
-
-def smooth(meas: Measurements, t_out: np.ndarray, s: SmootherSettings,
-           pool: ProcessPoolExecutor | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Positions (M, 3), rotations (M, 3, 3) and position sigma (M,) at t_out; NaN where unsupported.
-
-    With a pool, the rotation fit runs in a worker while this process filters the positions.
-    """
-    if len(meas.t) == 0:
-        return np.full((len(t_out), 3), np.nan), np.full((len(t_out), 3, 3), np.nan), np.full(len(t_out), np.nan)
-    # Vague measurements (a lone far marker) would only bridge gaps with guesses.
-    vague = np.sqrt(np.trace(meas.cov[:, 3:, 3:], axis1=1, axis2=2) / 3) > s.max_meas_sigma_m
-    meas = _select(meas, ~vague)
-    if len(meas.t) == 0:
-        return np.full((len(t_out), 3), np.nan), np.full((len(t_out), 3, 3), np.nan), np.full(len(t_out), np.nan)
-    var = np.trace(meas.cov[:, :3, :3], axis1=1, axis2=2) / 3
-    rot_args = (meas.t, Rotation.from_matrix(meas.R), var, t_out, s)
-    rot_future = None if pool is None else pool.submit(smooth_rotations, *rot_args)
-    pos, sig, ok_p = smooth_positions(meas.t, meas.p, meas.cov[:, 3:, 3:], t_out, s)
-    R, ok_r = smooth_rotations(*rot_args) if rot_future is None else rot_future.result()
-    log.info("smoother kept %d/%d positions, %d/%d rotations", ok_p.sum(), len(ok_p), ok_r.sum(), len(ok_r))
-    ok = supported(meas.t[ok_p & ok_r], t_out, s.max_gap_s, s.max_extrapolate_s)
-    bad = ~ok | ~np.isfinite(pos).all(1) | ~np.isfinite(R).all((1, 2)) | ~(sig <= s.max_out_sigma_m)
-    pos[bad], R[bad], sig[bad] = np.nan, np.nan, np.nan
-    return pos, R, sig
-
-
-def interp_poses(times: np.ndarray, t_grid: np.ndarray, pos: np.ndarray,
-                 R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Poses at ``times`` between grid rows (slerp / linear); (R (n,3,3), p (n,3), valid (n,))."""
-    times = np.asarray(times, float)
-    i = np.clip(np.searchsorted(t_grid, times), 1, max(len(t_grid) - 1, 1))
-    a, b = i - 1, i
-    ok = (len(t_grid) > 1) & (times >= t_grid[0]) & (times <= t_grid[-1])
-    ok &= np.isfinite(pos[a]).all(1) & np.isfinite(pos[b]).all(1)
-    R_out = np.full((len(times), 3, 3), np.nan)
-    p_out = np.full((len(times), 3), np.nan)
-    if not ok.any():
-        return R_out, p_out, ok
-    a, b = a[ok], b[ok]
-    f = ((times[ok] - t_grid[a]) / np.maximum(t_grid[b] - t_grid[a], 1e-12))[:, None]
-    ra, rb = Rotation.from_matrix(R[a]), Rotation.from_matrix(R[b])
-    R_out[ok] = (ra * Rotation.from_rotvec(f * (ra.inv() * rb).as_rotvec())).as_matrix()
-    p_out[ok] = pos[a] + f * (pos[b] - pos[a])
-    return R_out, p_out, ok
-
-
-def _solve_chunk(args: tuple[Any, ...]) -> list[BundlePose | None]:
-    room, solver, problems = args
-    return [solve_bundle_pose(obs, room, solver, prior=prior, prior_first=True) for obs, prior in problems]
-
-
-def _solve_all(problems: list[tuple[list[CameraObservation], tuple[np.ndarray, np.ndarray]]], room: MarkerRoom,
-               solver: SolverSettings, pool: ProcessPoolExecutor | None, jobs: int) -> list[BundlePose | None]:
-    """Joint solves (each independent of the others), in the pool's processes when there is one."""
-    if pool is None or len(problems) < 64:  # a handful of solves costs less than shipping them
-        return _solve_chunk((room, solver, problems))
-    # A few chunks per worker even out uneven chunks on a loaded machine.
-    bounds = np.linspace(0, len(problems), 2 * jobs + 1).astype(int)
-    chunks = [(room, solver, problems[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
-    return [pose for part in pool.map(_solve_chunk, chunks) for pose in part]
-
-
-def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: MarkerRoom, settings: TrackSettings,
-                       t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
-                       pool: ProcessPoolExecutor | None = None,
-                       resolve_singles: bool = False) -> list[tuple[float, BundlePose]]:
-    """Joint solves pairing each frame of the first camera with the other cameras' nearest frames.
-
-    The other camera saw the room at a slightly different time; its extrinsics are moved by the
-    bundle motion between the two times, taken from the pass-1 trajectory (relative motion over
-    a few ms is known far better than the absolute pose).
-    """
-    out: list[tuple[float, BundlePose]] = []
-    base = frames[0]
-    used_other: list[set[int]] = [set() for _ in frames]
-    # Pair each base frame with the nearest frame of every other camera (within half a frame).
-    pairs: list[list[tuple[CameraFrames, int]]] = []
-    for k, t in enumerate(base.t):
-        cams = [(base, k)]
-        for other in frames[1:]:
-            j = int(np.argmin(np.abs(other.t - t))) if len(other.t) else -1
-            if j >= 0 and abs(other.t[j] - t) <= 0.5 * base.frame_interval:
-                cams.append((other, j))
-        pairs.append(cams)
-    # Pass-1 poses at every time involved, interpolated in one go.
-    need = np.array([float(cf.t[j]) for cams in pairs for cf, j in cams])
-    R_at, p_at, om_at, v_at, ok_at = motion_at(need, t_grid, pos, R)
-    lookup = {float(tt): n for n, tt in enumerate(need)}
-    tasks: list[tuple[float, list[CameraObservation], tuple[np.ndarray, np.ndarray], list[tuple[int, int]]]] = []
-    for k, t in enumerate(base.t):
-        cams = pairs[k]
-        n0 = lookup[float(t)]
-        if len(cams) == 1 or not ok_at[n0]:
-            continue
-        at_t = (R_at[n0], p_at[n0])
-        obs: list[CameraObservation] = []
-        joined: list[tuple[int, int]] = []  # (camera index, frame) of the other cameras used
-        for cf, j in cams:
-            cam = exp.rig.cameras[cf.camera]
-            R_bc, t_bc = cam.R_bundle_camera, cam.t_bundle_camera
-            if cf is not base:
-                n1 = lookup[float(cf.t[j])]
-                if not ok_at[n1]:
-                    continue
-                there = (R_at[n1], p_at[n1])
-                # Delta = T_wb(t)^-1 T_wb(t_other): the bundle at t_other, seen from the bundle at t.
-                R_d = at_t[0].T @ there[0]
-                t_d = at_t[0].T @ (there[1] - at_t[1])
-                R_bc, t_bc = R_d @ R_bc, R_d @ t_bc + t_d
-                joined.append((frames.index(cf), j))
-            n1 = lookup[float(cf.t[j])]
-            # Rolling shutter: each corner at its row's time, the bundle moving as in the first pass.
-            motion = (R_at[n1], p_at[n1], om_at[n1], v_at[n1])
-            obs.append(observe(cf.detections[j], room, cam.calibration, R_bc, t_bc, motion))
-        if sum(len(o.ids) for o in obs) == 0:
-            continue
-        tasks.append((float(t), obs, at_t, joined))
-    solved = _solve_all([(obs, at_t) for _, obs, at_t, _ in tasks], room, settings.solver, pool, settings.jobs)
-    for (t, obs, at_t, joined), pose in zip(tasks, solved, strict=True):
-        if pose is not None:
-            out.append((t, _blurred(pose, obs, at_t, lookup[t], om_at, v_at, settings.exposure_s)))
-            for ci, j in joined:
-                used_other[ci].add(j)
-    single = _single_solver(exp, room, settings, resolve_singles)
-    # Frames of the other cameras not paired with any base frame keep their own solves.
-    for ci, cf in enumerate(frames[1:], 1):
-        out += [(float(cf.t[j]), p) for j in range(len(cf.t)) if j not in used_other[ci]
-                and (p := single(cf, j)) is not None]
-    # Base frames whose joint solve failed keep their single-camera solve.
-    done = {t for t, _ in out}
-    out += [(float(t), p) for j, t in enumerate(base.t) if float(t) not in done and (p := single(base, j)) is not None]
-    return out
-
-
-def _single_solver(exp: Experiment, room: MarkerRoom, settings: TrackSettings,
-                   resolve: bool) -> Callable[[CameraFrames, int], BundlePose | None]:
-    """A frame's single-camera pose: the first pass's, or (resolve) solved again with ``exp``'s
-    parameters (after refinement the first pass's poses carry the old map, rig and lenses)."""
-    def single(cf: CameraFrames, j: int) -> BundlePose | None:
-        if not resolve or (cf.poses[j] is None and not len(cf.detections[j].ids)):
-            return cf.poses[j]
-        cam = exp.rig.cameras[cf.camera]
-        obs = observe(cf.detections[j], room, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera)
-        # A frame the first pass could not solve may see markers the refinement mapped.
-        if cf.poses[j] is None:
-            return solve_bundle_pose([obs], room, settings.solver)
-        prior = (cf.poses[j].R_wb, cf.poses[j].t_wb)
-        return solve_bundle_pose([obs], room, settings.solver, prior, prior_first=True)
-    return single
-
-
-def _blurred(pose: BundlePose, obs: list[CameraObservation], at_t: tuple[np.ndarray, np.ndarray], n: int,
-             om_at: np.ndarray, v_at: np.ndarray, exposure_s: float) -> BundlePose:
-    """The pose with its covariance widened by the frame's predicted motion blur (the smear of its
-    markers during the exposure, from the first pass's velocity)."""
-    o = obs[0]
-    if not len(o.ids) or exposure_s <= 0:
-        return pose
-    smear = predicted_smear_px(o.world, at_t[0], at_t[1], om_at[n], v_at[n], o.R_bc, o.t_bc, o.focal, exposure_s)
-    w = blur_weight(smear)
-    return pose if w >= 0.999 else dataclasses.replace(pose, cov=pose.cov / w)
-
-
 @dataclass(frozen=True, eq=False)
 class TrackResult:
     """A tracking run: the trajectory, and what the self-calibration did (None without it)."""
@@ -428,11 +186,11 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
     singles = [(float(t), p) for cf in frames for t, p in zip(cf.t, cf.poses, strict=True) if p is not None]
     if not singles:
         raise NoDataError(f"{exp.path}: no marker from the map was detected in any video")
-    meas = _stack(resolve_ambiguities(singles, s.max_gap_s))
+    meas = stack_poses(resolve_ambiguities(singles, s.max_gap_s))
     pos, R, sig = smooth(meas, t_out, s, pool)
     if settings.joint and len(frames) > 1:
         joint = resolve_ambiguities(joint_measurements(frames, exp, room, settings, t_out, pos, R, pool), s.max_gap_s)
-        meas = _stack(joint)
+        meas = stack_poses(joint)
         pos, R, sig = smooth(meas, t_out, s, pool)
     refinement = None
     given = exp
@@ -440,7 +198,7 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
     clock = {"solve": 0.0, "retrack": 0.0, "rounds": 0}  # what the self-calibration cost, s
     while rounds:
         rounds -= 1
-        initial = None if refinement is None else _mapped_poses(refinement)
+        initial = None if refinement is None else mapped_poses(refinement)
         t0 = time.perf_counter()
         again = refine_capture(frames, given, t_out, pos, R,
                                RefineSettings(mode=settings.refine, exposure_s=settings.exposure_s), initial)
@@ -455,7 +213,7 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
         room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
         joint = resolve_ambiguities(joint_measurements(frames, exp, room, settings, t_out, pos, R, pool,
                                                        resolve_singles=True), s.max_gap_s)
-        meas = _stack(joint)
+        meas = stack_poses(joint)
         pos, R, sig = smooth(meas, t_out, s, pool)
         clock["retrack"] += time.perf_counter() - t0
         if not refinement.mapped:
@@ -466,38 +224,10 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
     else:
         cams = {n: c.calibration.camera_matrix for n, c in exp.rig.cameras.items()}
         params = ParameterCovariance.from_priors(exp.priors, [int(i) for i in room.ids], cams)
-    # Quality columns from the measurement at each output time (0 markers where there was none).
-    idx = np.searchsorted(meas.t, t_out)
-    idx = np.clip(idx, 0, max(len(meas.t) - 1, 0))
-    hit = (len(meas.t) > 0) & (np.abs(meas.t[idx] - t_out) < 1e-6) if len(meas.t) else np.zeros(len(t_out), bool)
-    n_markers = np.where(hit, meas.n_markers[idx] if len(meas.t) else 0, 0)
-    rms = np.where(hit, meas.rms_px[idx] if len(meas.t) else np.nan, np.nan)
     # The priors (posterior None) are checked against the residuals; a posterior is not shrunk.
     u = row_uncertainty(frames, exp, t_out, pos, R, posterior, settings.uncertainty)
-    traj = Trajectory(t_out, pos, R, {"markers": n_markers.astype(float), "rms_px": rms,
-                                      **total_sigma(sig, u, settings.uncertainty)})
+    traj = Trajectory(t_out, pos, R, {**measurement_quality(meas, t_out), **total_sigma(sig, u, settings.uncertainty)})
     return TrackResult(traj, refinement, params)
-
-
-def _mapped_poses(refinement: Refinement) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """(R_world_marker, centre) of the markers a refinement mapped from the video."""
-    markers = refinement.experiment.markers.markers
-    return {mid: (Rotation.from_euler("xyz", markers[mid].euler_xyz).as_matrix(), np.asarray(markers[mid].position))
-            for mid in refinement.mapped}
-
-
-def _track_paper(frames: list[CameraFrames], settings: TrackSettings) -> Trajectory:
-    # All cameras' frames go in together: paper_track orders them in time and counts them as one stream.
-    t = np.concatenate([cf.t for cf in frames])
-    poses = [mp for cf in frames for mp in cf.marker_poses]
-    if not any(len(mp.distance) for mp in poses):
-        raise NoDataError("no marker from the map was detected in any video")
-    tb, pos, rot, used = paper_track(t, poses, settings.paper)
-    if not len(tb):
-        raise NoDataError(f"{len(t)} frames in all are fewer than one batch of {settings.paper.frames}")
-    bad = used == 0
-    pos[bad], rot[bad] = np.nan, np.nan
-    return Trajectory(tb, pos, rot, {"markers": used.astype(float)})
 
 
 def track(exp: Experiment, settings: TrackSettings | None = None, progress: Progress | None = None) -> TrackResult:
@@ -517,7 +247,7 @@ def track_experiment(exp: Experiment, settings: TrackSettings | None = None,
     return track(exp, settings, progress).trajectory
 
 
-# --- `annotator run`: track -> sync -> label -> outputs ---------------------------------------
+# --- `annotator run`: track -> sync -> label --------------------------------------------------
 # Stage order of a full run. Sync needs the per-frame marker counts, so in `sync.mode: auto` each
 # video is first processed on its own PTS clock, then its frame times are mapped onto the RSSI
 # clock before the cameras are combined (the joint solve pairs frames by wall time).
@@ -528,16 +258,17 @@ class RunSettings:
     track: TrackSettings = field(default_factory=TrackSettings)
     max_gap: float = 0.5  # s: a reading between poses further apart than this stays unlabelled
     beacon: str | None = None  # the bundle's beacon; default: sync.beacon, else the most heard one
-    plots: bool = True
 
 
 @dataclass(frozen=True, eq=False)
 class RunResult:
+    """A full run; the command layer writes it (annotator.commands.run.write_run_outputs)."""
+
     trajectory: Trajectory
-    sync: Any  # annotator.sync.SyncResult
-    labels: Any  # annotator.labeling.Labels, one per reading of `rssi`
-    rssi: Any  # annotator.rssi_io.RssiTable: the bundle beacon's readings
-    report: dict[str, Any]
+    sync: SyncResult
+    labels: Labels  # one per reading of `rssi`
+    rssi: RssiTable  # the bundle beacon's readings
+    report: dict[str, Any]  # report.json's content, without the names of the files written
     refinement: Refinement | None = None  # what the self-calibration did (None: --refine none, paper)
     params: ParameterCovariance | None = None  # uncertainty of the map, rig and lenses tracked with
 
@@ -557,43 +288,41 @@ def frames_to_result(frames: list[CameraFrames], exp: Experiment, settings: Trac
     if not any(len(cf.t) for cf in frames):
         raise NoDataError(f"{exp.path}: the videos hold no frames")
     if settings.method == "paper":
-        return TrackResult(_track_paper(frames, settings))
+        return TrackResult(track_paper(frames, settings))
     t_out = np.unique(np.concatenate([cf.t for cf in frames]))
     return _track_rig(frames, exp, settings, t_out, pool, params)
 
 
-def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings | None = None,
+def run_experiment(exp: Experiment, settings: RunSettings | None = None,
                    progress: Progress | None = None) -> RunResult:
-    """Everything `annotator run` does; writes trajectory.csv, annotated/, annotated.parquet,
-    report.json and the plots into ``out_dir``."""
+    """Everything `annotator run` computes: track, synchronise with the RSSI log, label every
+    reading of the bundle's beacon. Writes nothing (see annotator.commands.run.write_run_outputs)."""
     from dataclasses import replace
 
-    from annotator.errors import ConfigError
-    from annotator.labeling import Poses, label_readings
-    from annotator.outputs import build_report, write_annotated_mbd, write_parquet, write_report
-    from annotator.plots import write_run_plots
-    from annotator.rssi_io import bundle_beacon, load_rssi
-    from annotator.sync import (
+    from annotator.core.labeling import label_readings
+    from annotator.core.sync import (
         VideoSeries,
         cover_intervals,
         detect_rssi_events,
         manual_sync,
         synchronise,
     )
-    from annotator.sync_io import brightness_series
-    from annotator.trajectory_io import write_trajectory
+    from annotator.errors import ConfigError
+    from annotator.io.outputs import build_report
+    from annotator.io.rssi import bundle_beacon, load_rssi
+    from annotator.io.sync import brightness_series
 
     settings = settings or RunSettings()
     track = settings.track
     if exp.rssi is None:
         raise ConfigError(f"{exp.path}: no 'rssi:' entry; annotator run needs the RSSI recording")
     everything = load_rssi(exp.rssi)
-    beacon = bundle_beacon(everything, settings.beacon or exp.sync.get("beacon"))
+    beacon = bundle_beacon(everything, settings.beacon or exp.sync.beacon)
     table = everything.select(everything.beacon == beacon)
 
     if exp.sync_mode == "auto":
         sc = exp.sync
-        cover_s = (float(sc.get("min_cover_s", 0.3)), float(sc.get("max_cover_s", 10.0)))
+        cover_s = (sc.min_cover_s, sc.max_cover_s)
         # The RSSI event first: cheap, and a missing one should fail before the long video pass.
         rssi_events = detect_rssi_events(table.t_seconds(), table.rssi, table.sensor,
                                          name=f"RSSI of beacon {beacon}", min_duration=cover_s[0],
@@ -613,7 +342,7 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
             counts = np.array([len(d.ids) for d in cf.detections], dtype=float)
             series[cf.camera] = VideoSeries(cf.t, level[:n], counts)
         sync = synchronise(series, rssi_events, approx_start=exp.video_start,
-                           max_start_error=float(sc.get("max_start_error", 60.0)),
+                           max_start_error=sc.max_start_error,
                            min_duration=cover_s[0], max_duration=cover_s[1])
         frames = [replace(cf, t=sync.clocks[cf.camera].to_rssi(cf.t)) for cf in frames]
     else:
@@ -624,35 +353,11 @@ def run_experiment(exp: Experiment, out_dir: str | Path, settings: RunSettings |
         result = frames_to_result(frames, exp, track, pool)
     traj = result.trajectory
 
-    poses = Poses(traj.t, traj.position, traj.rotation, sigma=traj.quality.get("sigma_m"),
-                  markers=traj.quality.get("markers"))
     # Readings while hands covered the beacon carry the hands' attenuation: never labelled.
-    labels = label_readings(poses, table.t_ns, max_gap=settings.max_gap,
+    labels = label_readings(traj, table.t_ns, max_gap=settings.max_gap,
                             exclude=cover_intervals(sync.rssi_events),
                             time_sigma=sync_time_sigma(sync.clocks, table.t_seconds()))
     report = build_report(experiment=exp.path, sync=sync, beacon=beacon, readings_total=len(everything),
                           table=table, labels=labels, traj_t=traj.t, traj_valid=traj.valid,
                           max_gap=settings.max_gap, method=track.method)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    write_trajectory(out / "trajectory.csv", traj)
-    write_annotated_mbd(out / "annotated", table, labels)
-    write_parquet(out / "annotated.parquet", table, labels)
-    if settings.plots:
-        valid_t = traj.t[traj.valid]
-        plots = write_run_plots(
-            out, trajectory=traj.position, t_s=table.t_seconds(), rssi=table.rssi, sensor=table.sensor,
-            labelled=labels.labelled, label_positions=labels.positions,
-            events=[(e.cover, e.release) for e in sync.rssi_events],
-            span=(float(valid_t[0]), float(valid_t[-1])) if valid_t.size else None,
-            markers=exp.markers.markers)
-        report["plots"] = {k: p.name for k, p in plots.items()}
-    if result.refinement is not None:
-        from annotator.refine import write_refined
-
-        report["refinement"] = {**result.refinement.report,
-                                "files": {k: f"refined/{v}" for k, v in write_refined(out / "refined",
-                                                                                     result.refinement).items()}}
-    write_report(out / "report.json", report)
-    log.info("run: %d of %d readings labelled into %s", int(labels.labelled.sum()), len(table), out)
     return RunResult(traj, sync, labels, table, report, result.refinement, result.params)

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator.localize_io import localize_run
-from annotator.scoring import score
-from annotator.scoring_io import read_truth
+from annotator.core.scoring import score
+from annotator.io.localize import localize_run
+from annotator.io.scoring import read_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 BUNDLED = ROOT / "tests" / "data" / "dataset"

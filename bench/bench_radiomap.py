@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator import radio_data
-from annotator import radiomap as rm
-from annotator.fingerprints import rssi_edges
+from annotator.core import radiomap as rm
+from annotator.core.fingerprints import rssi_edges
+from annotator.io import radio_data
 from bgt_core.formats import hst, tables
 from bgt_core.formats.occ import read_occ
 

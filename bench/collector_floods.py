@@ -18,7 +18,7 @@ readings lost and duplicated in the run files, the time from the end of the floo
 honest batch is acknowledged (drain), the time `collector stop` took, the refused-stream and
 rejected counts from `collector status`, and the size of that status reply.
 
-The flood itself lives in tests/collector/flood_harness.py, shared with the tests that assert
+The flood itself lives in tests/support/flood_harness.py, shared with the tests that assert
 on it (tests/collector/test_collector_limits.py).
 """
 
@@ -30,7 +30,7 @@ import tempfile
 from pathlib import Path
 
 TESTS = Path(__file__).resolve().parent.parent / "tests"
-sys.path[:0] = [str(TESTS / "support"), str(TESTS / "collector")]
+sys.path.insert(0, str(TESTS / "support"))
 from flood_harness import make_site_pki, run_flood  # noqa: E402 - on the test path above
 
 

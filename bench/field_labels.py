@@ -119,12 +119,14 @@ def make_experiment(folder: Path, video_dir: Path, cond: str, settings: demo.Dem
 
 
 def run_and_score(exp: Path, settings: demo.DemoSettings, jobs: int) -> dict[str, object]:
-    from annotator.experiment import load_experiment
+    from annotator.commands.run import write_run_outputs
+    from annotator.io.experiment import load_experiment
     from annotator.pipeline import RunSettings, TrackSettings, run_experiment
 
     t = time.perf_counter()
-    run = run_experiment(load_experiment(exp), exp.parent / "results",
-                         RunSettings(track=TrackSettings(jobs=jobs), plots=False))
+    experiment = load_experiment(exp)
+    run = run_experiment(experiment, RunSettings(track=TrackSettings(jobs=jobs)))
+    write_run_outputs(exp.parent / "results", experiment, run, plots=False)
     seconds = time.perf_counter() - t
     path = demo.demo_path(settings.speed_mps)
     s = demo.score(run, path, T0, {"front": T0, "back": T0 + START_OFFSET}, settings.duration_s)

@@ -7,7 +7,7 @@ A walk through the tetam room (two cameras back to back, 960x540), marker corner
 the exact map, rig and lenses plus 0.3 px noise; the problem handed to the solvers has the map off
 by 1.5 cm / 1 deg, the rig by 3 mm / 1 deg and the focal length by 0.4 % (1-sigma), and start
 poses 1 cm / 0.3 deg off. Both solvers minimise the same cost (Huber on the corner residuals, the
-same priors): ours (`annotator.refine`, Levenberg-Marquardt with a Schur complement on the pose
+same priors): ours (`annotator.core.refine`, Levenberg-Marquardt with a Schur complement on the pose
 blocks and a forward-difference Jacobian by block) and `scipy.optimize.least_squares` (method
 trf, the sparse Jacobian's pattern given, '2-point' differences, loss huber). Printed: wall time,
 iterations / function evaluations, final cost, and the marker and focal errors against the truth.
@@ -23,8 +23,8 @@ import scipy.sparse as sp
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from annotator import refine as rf
-from annotator.priors import Priors
+from annotator.core import refine as rf
+from annotator.core.priors import Priors
 from annotator.render import default_cameras
 from annotator.render.camera import RIG_EXTRINSICS
 from annotator.vision.geometry import MarkerRoom

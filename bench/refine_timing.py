@@ -43,9 +43,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from field_accuracy import render_once, renderer_digest  # noqa: E402
 
-from annotator.evaluate import compare_to_truth  # noqa: E402
-from annotator.trajectory_io import read_trajectory  # noqa: E402
-from annotator.video import video_info  # noqa: E402
+from annotator.core.evaluate import compare_to_truth  # noqa: E402
+from annotator.io.trajectory import read_trajectory  # noqa: E402
+from annotator.io.video import video_info  # noqa: E402
 
 CLI = [sys.executable, "-m", "annotator.cli"]
 

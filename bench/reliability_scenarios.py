@@ -24,9 +24,9 @@ import time
 from pathlib import Path
 
 TESTS = Path(__file__).resolve().parent.parent / "tests"
-sys.path[:0] = [str(TESTS / "reliability"), str(TESTS / "support")]  # harness.py, and loopback.py it uses
+sys.path.insert(0, str(TESTS / "support"))  # reliability_harness.py, and loopback.py it uses
 
-from harness import (  # noqa: E402 - needs the path above
+from reliability_harness import (  # noqa: E402 - needs the path above
     Result,
     Scale,
     agent_restart,

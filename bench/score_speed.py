@@ -1,4 +1,4 @@
-"""Scoring speed: estimates scored per second by annotator.scoring.score; prints figures.
+"""Scoring speed: estimates scored per second by annotator.core.scoring.score; prints figures.
 
     python bench/score_speed.py [--estimates 1000000] [--truth-rate 30] [--repeat 3]
 
@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from annotator.scoring import Truth, score
+from annotator.core.scoring import Truth, score
 
 
 def main() -> None:

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from annotator.sync import CoverEvent, detect_rssi_events, detect_video_events, fit_clock_map
+from annotator.core.sync import CoverEvent, detect_rssi_events, detect_video_events, fit_clock_map
 
 T0 = 1_700_000_000.0
 

@@ -7,7 +7,7 @@ Each seed simulates what `annotator demo` records: three simulated agents (four 
 each, 10 adverts/s of the bundle beacon, every advert heard by each of an agent's sensors) with
 hands over the beacon (-20 dB, 60 % of readings lost) for 1.5 s near the start and near the end;
 and a 30 fps video of the same covers (brightness, noise 2 grey levels, hands closing in 0.15 s)
-that starts at a random wall time and whose clock runs off by a random drift (--drift-ppm). `annotator.sync` finds the events on both sides and fits the
+that starts at a random wall time and whose clock runs off by a random drift (--drift-ppm). `annotator.core.sync` finds the events on both sides and fits the
 clock map. Printed per quantity: the median |error|, the median reported sigma, and the share of
 seeds whose error lies within 1 and 2 reported sigma (68 % and 95 % if the sigma is honest).
 """
@@ -20,7 +20,7 @@ import time
 import numpy as np
 from sync_accuracy import T0, demo_readings, video
 
-from annotator.sync import detect_rssi_events, detect_video_events, fit_clock_map
+from annotator.core.sync import detect_rssi_events, detect_video_events, fit_clock_map
 
 
 def row(label: str, err: np.ndarray, sig: np.ndarray) -> None:

@@ -19,10 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from annotator.commands.evaluate import load_waypoints
-from annotator.evaluate import compare_to_path, compare_to_truth
-from annotator.experiment import load_experiment
+from annotator.core.evaluate import compare_to_path, compare_to_truth
+from annotator.core.trajectory import Trajectory
+from annotator.io.experiment import load_experiment
+from annotator.io.trajectory import read_trajectory
 from annotator.pipeline import TrackSettings, track_experiment
-from annotator.trajectory_io import Trajectory, read_trajectory
 
 
 def errors(traj: Trajectory, truth: Trajectory) -> tuple[np.ndarray, np.ndarray]:

@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator.evaluate import compare_to_truth
-from annotator.experiment import load_experiment
+from annotator.core.evaluate import compare_to_truth
+from annotator.io.experiment import load_experiment
+from annotator.io.trajectory import read_trajectory
+from annotator.io.video import iter_frames
 from annotator.pipeline import TrackSettings, track_experiment
-from annotator.trajectory_io import read_trajectory
-from annotator.video import iter_frames
 from annotator.vision.detection import DetectorSettings
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any, overload
 
 import yaml
 
@@ -30,9 +30,15 @@ MAX_BYTES = 8 * 1024 * 1024
 MAX_DEPTH = 64
 MAX_NODES = 250_000
 
-# libyaml's parser and composer when present (about 6x faster than the pure-Python ones).
-BaseLoader: type = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-_BaseDumper: type = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+# libyaml's parser and composer when present (about 6x faster than the pure-Python ones). The
+# stubs declare the C classes apart from the Python ones, with the same methods: the checker is
+# shown the Python classes.
+if TYPE_CHECKING:
+    BaseLoader = yaml.SafeLoader
+    _BaseDumper = yaml.SafeDumper
+else:
+    BaseLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+    _BaseDumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
 
 class YamlError(ValueError):
@@ -155,6 +161,12 @@ def load_file(path: str | Path, *, loader: type | None = None, max_bytes: int = 
     if preprocess is not None:
         text = preprocess(text)
     return loads(text, source, loader=loader, max_depth=max_depth, max_nodes=max_nodes)
+
+
+@overload
+def dump(data: Any, stream: None = None, **kwargs: Any) -> str: ...
+@overload
+def dump(data: Any, stream: IO[str], **kwargs: Any) -> None: ...
 
 
 def dump(data: Any, stream: IO[str] | None = None, **kwargs: Any) -> str | None:

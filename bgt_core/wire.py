@@ -281,13 +281,8 @@ def check_reading(t_ns: int, rssi: int, mono_ns: int = 0) -> str | None:
     return None
 
 
-def from_wire(data: bytes | bytearray | memoryview, *,
-              skipped: list[tuple[int, str]] | None = None) -> Batch:
-    """Decode and validate one batch; raises a WireError subclass for anything malformed.
-
-    With ``skipped`` (a list), an implausible reading does not fail the batch: it is left out
-    and ``(index, reason)`` appended, so one absurd value cannot cost the other readings."""
-    data = bytes(data)
+def _batch_head(data: bytes) -> tuple[int, int]:
+    """The header's checks; ``(meta_len, n)`` of a header that fits the payload."""
     if len(data) > MAX_PAYLOAD_BYTES:
         raise Oversized(f"payload of {len(data)} bytes (max {MAX_PAYLOAD_BYTES})")
     if len(data) < BATCH_HEAD.size:
@@ -305,7 +300,11 @@ def from_wire(data: bytes | bytearray | memoryview, *,
     end_readings = off + meta_len + n * BATCH_READING.size
     if len(data) < end_readings:
         raise Truncated("payload shorter than its header says")
-    meta = _json_object(data[off : off + meta_len], "batch metadata")
+    return meta_len, n
+
+
+def _batch_meta(meta: dict[str, Any]) -> tuple[str, str, str, int, int, int]:
+    """The metadata's checks; ``(agent, boot, sensor, seq, sent_ns, floor)``."""
     agent = check_id(meta.get("agent"), "agent id")
     boot = check_id(meta.get("boot"), "boot id")
     sensor = normalize_mac(meta.get("sensor"))
@@ -318,16 +317,47 @@ def from_wire(data: bytes | bytearray | memoryview, *,
     floor = meta.get("floor", -1)
     if not _is_int(floor) or not -1 <= floor < 2**63:
         raise InvalidField(f"floor must be an integer >= -1, got {floor!r}")
+    return agent, boot, sensor, seq, sent_ns, floor
 
-    extras: dict[str, Any] = {}
-    rest = data[end_readings:]
-    if rest:
-        if len(rest) < BATCH_EXTRAS_LEN.size:
-            raise Truncated("trailing bytes after the readings")
-        (ex_len,) = BATCH_EXTRAS_LEN.unpack_from(rest, 0)
-        if len(rest) != BATCH_EXTRAS_LEN.size + ex_len:
-            raise Truncated("extras length does not match the payload")
-        extras = _json_object(rest[BATCH_EXTRAS_LEN.size :], "reading extras")
+
+def _batch_extras(rest: bytes) -> dict[str, Any]:
+    """The per-reading extras after the readings (``{}`` when there are none)."""
+    if not rest:
+        return {}
+    if len(rest) < BATCH_EXTRAS_LEN.size:
+        raise Truncated("trailing bytes after the readings")
+    (ex_len,) = BATCH_EXTRAS_LEN.unpack_from(rest, 0)
+    if len(rest) != BATCH_EXTRAS_LEN.size + ex_len:
+        raise Truncated("extras length does not match the payload")
+    return _json_object(rest[BATCH_EXTRAS_LEN.size :], "reading extras")
+
+
+def _reading_extras(i: int, e: object) -> tuple[IBeacon | None, Eddystone | None]:
+    """Reading ``i``'s iBeacon and Eddystone frames from its extras object (``None`` if none)."""
+    ib = ed = None
+    if e is not None:
+        if not isinstance(e, dict):
+            raise InvalidField(f"reading {i}: extras must be an object")
+        if "ibeacon" in e:
+            ib = IBeacon.from_dict(e["ibeacon"])
+        if "eddystone" in e:
+            ed = Eddystone.from_dict(e["eddystone"])
+    return ib, ed
+
+
+def from_wire(data: bytes | bytearray | memoryview, *,
+              skipped: list[tuple[int, str]] | None = None) -> Batch:
+    """Decode and validate one batch; raises a WireError subclass for anything malformed.
+
+    With ``skipped`` (a list), an implausible reading does not fail the batch: it is left out
+    and ``(index, reason)`` appended, so one absurd value cannot cost the other readings."""
+    data = bytes(data)
+    meta_len, n = _batch_head(data)
+    off = BATCH_HEAD.size
+    end_readings = off + meta_len + n * BATCH_READING.size
+    meta = _json_object(data[off : off + meta_len], "batch metadata")
+    agent, boot, sensor, seq, sent_ns, floor = _batch_meta(meta)
+    extras = _batch_extras(data[end_readings:])
 
     readings = []
     off += meta_len
@@ -338,15 +368,7 @@ def from_wire(data: bytes | bytearray | memoryview, *,
                 raise InvalidField(f"reading {i}: {why}")
             skipped.append((i, why))
             continue
-        ib = ed = None
-        e = extras.get(str(i)) if extras else None
-        if e is not None:
-            if not isinstance(e, dict):
-                raise InvalidField(f"reading {i}: extras must be an object")
-            if "ibeacon" in e:
-                ib = IBeacon.from_dict(e["ibeacon"])
-            if "eddystone" in e:
-                ed = Eddystone.from_dict(e["eddystone"])
+        ib, ed = _reading_extras(i, extras.get(str(i)) if extras else None)
         readings.append(Reading(t_ns, mac.hex(), rssi, mono_ns, ib, ed))
     return Batch(agent, boot, sensor, seq, tuple(readings), sent_ns, floor)
 

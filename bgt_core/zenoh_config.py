@@ -12,6 +12,10 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import zenoh
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 # Largest message a session accepts: a maximum batch (wire.MAX_PAYLOAD_BYTES, 4 MiB) plus room
@@ -48,7 +52,7 @@ class SessionSpec:
     max_message_bytes: int = MAX_MESSAGE_BYTES
 
 
-def build_config(spec: SessionSpec):  # -> zenoh.Config
+def build_config(spec: SessionSpec) -> zenoh.Config:
     import zenoh
 
     conf = zenoh.Config()

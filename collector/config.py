@@ -130,23 +130,9 @@ def parse_config(raw: Any, *, base: Path, name: str = "collector.yaml") -> Colle
     else:
         kw["data_dir"] = base / cfg.data_dir
     if "listen" in raw:
-        listen = raw["listen"]
-        if isinstance(listen, str):
-            listen = [listen]
-        if not isinstance(listen, list) or not listen:
-            raise ConfigError(f"{name}: listen must be a non-empty list of endpoints, got {raw['listen']!r}")
-        for ep in listen:
-            _check_endpoint(ep, name, "listen")
-        kw["listen"] = tuple(listen)
+        kw["listen"] = _listen(raw["listen"], name)
     if raw.get("tls") is not None:
-        tls = raw["tls"]
-        if not isinstance(tls, dict) or set(tls) != {"root_ca", "cert", "key"}:
-            raise ConfigError(f"{name}: tls must be null or a mapping with root_ca, cert and key")
-        files = {k: base / _str(v, name, f"tls.{k}") for k, v in tls.items()}
-        for k, p in files.items():
-            if not p.is_file():
-                raise ConfigError(f"{name}: tls.{k} file not found: {p}")
-        kw["tls"] = TlsFiles(str(files["root_ca"]), str(files["cert"]), str(files["key"]))
+        kw["tls"] = _tls(raw["tls"], base, name)
     if "insecure" in raw:
         if not isinstance(raw["insecure"], bool):
             raise ConfigError(f"{name}: insecure must be true or false, got {raw['insecure']!r}")
@@ -157,20 +143,45 @@ def parse_config(raw: Any, *, base: Path, name: str = "collector.yaml") -> Colle
             raise ConfigError(f"{name}: acl file not found: {acl}")
         kw["acl"] = acl
     if "fsync_interval_s" in raw:
-        v = raw["fsync_interval_s"]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not 0 <= v <= 3600:
-            raise ConfigError(f"{name}: fsync_interval_s must be a number of seconds in [0, 3600], got {v!r}")
-        kw["fsync_interval_s"] = float(v)
+        kw["fsync_interval_s"] = _seconds(raw, "fsync_interval_s", name, 0, 3600)
     if "clock_interval_s" in raw:
-        v = raw["clock_interval_s"]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not 1 <= v <= 86400:
-            raise ConfigError(f"{name}: clock_interval_s must be a number of seconds in [1, 86400], got {v!r}")
-        kw["clock_interval_s"] = float(v)
+        kw["clock_interval_s"] = _seconds(raw, "clock_interval_s", name, 1, 86400)
     if raw.get("limits") is not None:
         kw["limits"] = _limits(raw["limits"], name)
     cfg = replace(cfg, **kw)
     cfg.validate(name)
     return cfg
+
+
+def _listen(listen: Any, name: str) -> tuple[str, ...]:
+    """``listen``: one endpoint or a non-empty list of them."""
+    given = listen
+    if isinstance(listen, str):
+        listen = [listen]
+    if not isinstance(listen, list) or not listen:
+        raise ConfigError(f"{name}: listen must be a non-empty list of endpoints, got {given!r}")
+    for ep in listen:
+        _check_endpoint(ep, name, "listen")
+    return tuple(listen)
+
+
+def _tls(tls: Any, base: Path, name: str) -> TlsFiles:
+    """``tls``: the CA, certificate and key files, relative to ``base``; each must exist."""
+    if not isinstance(tls, dict) or set(tls) != {"root_ca", "cert", "key"}:
+        raise ConfigError(f"{name}: tls must be null or a mapping with root_ca, cert and key")
+    files = {k: base / _str(v, name, f"tls.{k}") for k, v in tls.items()}
+    for k, p in files.items():
+        if not p.is_file():
+            raise ConfigError(f"{name}: tls.{k} file not found: {p}")
+    return TlsFiles(str(files["root_ca"]), str(files["cert"]), str(files["key"]))
+
+
+def _seconds(raw: dict[str, Any], key: str, name: str, lo: int, hi: int) -> float:
+    """``raw[key]``: a number of seconds in ``[lo, hi]`` (not a bool)."""
+    v = raw[key]
+    if isinstance(v, bool) or not isinstance(v, int | float) or not lo <= v <= hi:
+        raise ConfigError(f"{name}: {key} must be a number of seconds in [{lo}, {hi}], got {v!r}")
+    return float(v)
 
 
 def _limits(raw: Any, name: str) -> Limits:

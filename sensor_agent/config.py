@@ -258,50 +258,70 @@ def parse_config(data: Any, source: str = "agent.yaml", base_dir: Path | None = 
     if "scan_mode" in d:
         out["scan_mode"] = f.choice(d["scan_mode"], "scan_mode", SCAN_MODES)
     if "allow" in d:
-        a = f.mapping(d["allow"], "allow", ("macs", "ibeacon_uuids"))
-        macs = f.str_list(a.get("macs"), "allow.macs")
-        uuids = f.str_list(a.get("ibeacon_uuids"), "allow.ibeacon_uuids")
-        norm_uuids = []
-        for i, u in enumerate(uuids):
-            flat = u.replace("-", "").lower()
-            if not _UUID_RE.match(flat):
-                raise f.fail(f"allow.ibeacon_uuids[{i}]", "a 128-bit UUID", u)
-            norm_uuids.append(flat)
-        out["allow"] = AllowList(frozenset(f.mac(m, f"allow.macs[{i}]") for i, m in enumerate(macs)),
-                                 frozenset(norm_uuids))
+        out["allow"] = _allow(f, d["allow"])
     if "replay" in d:
-        r = f.mapping(d["replay"], "replay", ("paths", "speed", "keep_time"))
-        out["replay"] = ReplayConfig(
-            tuple(f.path(p, f"replay.paths[{i}]")
-                  for i, p in enumerate(f.str_list(r.get("paths"), "replay.paths"))),
-            f.number(r.get("speed", 1.0), "replay.speed", lo=0.0),
-            f.boolean(r.get("keep_time", False), "replay.keep_time"))
+        out["replay"] = _replay(f, d["replay"])
     if "simulated" in d:
         out["simulated"] = _simulated(f, d["simulated"])
     if "spool" in d:
-        s = f.mapping(d["spool"], "spool", ("dir", "max_mb"))
-        sdir = s.get("dir")
-        out["spool"] = SpoolConfig(None if sdir is None else f.path(sdir, "spool.dir"),
-                                   f.pos_int(s.get("max_mb", 256), "spool.max_mb"))
+        out["spool"] = _spool(f, d["spool"])
     if "watchdog" in d:
-        w = f.mapping(d["watchdog"], "watchdog", ("silent_s", "power_cycle_after"))
-        pca = w.get("power_cycle_after", 2)
-        if isinstance(pca, bool) or not isinstance(pca, int) or pca < 0:
-            raise f.fail("watchdog.power_cycle_after", "an integer >= 0", pca)
-        out["watchdog"] = WatchdogConfig(
-            f.number(w.get("silent_s", 60.0), "watchdog.silent_s", lo=0.0, lo_open=True), pca)
+        out["watchdog"] = _watchdog(f, d["watchdog"])
     if d.get("tls") is not None:
-        t = f.mapping(d["tls"], "tls", ("root_ca", "cert", "key"))
-        for k in ("root_ca", "cert", "key"):
-            if k not in t:
-                raise ConfigError(f"{source}: tls.{k} is missing (tls needs root_ca, cert and key)")
-        out["tls"] = TlsFiles(*(str(f.path(t[k], f"tls.{k}")) for k in ("root_ca", "cert", "key")))
+        out["tls"] = _tls(f, d["tls"])
     if "status_interval_s" in d:
         out["status_interval_s"] = f.number(d["status_interval_s"], "status_interval_s",
                                             lo=0.0, lo_open=True)
     if "ack_timeout_s" in d:
         out["ack_timeout_s"] = f.number(d["ack_timeout_s"], "ack_timeout_s", lo=0.0)
     return AgentConfig(**out)
+
+
+def _allow(f: _Fields, raw: Any) -> AllowList:
+    a = f.mapping(raw, "allow", ("macs", "ibeacon_uuids"))
+    macs = f.str_list(a.get("macs"), "allow.macs")
+    uuids = f.str_list(a.get("ibeacon_uuids"), "allow.ibeacon_uuids")
+    norm_uuids = []
+    for i, u in enumerate(uuids):
+        flat = u.replace("-", "").lower()
+        if not _UUID_RE.match(flat):
+            raise f.fail(f"allow.ibeacon_uuids[{i}]", "a 128-bit UUID", u)
+        norm_uuids.append(flat)
+    return AllowList(frozenset(f.mac(m, f"allow.macs[{i}]") for i, m in enumerate(macs)),
+                     frozenset(norm_uuids))
+
+
+def _replay(f: _Fields, raw: Any) -> ReplayConfig:
+    r = f.mapping(raw, "replay", ("paths", "speed", "keep_time"))
+    return ReplayConfig(
+        tuple(f.path(p, f"replay.paths[{i}]")
+              for i, p in enumerate(f.str_list(r.get("paths"), "replay.paths"))),
+        f.number(r.get("speed", 1.0), "replay.speed", lo=0.0),
+        f.boolean(r.get("keep_time", False), "replay.keep_time"))
+
+
+def _spool(f: _Fields, raw: Any) -> SpoolConfig:
+    s = f.mapping(raw, "spool", ("dir", "max_mb"))
+    sdir = s.get("dir")
+    return SpoolConfig(None if sdir is None else f.path(sdir, "spool.dir"),
+                       f.pos_int(s.get("max_mb", 256), "spool.max_mb"))
+
+
+def _watchdog(f: _Fields, raw: Any) -> WatchdogConfig:
+    w = f.mapping(raw, "watchdog", ("silent_s", "power_cycle_after"))
+    pca = w.get("power_cycle_after", 2)
+    if isinstance(pca, bool) or not isinstance(pca, int) or pca < 0:
+        raise f.fail("watchdog.power_cycle_after", "an integer >= 0", pca)
+    return WatchdogConfig(
+        f.number(w.get("silent_s", 60.0), "watchdog.silent_s", lo=0.0, lo_open=True), pca)
+
+
+def _tls(f: _Fields, raw: Any) -> TlsFiles:
+    t = f.mapping(raw, "tls", ("root_ca", "cert", "key"))
+    for k in ("root_ca", "cert", "key"):
+        if k not in t:
+            raise ConfigError(f"{f.source}: tls.{k} is missing (tls needs root_ca, cert and key)")
+    return TlsFiles(*(str(f.path(t[k], f"tls.{k}")) for k in ("root_ca", "cert", "key")))
 
 
 def _simulated(f: _Fields, raw: Any) -> SimulatedConfig:
@@ -319,28 +339,11 @@ def _simulated(f: _Fields, raw: Any) -> SimulatedConfig:
         kw["beacons"] = tuple(f.mac(m, f"simulated.beacons[{i}]") for i, m in
                               enumerate(f.str_list(s["beacons"], "simulated.beacons")))
     if s.get("path") is not None:
-        p = s["path"]
-        if not isinstance(p, Mapping):
-            raise f.fail("simulated.path", "a mapping (waypoints, speed_mps, dwell_s)", p)
-        try:
-            kw["path"] = PathModel.from_dict(p)
-        except MotionError as e:
-            raise ConfigError(f"{f.source}: simulated.path: {e}") from None
+        kw["path"] = _sim_path(f, s["path"])
     if s.get("t0") is not None:
         kw["t0"] = f.number(s["t0"], "simulated.t0", lo=0.0)
     if s.get("events") is not None:
-        ev = s["events"]
-        if isinstance(ev, str) or not isinstance(ev, Sequence):
-            raise f.fail("simulated.events", "a list of cover events", ev)
-        events = []
-        for i, item in enumerate(ev):
-            if not isinstance(item, Mapping):
-                raise f.fail(f"simulated.events[{i}]", "a mapping", item)
-            try:
-                events.append(CoverEvent.from_dict(item))
-            except MotionError as err:
-                raise ConfigError(f"{f.source}: simulated.events[{i}]: {err}") from None
-        kw["events"] = tuple(events)
+        kw["events"] = _sim_events(f, s["events"])
     if "rate_hz" in s:
         kw["rate_hz"] = f.number(s["rate_hz"], "simulated.rate_hz", lo=0.0, lo_open=True)
     for k in ("tx_1m", "floor_dbm"):
@@ -354,6 +357,29 @@ def _simulated(f: _Fields, raw: Any) -> SimulatedConfig:
     if "drop_prob" in s:
         kw["drop_prob"] = f.number(s["drop_prob"], "simulated.drop_prob", lo=0.0, hi=1.0)
     return SimulatedConfig(**kw)
+
+
+def _sim_path(f: _Fields, p: Any) -> PathModel:
+    if not isinstance(p, Mapping):
+        raise f.fail("simulated.path", "a mapping (waypoints, speed_mps, dwell_s)", p)
+    try:
+        return PathModel.from_dict(p)
+    except MotionError as e:
+        raise ConfigError(f"{f.source}: simulated.path: {e}") from None
+
+
+def _sim_events(f: _Fields, ev: Any) -> tuple[CoverEvent, ...]:
+    if isinstance(ev, str) or not isinstance(ev, Sequence):
+        raise f.fail("simulated.events", "a list of cover events", ev)
+    events = []
+    for i, item in enumerate(ev):
+        if not isinstance(item, Mapping):
+            raise f.fail(f"simulated.events[{i}]", "a mapping", item)
+        try:
+            events.append(CoverEvent.from_dict(item))
+        except MotionError as err:
+            raise ConfigError(f"{f.source}: simulated.events[{i}]: {err}") from None
+    return tuple(events)
 
 
 def load_config(path: str | Path | None) -> AgentConfig:

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.progress import Progress
 
 from annotator.commands._common import console, one_line_errors
 from annotator.errors import ConfigError
+
+if TYPE_CHECKING:
+    from annotator.core.calibration import Calibration
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 
@@ -49,7 +52,7 @@ def iter_frames(paths: list[Path], every: int, progress: Progress | None = None)
             progress.advance(task)
 
 
-def write_filestorage(path: Path, cal: object) -> None:
+def write_filestorage(path: Path, cal: Calibration) -> None:
     """The YAML cv2.FileStorage writes: camera_matrix, distortion_coefficients, image size, RMS."""
     import cv2
 
@@ -80,7 +83,7 @@ def calibrate(
     """Calibrate a camera from views of a ChArUco board; prints the RMS reprojection error and
     writes camera_matrix, distortion_coefficients, image_width and image_height."""
     with one_line_errors():
-        from annotator.calibration import CharucoSpec, calibrate_charuco, parse_squares
+        from annotator.core.calibration import CharucoSpec, calibrate_charuco, parse_squares
 
         if every < 1:
             raise ConfigError("--every must be at least 1")

@@ -26,9 +26,9 @@ def _utc(t_ns: int | None) -> str:
 
 def capture_table(cap: Any) -> Table:
     table = Table(title=f"capture: {sum(f.rows for f in cap.files)} readings in {cap.run_dir}")
-    for col, just in (("file (rssi/)", "left"), ("rows", "right"), ("first (UTC)", "left"),
-                      ("last (UTC)", "left")):
-        table.add_column(col, justify=just, overflow="fold")
+    for col, right in (("file (rssi/)", False), ("rows", True), ("first (UTC)", False),
+                       ("last (UTC)", False)):
+        table.add_column(col, justify="right" if right else "left", overflow="fold")
     for f in cap.files:
         table.add_row(f.path.name, str(f.rows), _utc(f.first_ns), _utc(f.last_ns))
     return table

@@ -1,11 +1,11 @@
 """`annotator evaluate`: a trajectory against a reference trajectory or a planned path;
-writes a JSON report and a PNG plot (the metrics themselves live in annotator/evaluate.py)."""
+writes a JSON report and a PNG plot (the metrics themselves live in annotator/core/evaluate.py)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 import typer
@@ -80,8 +80,8 @@ def evaluate(
     reference interpolated in time) and rotation error in degrees. Against --path: deviation
     from the planned polyline and along-track drag at each segment end."""
     with one_line_errors():
-        from annotator.evaluate import compare_to_path, compare_to_truth
-        from annotator.trajectory_io import read_trajectory
+        from annotator.core.evaluate import compare_to_path, compare_to_truth
+        from annotator.io.trajectory import read_trajectory
 
         if (truth is None) == (path is None):
             raise ConfigError("give exactly one of --truth TRUTH.csv or --path PATH.yaml")
@@ -91,7 +91,7 @@ def evaluate(
         if truth is not None:
             ref = read_trajectory(truth)
             cmp = compare_to_truth(est.t, est.position, est.rotation, ref.t, ref.position, ref.rotation)
-            body = {"trajectory": str(trajectory), "truth": str(truth), **cmp.report()}
+            body: dict[str, Any] = {"trajectory": str(trajectory), "truth": str(truth), **cmp.report()}
             if body["compared"] == 0:
                 raise ConfigError(f"{trajectory}: no pose falls inside the time range of {truth}")
             _plot_truth(plot, est, ref, cmp)
@@ -101,12 +101,13 @@ def evaluate(
                           f"over {body['compared']} poses; rotation error median {r['median']:.2f} deg, "
                           f"p95 {r['p95']:.2f} deg", highlight=False, soft_wrap=True, markup=False)
         else:
+            assert path is not None  # exactly one of --truth and --path, checked above
             wp = load_waypoints(path)
-            cmp = compare_to_path(est.position, wp)
-            body = {"trajectory": str(trajectory), "path": str(path), **cmp.report()}
+            path_cmp = compare_to_path(est.position, wp)
+            body = {"trajectory": str(trajectory), "path": str(path), **path_cmp.report()}
             if body["compared"] == 0:
                 raise ConfigError(f"{trajectory}: no poses to compare")
-            _plot_path(plot, est, wp, cmp)
+            _plot_path(plot, est, wp, path_cmp)
             d = body["deviation_m"]
             drags = ", ".join("-" if v is None else f"{v * 100:.1f}" for v in body["drag_m"])
             console.print(f"deviation from the path: median {d['median'] * 100:.2f} cm, p95 {d['p95'] * 100:.2f}, "

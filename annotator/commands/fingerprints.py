@@ -41,8 +41,8 @@ def fingerprints(
     min_readings: Annotated[int, typer.Option(
         help="Moving mode: least in-range readings for a (cell, sensor, beacon) histogram.")] = 1,
 ) -> None:
-    from annotator import fingerprints as fp
-    from annotator import radio_data
+    from annotator.core import fingerprints as fp
+    from annotator.io import radio_data
     from bgt_core.formats.devices import read_dev
 
     with one_line_errors(), format_errors():

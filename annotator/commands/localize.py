@@ -45,8 +45,8 @@ def localize(
     with one_line_errors():
         import numpy as np
 
-        from annotator.localize_io import localize_run
-        from annotator.scoring_io import write_estimates
+        from annotator.io.localize import localize_run
+        from annotator.io.scoring import write_estimates
 
         for name, v in (("--window", window), ("--step", step), ("--speed", speed)):
             if not v > 0:

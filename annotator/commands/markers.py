@@ -26,7 +26,7 @@ def print_markers(
     with one_line_errors():
         from matplotlib.backends.backend_pdf import PdfPages
 
-        from annotator.marker_sheets import choose_paper, marker_page, parse_ids
+        from annotator.plots.marker_sheets import choose_paper, marker_page, parse_ids
 
         if not 0 < length <= 2:
             raise ConfigError(f"--length {length}: expected metres, e.g. 0.298")

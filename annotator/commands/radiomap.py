@@ -41,7 +41,7 @@ def radiomap(
         "--free-value", help="The .occ value of cells the beacon can be in (published files: 0).")] = 0,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write a heat-map PNG per sensor.")] = True,
 ) -> None:
-    from annotator import radio_data
+    from annotator.io import radio_data
     from bgt_core.formats.hst import read_hst
     from bgt_core.formats.occ import read_occ
 

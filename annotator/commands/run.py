@@ -2,15 +2,57 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
-from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, TaskID, TextColumn, TimeRemainingColumn
 
 from annotator.commands._common import LazyProgress, console, default_jobs, one_line_errors
 from annotator.errors import ConfigError
+
+if TYPE_CHECKING:
+    from annotator.core.experiment import Experiment
+    from annotator.pipeline import RunResult
+
+log = logging.getLogger(__name__)
+
+
+def write_run_outputs(out_dir: str | Path, exp: Experiment, result: RunResult, *, plots: bool = True) -> dict[str, Any]:
+    """What `annotator run` writes into ``out_dir``: trajectory.csv, annotated/, annotated.parquet,
+    the plots, refined/ (after a self-calibration) and report.json. Returns the report as
+    written: ``result.report`` plus the names of the plot and refined files."""
+    from annotator.io.outputs import write_annotated_mbd, write_parquet, write_report
+    from annotator.io.trajectory import write_trajectory
+
+    traj, table, labels = result.trajectory, result.rssi, result.labels
+    report = dict(result.report)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_trajectory(out / "trajectory.csv", traj)
+    write_annotated_mbd(out / "annotated", table, labels)
+    write_parquet(out / "annotated.parquet", table, labels)
+    if plots:
+        from annotator.plots.run import write_run_plots
+
+        valid_t = traj.t[traj.valid]
+        written = write_run_plots(
+            out, trajectory=traj.position, t_s=table.t_seconds(), rssi=table.rssi, sensor=table.sensor,
+            labelled=labels.labelled, label_positions=labels.positions,
+            events=[(e.cover, e.release) for e in result.sync.rssi_events],
+            span=(float(valid_t[0]), float(valid_t[-1])) if valid_t.size else None,
+            markers=exp.markers.markers)
+        report["plots"] = {k: p.name for k, p in written.items()}
+    if result.refinement is not None:
+        from annotator.io.refined import write_refined
+
+        files = write_refined(out / "refined", result.refinement)
+        report["refinement"] = {**result.refinement.report, "files": {k: f"refined/{v}" for k, v in files.items()}}
+    write_report(out / "report.json", report)
+    log.info("run: %d of %d readings labelled into %s", int(labels.labelled.sum()), len(table), out)
+    return report
 
 
 def run(
@@ -36,7 +78,7 @@ def run(
     dark, the beacon's RSSI drops); with `manual`, sync.video_start is used as given.
     """
     with one_line_errors():
-        from annotator.experiment import load_experiment
+        from annotator.io.experiment import load_experiment
         from annotator.pipeline import RunSettings, TrackSettings, run_experiment
         from bgt_core.wire import normalize_mac
 
@@ -56,21 +98,21 @@ def run(
         exp = load_experiment(experiment)
         settings = RunSettings(track=TrackSettings(method=method, jobs=jobs,
                                                          refine=refine or exp.priors.mode), max_gap=max_gap,
-                               beacon=mac, plots=plots)
+                               beacon=mac)
         # Lazy: the bars appear with the first frame, so an error in the RSSI files (read
         # first) is printed alone.
         with LazyProgress(TextColumn("{task.description:>12}"), BarColumn(),
                           TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn(),
                           console=console) as bar:
-            tasks: dict[str, int] = {}
+            tasks: dict[str, TaskID] = {}
 
             def progress(name: str, done: int, total: int) -> None:
                 if name not in tasks:
                     tasks[name] = bar.add_task(name, total=total)
                 bar.update(tasks[name], completed=done, total=total)
 
-            result = run_experiment(exp, out, settings, progress)
-        rep = result.report
+            result = run_experiment(exp, settings, progress)
+        rep = write_run_outputs(out, exp, result, plots=plots)
         for name, cam in rep["sync"]["cameras"].items():
             sig = cam["video_start_sigma_s"]
             sig_text = f" ± {sig * 1000:.1f} ms" if sig is not None and math.isfinite(sig) else ""

@@ -39,8 +39,8 @@ def score(
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write the PNG plots.")] = True,
 ) -> None:
     with one_line_errors():
-        from annotator.scoring import score as score_estimates
-        from annotator.scoring_io import read_estimates, read_truth, write_score
+        from annotator.core.scoring import score as score_estimates
+        from annotator.io.scoring import read_estimates, read_truth, write_score
 
         if not max_gap > 0:
             raise ConfigError(f"--max-gap must be positive, got {max_gap}")
@@ -54,7 +54,7 @@ def score(
             raise NoDataError(f"{estimates}: no estimate falls inside the time span of {truth}")
         path = write_score(out, s, estimates=str(estimates), truth=str(truth), has_z=est.has_z)
         if plots:
-            from annotator.scoring_plots import write_score_plots
+            from annotator.plots.scoring import write_score_plots
 
             write_score_plots(out, s, est.position, ref)
         e = s.summary_2d

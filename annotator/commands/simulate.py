@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
 
 from annotator.commands._common import console, one_line_errors
 from annotator.errors import ConfigError
@@ -29,7 +29,7 @@ def parse_cover(text: str) -> tuple[float, float]:
 # `--errors field`: the errors of a careful real capture (issue 10's table): marker survey
 # 1.5 cm / 1 deg, rig 3 mm / 1 deg, focal 0.4 %, principal point 1 px, a k1 = -0.28 lens, 15 ms
 # rolling-shutter readout (written as 0, as users rarely know it), 8 ms exposure and lamp flicker.
-ERROR_PRESETS: dict[str, dict[str, object]] = {
+ERROR_PRESETS: dict[str, dict[str, float | str]] = {
     "none": {},
     "field": {"survey_m": 0.015, "survey_deg": 1.0, "rig_m": 0.003, "rig_deg": 1.0, "focal_rel": 0.004,
               "principal_px": 1.0, "distortion": 0.0, "lens": "wide", "readout": 0.015, "exposure": 0.008,
@@ -37,11 +37,11 @@ ERROR_PRESETS: dict[str, dict[str, object]] = {
 }
 
 
-def resolve_errors(preset: str, **given: object) -> dict[str, object]:
+def resolve_errors(preset: str, **given: float | str | None) -> dict[str, float | str]:
     """The preset's values with every option the user gave (not None) on top; unset -> 0/defaults."""
     if preset not in ERROR_PRESETS:
         raise ConfigError(f"--errors {preset!r}: expected one of {', '.join(ERROR_PRESETS)}")
-    defaults: dict[str, object] = {"survey_m": 0.0, "survey_deg": 0.0, "rig_m": 0.0, "rig_deg": 0.0,
+    defaults: dict[str, float | str] = {"survey_m": 0.0, "survey_deg": 0.0, "rig_m": 0.0, "rig_deg": 0.0,
                                    "focal_rel": 0.0, "principal_px": 0.0, "distortion": 0.0, "lens": "mild",
                                    "readout": 0.0, "exposure": 1 / 120, "flicker": 0.0}
     out = {**defaults, **ERROR_PRESETS[preset]}
@@ -181,7 +181,7 @@ def simulate(
         trajectory = path_trajectory(path, t0, speed, dwell, turn)
         with Progress(TextColumn("{task.description:>6}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                       TimeRemainingColumn(), console=console) as bar:
-            tasks: dict[str, int] = {}
+            tasks: dict[str, TaskID] = {}
 
             def progress(name: str, done: int, total: int) -> None:
                 if name not in tasks:

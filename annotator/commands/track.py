@@ -4,13 +4,16 @@ from __future__ import annotations
 
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TaskID, TextColumn, TimeRemainingColumn
 
 from annotator.commands._common import LazyProgress, default_jobs, one_line_errors
+
+if TYPE_CHECKING:
+    from annotator.core.refine import Refinement
 
 
 class Method(StrEnum):
@@ -76,9 +79,9 @@ def track(
     quality columns (markers, rms_px, sigma_m). Rows without a trustworthy pose are NaN.
     """
     from annotator.errors import ConfigError
-    from annotator.experiment import load_experiment
+    from annotator.io.experiment import load_experiment
+    from annotator.io.trajectory import write_trajectory
     from annotator.pipeline import TrackSettings, track
-    from annotator.trajectory_io import write_trajectory
     from annotator.vision.detection import DetectorSettings
     from annotator.vision.paper import PaperSettings
 
@@ -103,7 +106,7 @@ def track(
         # Lazy: no bars until a video reports its first frames.
         with LazyProgress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn(),
                           TimeRemainingColumn(), console=console) as bar:
-            tasks: dict[str, int] = {}
+            tasks: dict[str, TaskID] = {}
 
             def report(name: str, done: int, total: int) -> None:
                 if not tasks:
@@ -122,12 +125,12 @@ def track(
                       f"({100 * n_ok / max(len(traj), 1):.0f} %), method {method.value}", highlight=False)
 
 
-def _report_refinement(out: Path, refinement: object, console: Console) -> None:
+def _report_refinement(out: Path, refinement: Refinement, console: Console) -> None:
     """refined/ (map, rig, calibrations, refinement.json) and a few lines on the console."""
     import json
     import math
 
-    from annotator.refine import write_refined
+    from annotator.io.refined import write_refined
 
     write_refined(out / "refined", refinement)
     rep = refinement.report

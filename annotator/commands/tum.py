@@ -36,8 +36,8 @@ def tum(
         help="With --at: INPUT samples further apart than this (s) are a gap.")] = 1.0,
 ) -> None:
     with one_line_errors():
-        from annotator.scoring_io import read_estimates
-        from annotator.tum_io import read_poses, resample, write_tum
+        from annotator.io.scoring import read_estimates
+        from annotator.io.tum import read_poses, resample, write_tum
 
         if not max_gap > 0:
             raise ConfigError(f"--max-gap must be positive, got {max_gap}")

@@ -22,7 +22,7 @@ def random_board_poses(n: int, board: cv2.aruco.CharucoBoard, camera: CameraMode
     spread over the picture so the distortion is observed towards the edges too."""
     cols, rows = board.getChessboardSize()
     size = np.array([cols, rows]) * board.getSquareLength()
-    poses = []
+    poses: list[tuple[Rotation, np.ndarray]] = []
     while len(poses) < n:
         dist = rng.uniform(0.45, 0.9)
         # Aim the board centre at a random point in the central 70 % of the picture.
@@ -72,6 +72,6 @@ def render_charuco_views(camera: CameraModel, board: cv2.aruco.CharucoBoard,
                             borderMode=cv2.BORDER_TRANSPARENT)
         img = cv2.remap(canvas, dmap.map1, dmap.map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         if noise_sigma > 0:
-            img = cv2.add(img, rng.normal(0, noise_sigma, img.shape).astype(np.float32), dtype=cv2.CV_8U)
+            img = cv2.add(img, rng.normal(0, noise_sigma, np.shape(img)).astype(np.float32), dtype=cv2.CV_8U)
         images.append(img)
     return images

@@ -2,7 +2,7 @@
 calibrations that are a little off, as a careful real capture's are. The video is always
 rendered with the exact values; only the written files carry the errors.
 
-Conventions match `annotator.priors`: a marker's written rotation is exp([d]x) @ R_true with d a
+Conventions match `annotator.core.priors`: a marker's written rotation is exp([d]x) @ R_true with d a
 world-frame rotation vector, a rig camera's exp([d]x) @ R_bundle_camera with d in the bundle
 frame; positions get an additive offset. Each kind of error draws from its own random stream
 (seeded from `seed` and the kind), as unit normals scaled by the sigma: a given seed moves the
@@ -63,8 +63,7 @@ def perturb_markers(markers: dict[int, MarkerPose], sigma_m: float, sigma_deg: f
             out[mid] = m
             continue
         rot = Rotation.from_rotvec(d_rot) * Rotation.from_euler("xyz", m.euler_xyz)
-        out[mid] = MarkerPose(mid, tuple(float(v) for v in np.asarray(m.position) + d_pos),
-                              tuple(float(v) for v in rot.as_euler("xyz")))
+        out[mid] = MarkerPose.from_values(mid, np.asarray(m.position) + d_pos, rot.as_euler("xyz"))
     return out
 
 

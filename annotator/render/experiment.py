@@ -9,6 +9,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from queue import Queue
 
 import cv2
 import numpy as np
@@ -177,7 +178,7 @@ class FrameRenderer:
                                    borderMode=cv2.BORDER_REPLICATE)
         return out
 
-    def render(self, r_wc: np.ndarray, c_w: np.ndarray, motion: np.ndarray = (0.0, 0.0),
+    def render(self, r_wc: np.ndarray, c_w: np.ndarray, motion: np.ndarray | tuple[float, float] = (0.0, 0.0),
                cover: float = 0.0, bands: tuple[Sequence[int], np.ndarray, np.ndarray] | None = None,
                gain: np.ndarray | None = None) -> np.ndarray:
         """One BGR frame: markers on the background, lens distortion, blur, brightness, cover,
@@ -200,7 +201,8 @@ class FrameRenderer:
         return apply_cover(img, cover, self.skin)
 
 
-def render_camera(job: CameraJob, progress: Progress | None = None, queue: object = None) -> int:
+def render_camera(job: CameraJob, progress: Progress | None = None,
+                  queue: Queue[tuple[str, int, int]] | None = None) -> int:
     """Render and encode one camera's video (mp4v); returns the number of frames written."""
     fr = FrameRenderer(job.camera, job.markers, job.marker_length, job.dictionary,
                        job.noise_sigma, job.seed)

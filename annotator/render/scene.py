@@ -134,7 +134,7 @@ class MarkerScene:
     def paint_order(self, r_wc: np.ndarray, c_w: np.ndarray) -> list[PlacedMarker | tuple[PillarFace, np.ndarray]]:
         """Markers and (pillar face, its camera-frame polygon cut at the near plane), farthest
         first; a marker on a pillar comes right after its face."""
-        items: list[tuple[float, int, object]] = []
+        items: list[tuple[float, int, PlacedMarker | tuple[PillarFace, np.ndarray]]] = []
         for face in self.pillar_faces.values():
             if float(face.normal @ (c_w - face.centre)) <= 0:
                 continue
@@ -142,8 +142,8 @@ class MarkerScene:
             if len(poly) >= 3:
                 items.append((float(np.linalg.norm(face.centre - c_w)), 0, (face, poly)))
         for m in self.visible(r_wc, c_w):
-            face = self.pillar_faces.get(m.id)
-            key = float(np.linalg.norm((face.centre if face else m.centre) - c_w))
+            on_face = self.pillar_faces.get(m.id)
+            key = float(np.linalg.norm((on_face.centre if on_face else m.centre) - c_w))
             items.append((key, 1, m))
         items.sort(key=lambda it: (-it[0], it[1]))
         return [it[2] for it in items]

@@ -41,7 +41,8 @@ class MarkerTextures:
         if tex is None:
             top = CELL_PX_LEVELS[0]
             img = cv2.aruco.generateImageMarker(self.dictionary, marker_id, MARKER_CELLS * top)
-            img = cv2.copyMakeBorder(img, *(4 * [QUIET_CELLS * top]), cv2.BORDER_CONSTANT, value=255)
+            q = QUIET_CELLS * top
+            img = cv2.copyMakeBorder(img, q, q, q, q, cv2.BORDER_CONSTANT, value=255)
             side = self.cells_total() * CELL_PX_LEVELS[level]
             if level:
                 # Area averaging by an integer factor keeps pixel-centre geometry exact and

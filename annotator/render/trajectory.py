@@ -37,8 +37,8 @@ class LoopTrajectory:
             ((x0, y1 - r), (x0, y0 + r), (x0 + r, y0 + r), np.pi),
             ((x0 + r, y0), (x0 + (x1 - x0) / 2, y0), None, 0.0),
         ]
-        for a, b, centre, ang in segments:
-            a, b = np.array(a), np.array(b)
+        for start, end, centre, ang in segments:
+            a, b = np.array(start), np.array(end)
             n = max(2, int(np.linalg.norm(b - a) / 0.01))
             s = np.linspace(0, 1, n, endpoint=False)[:, None]
             pts.append(a + s * (b - a))

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from annotator.experiment import CameraCalibration
+from annotator.core.experiment import CameraCalibration
 from annotator.vision.geometry import MarkerRoom
 
 _REFINE = {

@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from annotator.experiment import CameraCalibration
+from annotator.core.experiment import CameraCalibration
 
 # Tight enough that undistortion is exact to far below the detector's noise at 1080p.
 _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-10)

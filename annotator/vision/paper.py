@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from annotator.experiment import RigCamera
+from annotator.core.experiment import RigCamera
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom, camera_to_bundle, ippe_square
 
@@ -66,8 +66,7 @@ def marker_poses(det: Detections, room: MarkerRoom, cam: RigCamera) -> MarkerPos
 
 def select_poses(pos: np.ndarray, distance: np.ndarray, close: int, keep: int) -> np.ndarray:
     """Indices kept: the ``close`` nearest-marker poses, then greedily the ``keep`` most central."""
-    idx = np.argsort(distance, kind="stable")[:close]
-    idx = list(idx)
+    idx = [int(i) for i in np.argsort(distance, kind="stable")[:close]]
     while len(idx) > keep:
         p = pos[idx]
         worst = int(np.argmax(np.linalg.norm(p - p.mean(0), axis=1)))

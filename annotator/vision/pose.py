@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from annotator.experiment import CameraCalibration
+from annotator.core.experiment import CameraCalibration
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom, camera_to_bundle, ippe_square, pnp_to_camera
 from annotator.vision.lens import undistort_points

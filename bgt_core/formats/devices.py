@@ -5,9 +5,14 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, overload
 
 from bgt_core.formats._textio import finite, json_loads, read_text
 from bgt_core.wire import WireError, normalize_mac
+
+if TYPE_CHECKING:  # numpy only for the types: this module is stdlib only
+    import numpy as np
+    from numpy.typing import NDArray
 
 
 class SiteConfigError(ValueError):
@@ -89,7 +94,13 @@ class MapParams:
     direction: tuple[int, int, int, int]  # a, b, sx, sy
     parity: float  # metres per pixel
 
-    def world_to_pixel(self, x, y):
+    @overload
+    def world_to_pixel(self, x: float, y: float) -> tuple[float, float]: ...
+    @overload
+    def world_to_pixel(self, x: NDArray[np.float64],
+                       y: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    def world_to_pixel(self, x: Any, y: Any) -> tuple[Any, Any]:
         """World metres -> map pixels (works on numbers or numpy arrays)."""
         a, b, sx, sy = self.direction
         p = (x, y)
@@ -127,9 +138,9 @@ def devices_from_obj(dongles: object, beacons: object, source: str = "<devices>"
     return Devices(_devices(dongles, f"{source}: Dongles"), _devices(beacons, f"{source}: Beacons"))
 
 
-def devices_to_obj(devices: Devices) -> tuple[dict[str, list], dict[str, list]]:
+def devices_to_obj(devices: Devices) -> tuple[dict[str, list[Any]], dict[str, list[Any]]]:
     """The inverse of :func:`devices_from_obj`: ``{mac: [[x, y, z], colour, alias]}`` per kind."""
-    def kind(ds: dict[str, Device]) -> dict[str, list]:
+    def kind(ds: dict[str, Device]) -> dict[str, list[Any]]:
         return {d.mac: [list(d.position), d.colour, d.alias] for d in ds.values()}
 
     return kind(devices.dongles), kind(devices.beacons)

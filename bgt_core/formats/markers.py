@@ -7,6 +7,7 @@ Standard library only: rotations are returned as nested lists; the annotator con
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +23,14 @@ class MarkerPose:
     id: int
     position: tuple[float, float, float]  # marker centre, world frame, metres
     euler_xyz: tuple[float, float, float]  # rx, ry, rz radians (R = Rz Ry Rx)
+
+    @classmethod
+    def from_values(cls, mid: int, position: Iterable[float],
+                    euler_xyz: Iterable[float]) -> MarkerPose:
+        """From any three numbers each (numpy rows, lists) as floats; ValueError unless three."""
+        x, y, z = (float(v) for v in position)
+        rx, ry, rz = (float(v) for v in euler_xyz)
+        return cls(int(mid), (x, y, z), (rx, ry, rz))
 
 
 _LINE = re.compile(r"^\s*(\d+)\s*:\s*(\[[^\]]*\])\s*:\s*(\[[^\]]*\])\s*$")
@@ -45,10 +54,10 @@ def _triple(value: object, what: str, limit: float) -> tuple[float, float, float
         value = json_loads(value)
     if not (isinstance(value, list) and len(value) == 3):
         raise ValueError(f"{what} must be three numbers")
-    out = tuple(finite(a, what) for a in value)
-    if any(abs(a) > limit for a in out):
-        raise ValueError(f"{what} {list(out)}: values beyond ±{limit:g}")
-    return out  # type: ignore[return-value]
+    x, y, z = (finite(a, what) for a in value)
+    if any(abs(a) > limit for a in (x, y, z)):
+        raise ValueError(f"{what} {[x, y, z]}: values beyond ±{limit:g}")
+    return x, y, z
 
 
 def _pose(mid: int, position: object, rotation: object, rotation_name: str) -> MarkerPose:

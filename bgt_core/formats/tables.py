@@ -103,7 +103,8 @@ def rotation_problems(r: np.ndarray, tol: float = ROTATION_TOLERANCE) -> np.ndar
     r = np.asarray(r, dtype=float).reshape(-1, 3, 3)
     ortho = np.abs(np.einsum("nji,njk->nik", r, r) - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(r)
-    return ~((ortho <= tol) & (np.abs(det - 1.0) <= tol))
+    ok: np.ndarray = (ortho <= tol) & (np.abs(det - 1.0) <= tol)
+    return ~ok
 
 
 def write_track_mbd(df: pd.DataFrame, path: str | Path, *,
@@ -184,7 +185,7 @@ def hst_to_frame(h: FingerprintHistograms) -> pd.DataFrame:
 
 def hst_from_frame(df: pd.DataFrame, bins: Iterable[float], devices: Devices) -> FingerprintHistograms:
     """Inverse of :func:`hst_to_frame` (rows of one histogram must be in bin order)."""
-    table: dict = {}
+    table: dict[Iterable[float], dict[str, dict[str, Iterable[float]]]] = {}
     for (x, y, z, s, b), g in df.groupby(["x", "y", "z", "sensor", "beacon"], sort=False):
         table.setdefault((x, y, z), {}).setdefault(s, {})[b] = g.sort_values("rssi_lo")["p"].to_numpy()
     return histograms_from_mapping(bins, devices, table)

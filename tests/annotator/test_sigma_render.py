@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _track_helpers import errors_against_truth
 from typer.testing import CliRunner
 
 from annotator.cli import app
-from annotator.evaluate import compare_to_truth
-from annotator.trajectory_io import POSE_COLUMNS, read_trajectory
+from annotator.core.evaluate import compare_to_truth
+from annotator.io.trajectory import POSE_COLUMNS, read_trajectory
+from track_helpers import errors_against_truth
 
 pytestmark = pytest.mark.slow
 PARTS = ("sigma_smoother_m", "sigma_params_m", "sigma_blur_m", "sigma_unmodelled_m")

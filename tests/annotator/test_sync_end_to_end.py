@@ -14,7 +14,8 @@ from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from annotator.cli import app
-from annotator.experiment import load_experiment
+from annotator.commands.run import write_run_outputs
+from annotator.io.experiment import load_experiment
 from annotator.pipeline import RunSettings, run_experiment
 from annotator.render import LoopTrajectory, render_experiment
 from bgt_core.formats.devices import read_dev
@@ -78,7 +79,8 @@ def rendered(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_auto_sync_run_labels_readings_with_centimetre_error(rendered: Path, tmp_path: Path) -> None:
     exp = load_experiment(rendered / "experiment.yaml")
-    result = run_experiment(exp, tmp_path / "out", RunSettings())
+    result = run_experiment(exp, RunSettings())
+    write_run_outputs(tmp_path / "out", exp, result)
     truth_start = {"front": T0, "back": T0 + START_OFFSET}
 
     # Sync: each camera's start within a few ms, with an honest uncertainty.

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _track_helpers import errors_against_truth
 from typer.testing import CliRunner
 
 from annotator.cli import app
-from annotator.trajectory_io import read_trajectory
+from annotator.io.trajectory import read_trajectory
+from track_helpers import errors_against_truth
 
 pytestmark = pytest.mark.slow
 T0 = 1_700_000_000.0

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 import yaml
-from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
 from bgt_core.formats.mbd import iter_rows
 from collector.client import CollectorClient
 from collector.errors import CollectorError
+from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
 COLLECTOR = [sys.executable, "-m", "collector.cli"]
 SENSOR_AGENT = Path(sys.executable).with_name("sensor-agent")

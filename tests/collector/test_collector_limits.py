@@ -10,8 +10,6 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from collector_helpers import FakeAgent, expected_lines, make_batch, run_yaml_doc, wait_for
-from flood_harness import HONEST, FloodOutcome, flood_mac, make_site_pki, run_flood
 
 from bgt_core import wire
 from collector.config import CollectorConfig, Limits
@@ -19,13 +17,17 @@ from collector.inbox import ByteQueue
 from collector.ingest import StreamTracker
 from collector.service import Collector
 from collector.store import RunWriter
+from collector_helpers import (
+    FakeAgent,
+    expected_lines,
+    make_batch,
+    run_yaml_doc,
+    wait_for,
+    with_floor,
+)
+from flood_harness import HONEST, FloodOutcome, flood_mac, make_site_pki, run_flood
 
 A, B = "b827eb4521b4", "000000000101"
-
-
-def with_floor(batch: wire.Batch, floor: int) -> wire.Batch:
-    return wire.Batch(batch.agent_id, batch.boot_id, batch.sensor, batch.seq, batch.readings,
-                      batch.sent_ns, floor)
 
 
 def flood_macs(n: int) -> list[str]:
@@ -243,7 +245,7 @@ def test_a_zenoh_session_refuses_messages_over_the_limit() -> None:
 
 
 # -- separate processes over mutual TLS: `collector serve`, two honest agents, one flooder ---------
-# (tests/collector/flood_harness.py; bench/collector_floods.py prints the same floods' figures)
+# (tests/support/flood_harness.py; bench/collector_floods.py prints the same floods' figures)
 
 
 @pytest.fixture(scope="module")

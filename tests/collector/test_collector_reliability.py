@@ -11,12 +11,10 @@ import re
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 import yaml
-from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
 from bgt_core import wire
 from bgt_core.messages import Ack, ClockReply, ClockSample
@@ -27,32 +25,18 @@ from collector.errors import CollectorError, CommandFailed, ConfigError
 from collector.ingest import StreamTracker, decode
 from collector.service import Collector
 from collector.store import STATE_FILE, RunWriter, repair_file
+from collector_helpers import (
+    FakeAgent,
+    expected_lines,
+    make_batch,
+    resend_until_acked,
+    wait_for,
+    with_floor,
+)
 
 A, B = "b827eb4521b4", "000000000101"
 S = ("pi-01", "0123456789abcdef", A)
 BOOT_OLD, BOOT_NEW = "aaaaaaaaaaaaaaaa", "bbbbbbbbbbbbbbbb"
-
-
-def with_floor(batch: wire.Batch, floor: int) -> wire.Batch:
-    return wire.Batch(batch.agent_id, batch.boot_id, batch.sensor, batch.seq, batch.readings,
-                      batch.sent_ns, floor)
-
-
-def resend_until_acked(ag: FakeAgent, batches: list[wire.Batch], timeout: float = 30.0) -> None:
-    """What an agent's spool does: re-send every unacknowledged batch now and then until all
-    are acknowledged (its session reconnects to a restarted router on its own, after a while)."""
-    sensor, last = batches[0].sensor, batches[-1].seq
-    end = time.monotonic() + timeout
-    while ag.acked(sensor) < last:
-        assert time.monotonic() < end, f"acks stuck at {ag.acked(sensor)} of {last}"
-        acked = ag.acked(sensor)
-        for b in batches:
-            if b.seq > acked:
-                ag.put(b)
-        try:
-            wait_for(lambda: ag.acked(sensor) == last, timeout=1.0)
-        except AssertionError:
-            pass
 
 
 def lines(run_dir, sensor, agent: str = "pi-01") -> list[str]:

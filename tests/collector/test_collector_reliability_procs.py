@@ -14,14 +14,20 @@ from pathlib import Path
 
 import pytest
 import yaml
-from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
-from test_collector_reliability import resend_until_acked, with_floor
 
 from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
 from collector.service import Collector
 from collector.store import STATE_FILE
+from collector_helpers import (
+    FakeAgent,
+    expected_lines,
+    make_batch,
+    resend_until_acked,
+    wait_for,
+    with_floor,
+)
 
 A = "b827eb4521b4"
 

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import pytest
 import yaml
-from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
 from bgt_core import wire
 from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import CollectorError, CommandFailed, Unreachable
 from collector.service import Collector
+from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
 A, B = "b827eb4521b4", "000000000101"
 

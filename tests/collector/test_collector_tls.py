@@ -8,13 +8,13 @@ import json
 from pathlib import Path
 
 import pytest
-from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 
 from bgt_core.zenoh_config import TlsFiles
 from collector.client import CollectorClient
 from collector.config import CollectorConfig
 from collector.errors import Unreachable
 from collector.service import Collector
+from collector_helpers import FakeAgent, expected_lines, make_batch, wait_for
 from deploy import pki
 from deploy.acl import build_acl
 from loopback import free_port
@@ -70,9 +70,8 @@ def test_capture_over_mtls_with_the_generated_acl(tmp_path, site_pki) -> None:
 def test_an_agent_cannot_write_into_another_agents_file_or_metadata(tmp_path, site_pki) -> None:
     """pi-01 (a valid certificate, within its own keys) publishes with pi-02's adapter MAC and
     answers status queries claiming to be pi-02: pi-02's file and run.yaml entry stay its own."""
-    from collector_helpers import run_yaml_doc
-
     from bgt_core import wire
+    from collector_helpers import run_yaml_doc
 
     endpoint = f"tls/127.0.0.1:{free_port()}"
     acl = tmp_path / "acl.json5"

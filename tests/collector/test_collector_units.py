@@ -8,7 +8,6 @@ import struct
 
 import pytest
 import yaml
-from collector_helpers import make_batch
 
 from bgt_core import wire
 from bgt_core.formats.mbd import format_row, iter_rows
@@ -17,6 +16,7 @@ from collector.config import CollectorConfig, load_config
 from collector.errors import CollectorError, ConfigError
 from collector.ingest import RejectCounter, StreamTracker, decode, format_rows, reject_reason
 from collector.store import RunWriter, clean_name, list_runs, make_run_id
+from collector_helpers import make_batch
 
 # -- decode ------------------------------------------------------------------------------------
 

@@ -6,9 +6,9 @@ import datetime as dt
 from pathlib import Path
 
 import pytest
-from deploy_helpers import AGENTS
 
 from deploy import pki
+from deploy_helpers import AGENTS
 
 
 @pytest.fixture(scope="session")

@@ -10,7 +10,6 @@ from pathlib import Path
 import pytest
 import yaml
 import zenoh
-from deploy_helpers import ADMINS, free_port, wait_until
 from typer.testing import CliRunner
 
 from bgt_core import wire
@@ -18,6 +17,7 @@ from bgt_core.zenoh_config import SessionSpec, TlsFiles, build_config
 from collector.fleet import app, query_fleet
 from deploy.acl import build_acl
 from deploy.inventory import InventoryError, load_inventory
+from deploy_helpers import ADMINS, free_port, wait_until
 
 SITE = "default"
 OFFSETS_MS = {"a1": 250.0, "a2": -1200.0}

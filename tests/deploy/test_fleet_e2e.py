@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+
 from deploy_helpers import free_port, wait_until
 
 REPO = Path(__file__).resolve().parents[2]

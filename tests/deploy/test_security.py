@@ -14,13 +14,13 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from deploy_helpers import ADMINS, AGENTS, free_port, wait_until
 from zenoh import ext
 
 from bgt_core import wire
 from bgt_core.zenoh_config import SessionSpec, TlsFiles, build_config, load_acl
 from deploy import pki
 from deploy.acl import build_acl
+from deploy_helpers import ADMINS, AGENTS, free_port, wait_until
 
 SITE = "default"
 MAC1, MAC2 = "aabbccddee01", "aabbccddee02"

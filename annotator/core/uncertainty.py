@@ -1,0 +1,636 @@
+"""How good each pose is: the parts of a trajectory row's ``sigma_m`` beyond the smoother's noise.
+
+The smoother treats every frame's corner noise as independent, so its sigma shrinks as frames
+are averaged. Errors of the static inputs (marker map, rig, intrinsics, rolling-shutter readout)
+do not average out: a marker surveyed 1.5 cm off moves every frame that sees it the same way.
+This module propagates the parameters' covariance into each pose, linearised per frame:
+
+    pose error  d = -(J^T W J)^-1 J^T W B dtheta,   Cov(d) = A Sigma A^T,  A = (J^T W J)^-1 J^T W B
+
+with J the corners' pixel residuals' Jacobian w.r.t. the bundle pose (world-frame rotation,
+position), B their Jacobian w.r.t. the parameters (analytic for markers and rig, numeric for the
+intrinsics, from the bundle's motion for the readout) and W the robust weights, all at the
+smoothed pose. Parameter errors stay correlated from frame to frame, so the smoothed pose keeps
+them: each row's parameter variance is a short kernel average of its neighbours' (an upper bound
+of the variance of the averaged pose).
+
+``scale_priors``: the stated priors may be too pessimistic or too optimistic. The residuals left
+after a per-frame fit measure the part of the parameter errors that the frame sees as
+inconsistency between markers and cameras; a regression of their energy on the corner noise and
+on each block's predicted energy over the whole capture gives each block a scale. The upper end
+of its 2-sigma confidence range is used (never below ``min_scale``, never above ``max_scale``),
+so a block the capture cannot check keeps its prior.
+
+Motion blur: the smear of a frame is the corners' image speed (from the smoothed motion) times
+the exposure; frames smearing more than ``max_smear_px`` are down-weighted (dropped beyond three
+times that). The time within the exposure at which the detector places a smeared corner is
+unknown: ``sigma_blur_m`` = speed x exposure / sqrt(12).
+
+``sigma_unmodelled_m`` is a floor for what no model here covers (the detector's corner bias on
+small markers, the renderer's or a real lens's residual distortion), added in quadrature.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+from scipy.linalg import block_diag
+from scipy.optimize import nnls
+from scipy.spatial.transform import Rotation
+
+from annotator.core.experiment import CameraCalibration, Experiment
+from annotator.core.priors import ParameterCovariance
+from annotator.vision.geometry import MarkerRoom, marker_corners_local
+from annotator.vision.lens import undistort_points
+
+if TYPE_CHECKING:
+    from annotator.vision.detection import Detections
+
+log = logging.getLogger(__name__)
+
+BLOCKS = ("markers", "rig", "intrinsics", "readout")
+
+
+class VideoFrames(Protocol):
+    """What this module reads of one camera's frames (the pipeline's CameraFrames)."""
+
+    @property
+    def camera(self) -> str: ...
+    @property
+    def t(self) -> np.ndarray: ...  # (N,) wall-clock seconds
+    @property
+    def detections(self) -> Sequence[Detections]: ...
+    @property
+    def frame_interval(self) -> float: ...
+
+
+class VideoClock(Protocol):
+    """What :func:`sync_time_sigma` reads of a camera's clock map (``annotator.core.sync.ClockMap``)."""
+
+    def to_video(self, t_rssi: np.ndarray | float) -> np.ndarray: ...
+    def sigma_at(self, pts: np.ndarray | float) -> np.ndarray: ...
+
+
+@dataclass(frozen=True, slots=True)
+class UncertaintySettings:
+    huber_px: float = 1.5  # robust weights of corner residuals at the smoothed pose
+    marker_gate_px: float = 3.0  # a marker whose RMS exceeds max(this, 4 x median) gets no weight
+    param_window_s: float = 0.05  # Gaussian kernel sigma of the per-row parameter variance average
+    scale_priors: bool = True  # check the priors against the residuals and rescale each block
+    min_scale: float = 0.02
+    max_scale: float = 4.0
+    max_smear_px: float = 10.0  # frames smearing more are down-weighted, beyond 3x dropped
+    unmodelled_m: float = 0.0015  # floor added in quadrature to every row's sigma
+    default_exposure_frac: float = 0.5  # exposure as a share of the frame interval when not calibrated
+
+
+@dataclass(frozen=True, eq=False)
+class RowUncertainty:
+    """Per trajectory row (NaN where there is no pose): the parts of sigma_m and the smear."""
+
+    params_var: np.ndarray  # (N, 4) per-axis position variance from each block (BLOCKS order), m^2
+    blur_m: np.ndarray  # (N,)
+    smear_px: np.ndarray  # (N,) median predicted corner smear over the cameras' frames
+    scales: dict[str, float]  # the block scales applied (1 = the priors as stated)
+
+    @property
+    def params_m(self) -> np.ndarray:
+        return np.sqrt(self.params_var.sum(1))
+
+
+def parameter_covariance(exp: Experiment, params: ParameterCovariance | None = None) -> ParameterCovariance:
+    """``params`` if given (e.g. from refinement), else the experiment's priors."""
+    if params is not None:
+        return params
+    cams = {name: cam.calibration.camera_matrix for name, cam in exp.rig.cameras.items()}
+    return ParameterCovariance.from_priors(exp.priors, sorted(exp.markers.markers), cams)
+
+
+def _distortion(params: ParameterCovariance) -> dict[str, np.ndarray]:
+    """Distortion covariances per camera when the record has them (refinement), else none."""
+    return dict(getattr(params, "distortion", None) or {})
+
+
+def _readout(params: ParameterCovariance) -> dict[str, np.ndarray]:
+    """(1, 1) readout variances (s^2) per camera when the record has them (refinement), else none."""
+    return dict(getattr(params, "readout", None) or {})
+
+
+def _sqrt_psd(cov: np.ndarray) -> np.ndarray:
+    """A square root S of a covariance (S S^T = cov), tolerant of singular ones."""
+    vals, vecs = np.linalg.eigh(0.5 * (cov + cov.T))
+    return vecs * np.sqrt(np.maximum(vals, 0.0))[None, :]
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices: skew(a) @ b = a x b."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def trajectory_twist(t: np.ndarray, pos: np.ndarray, R: np.ndarray, h: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """World-frame angular velocity (rad/s) and velocity (m/s) at each row by central differences
+    over +-h (one-sided at a run's ends); NaN where the trajectory has no pose."""
+    ok = np.isfinite(pos).all(1) & np.isfinite(R).all((1, 2))
+    w = np.full((len(t), 3), np.nan)
+    v = np.full((len(t), 3), np.nan)
+    if ok.sum() < 2:
+        return w, v
+    tv, pv = t[ok], pos[ok]
+    rv = Rotation.from_matrix(R[ok])
+    i = np.flatnonzero(ok)
+    a = np.clip(np.searchsorted(tv, tv - h), 0, len(tv) - 1)
+    b = np.clip(np.searchsorted(tv, tv + h, side="right") - 1, 0, len(tv) - 1)
+    a = np.where(b > a, a, np.maximum(b - 1, 0))
+    b = np.where(b > a, b, np.minimum(a + 1, len(tv) - 1))
+    dt = tv[b] - tv[a]
+    good = (dt > 0) & (dt < 4 * h)
+    dt = np.where(good, dt, np.nan)
+    v[i] = (pv[b] - pv[a]) / dt[:, None]
+    w[i] = (rv[b] * rv[a].inv()).as_rotvec() / dt[:, None]
+    return w, v
+
+
+@dataclass(frozen=True, eq=False)
+class FrameView:
+    """One camera frame seen from the smoothed trajectory: the data for its Jacobians."""
+
+    camera: str
+    cal: CameraCalibration
+    R_bc: np.ndarray
+    t_bc: np.ndarray
+    ids: np.ndarray  # (n,)
+    pixels: np.ndarray  # (n, 4, 2) detected corners, distorted pixels
+    R_wb: np.ndarray  # bundle pose at the frame's own time
+    t_wb: np.ndarray
+    twist: np.ndarray  # (6,) world-frame (omega, velocity) at the frame's time
+
+
+def _undistort(cal: CameraCalibration, pixels: np.ndarray, K: np.ndarray | None = None) -> np.ndarray:
+    return undistort_points(cal if K is None else replace(cal, camera_matrix=K), pixels)
+
+
+@dataclass(frozen=True, eq=False)
+class _ViewBlock:
+    """One view's residuals and Jacobians (rows: its corners' x, y in order)."""
+
+    camera: str
+    r: np.ndarray  # (2m,)
+    J: np.ndarray  # (2m, 6)
+    markers: list[tuple[int, int, np.ndarray]]  # (marker id, first row, (8, 6) block) of mapped markers
+    Br: np.ndarray  # (2m, 6)
+    Bi: np.ndarray  # (2m, 4)
+    Bro: np.ndarray  # (2m,)
+    inner: np.ndarray  # (n,) per marker: residual energy left after its own rigid motion
+    speed: np.ndarray  # (m,) image speed, px/s
+    n_markers: int
+
+
+def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> _ViewBlock | None:
+    idx = room.index(v.ids)
+    keep = idx >= 0
+    if not keep.any():
+        return None
+    ids, pix, idx = v.ids[keep], v.pixels[keep], idx[keep]
+    bias = float(getattr(v.cal, "corner_bias_px", 0.0) or 0.0)
+    if bias:  # a refined detector corner bias: each corner back along its square's diagonal
+        d_c = pix - pix.mean(axis=1, keepdims=True)
+        pix = pix - bias * d_c / np.maximum(np.linalg.norm(d_c, axis=2, keepdims=True), 1e-9)
+    K = v.cal.camera_matrix
+    focal = float(np.sqrt(K[0, 0] * K[1, 1]))
+    xn = _undistort(v.cal, pix).reshape(-1, 2)
+    Xw = room.corners_world[idx].reshape(-1, 3)
+    d = Xw - v.t_wb
+    e = d @ v.R_wb - v.t_bc  # bundle frame, from the camera centre
+    Xc = e @ v.R_bc
+    z = Xc[:, 2]
+    if np.any(z <= 1e-6):
+        return None
+    proj = Xc[:, :2] / z[:, None]
+    m = len(z)
+    dp = np.zeros((m, 2, 3))
+    dp[:, 0, 0] = 1 / z
+    dp[:, 1, 1] = 1 / z
+    dp[:, :, 2] = -proj / z[:, None]
+    b_cam = focal * dp @ v.R_bc.T  # d pixels / d bundle-frame point
+    a = b_cam @ v.R_wb.T  # d pixels / d world point
+    J = np.concatenate([a @ _skew(d), -a], axis=2)  # world-frame rotation, then position
+    r = focal * (proj - xn)
+    # Markers: corner = exp(w) (c - centre) + centre + dp -> d corner = -skew(c - centre) w + dp.
+    rel = np.einsum("mij,kj->mki", room.R_world_marker[idx], marker_corners_local(room.length)).reshape(-1, 3)
+    Bm = np.concatenate([-a @ _skew(rel), a], axis=2)  # (m, 2, 6)
+    # Corner noise: what is left of each square's residual after its own rigid motion (the map
+    # error of one marker is exactly such a motion): 2 of its 8 degrees of freedom.
+    Mk = Bm.reshape(len(ids), 8, 6)
+    rk = r.reshape(len(ids), 8)
+    G = np.einsum("kij,kil->kjl", Mk, Mk) + 1e-9 * np.eye(6)
+    xk = np.linalg.solve(G, np.einsum("kij,ki->kj", Mk, rk)[..., None])[..., 0]
+    inner = np.sum((rk - np.einsum("kij,kj->ki", Mk, xk)) ** 2, axis=1)
+    markers = [(int(mid), 8 * k, Mk[k]) for k, mid in enumerate(ids) if int(mid) in params.markers]
+    # Rig: R_bc = exp(w) R_bc0, t_bc + dt -> the corner moves by skew(e) w - dt in the camera's eyes.
+    Br = np.concatenate([b_cam @ _skew(e), -b_cam], axis=2).reshape(-1, 6)
+    # Intrinsics (and distortion, when the record has it): the observation moves;
+    # r = focal (proj - xn) -> dr = -focal dxn.
+    dist_cov = _distortion(params).get(v.camera)
+    nd = 0 if dist_cov is None else len(dist_cov)
+    Bi = np.zeros((2 * m, 4 + nd))
+    if v.camera in params.intrinsics:
+        steps = np.sqrt(np.maximum(np.diag(params.intrinsics[v.camera]), 1e-12)) * 0.1
+        for j, at in enumerate(((0, 0), (1, 1), (0, 2), (1, 2))):
+            Kp, Km = K.copy(), K.copy()
+            Kp[at] += steps[j]
+            Km[at] -= steps[j]
+            dxn = (_undistort(v.cal, pix, Kp) - _undistort(v.cal, pix, Km)).reshape(-1, 2) / (2 * steps[j])
+            Bi[:, j] = -focal * dxn.ravel()
+    if dist_cov is not None and nd:
+        steps = np.sqrt(np.maximum(np.diag(dist_cov), 1e-12)) * 0.1
+        for j in range(min(nd, len(v.cal.dist_coeffs))):
+            dp_, dm_ = v.cal.dist_coeffs.astype(float), v.cal.dist_coeffs.astype(float)
+            dp_[j] += steps[j]
+            dm_[j] -= steps[j]
+            xp = undistort_points(replace(v.cal, dist_coeffs=dp_), pix)
+            xm = undistort_points(replace(v.cal, dist_coeffs=dm_), pix)
+            Bi[:, 4 + j] = -focal * ((xp - xm).reshape(-1, 2) / (2 * steps[j])).ravel()
+    # Readout: row v is seen readout * v / H later; dr/dreadout = -J twist * v / H.
+    img_vel = J @ v.twist  # (m, 2) pixels per second
+    rows_frac = pix.reshape(-1, 2)[:, 1] / v.cal.height
+    Bro = -(img_vel * rows_frac[:, None]).reshape(-1)
+    return _ViewBlock(v.camera, r.reshape(-1), J.reshape(-1, 6), markers, Br, Bi, Bro, inner,
+                      np.linalg.norm(img_vel, axis=1), len(ids))
+
+
+@dataclass(frozen=True, eq=False)
+class FrameJacobians:
+    """Residuals, weights and the pose / parameter Jacobians of one output row's frames."""
+
+    r: np.ndarray  # (m,) pixel residuals
+    w: np.ndarray  # (m,) robust weights
+    J: np.ndarray  # (m, 6) w.r.t. the bundle pose
+    B: dict[str, np.ndarray]  # block -> (m, k) w.r.t. the block's parameters
+    L: dict[str, np.ndarray]  # block -> (k, k) square root of the block's covariance
+    image_speed: np.ndarray  # (m/2,) px/s
+    noise2: float  # corner noise variance, px^2
+
+
+def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: ParameterCovariance,
+                    readout_sigma_s: float, settings: UncertaintySettings,
+                    cache: dict[int, _ViewBlock | None] | None = None) -> FrameJacobians | None:
+    """Residuals, weights and the pose / parameter Jacobians of one output row's frames.
+
+    Returns None without usable corners. ``cache`` keeps each view's blocks between the rows
+    that share it.
+    """
+    blocks = []
+    for v in views:
+        if cache is not None and id(v) in cache:
+            vb = cache[id(v)]
+        else:
+            vb = _view_block(v, room, params)
+            if cache is not None:
+                cache[id(v)] = vb
+        if vb is not None:
+            blocks.append(vb)
+    starts = np.cumsum([0] + [len(b.r) for b in blocks])
+    n0 = int(starts[-1])
+    if n0 < 8:
+        return None
+    r = np.concatenate([b.r for b in blocks])
+    J = np.concatenate([b.J for b in blocks])
+    # Robust weights: Huber on each corner, no weight for a marker far off the others.
+    corner_norm = np.linalg.norm(r.reshape(-1, 2), axis=1)
+    marker_of = np.repeat(np.arange(sum(b.n_markers for b in blocks)), 4)
+    n_mk = int(marker_of.max()) + 1
+    mk_rms = np.sqrt(np.bincount(marker_of, corner_norm ** 2, n_mk) / 4.0)
+    limit = max(settings.marker_gate_px, 4.0 * float(np.median(mk_rms)))
+    wc = np.where(corner_norm <= settings.huber_px, 1.0, settings.huber_px / np.maximum(corner_norm, 1e-12))
+    good_mk = mk_rms <= limit
+    wc = wc * good_mk[marker_of]
+    e_inner = np.concatenate([b.inner for b in blocks])[good_mk]
+    w = np.repeat(wc, 2)
+    B: dict[str, np.ndarray] = {}
+    L: dict[str, np.ndarray] = {}
+    mids = sorted({mid for b in blocks for mid, _, _ in b.markers})
+    if mids:
+        col = {mid: c for c, mid in enumerate(mids)}
+        Bmk = np.zeros((n0, 6 * len(mids)))
+        for b, a0 in zip(blocks, starts, strict=False):
+            for mid, first, blk in b.markers:
+                Bmk[a0 + first:a0 + first + 8, 6 * col[mid]:6 * col[mid] + 6] = blk
+        B["markers"] = Bmk
+        L["markers"] = block_diag(*[_sqrt_psd(params.markers[mid]) for mid in mids])
+    cams = sorted({b.camera for b in blocks})
+    Brig = np.zeros((n0, 6 * len(cams)))
+    width = {c: next(b.Bi.shape[1] for b in blocks if b.camera == c) for c in cams}
+    col0 = dict(zip(cams, np.cumsum([0] + [width[c] for c in cams])[:-1], strict=True))
+    Bint = np.zeros((n0, sum(width.values())))
+    readouts = _readout(params)
+    Bro = np.zeros((n0, len(cams) if readouts else 1))
+    for b, a0 in zip(blocks, starts, strict=False):
+        c = cams.index(b.camera)
+        a1 = a0 + len(b.r)
+        Brig[a0:a1, 6 * c:6 * c + 6] = b.Br
+        Bint[a0:a1, col0[b.camera]:col0[b.camera] + width[b.camera]] = b.Bi
+        Bro[a0:a1, c if readouts else 0] = b.Bro
+    B["rig"] = Brig
+    L["rig"] = block_diag(*[_sqrt_psd(params.rig[c]) if c in params.rig else np.zeros((6, 6)) for c in cams])
+    B["intrinsics"] = Bint
+    dist = _distortion(params)
+    L["intrinsics"] = block_diag(*[block_diag(_sqrt_psd(params.intrinsics[c]) if c in params.intrinsics
+                                              else np.zeros((4, 4)),
+                                              _sqrt_psd(dist[c]) if width[c] > 4 else np.zeros((0, 0)))
+                                   for c in cams])
+    # Readout: refined per camera when the record has it; otherwise one error shared by all
+    # cameras (a rig's cameras are usually the same model, their readout unknown alike).
+    B["readout"] = Bro
+    L["readout"] = (np.diag([math.sqrt(float(np.ravel(readouts[c])[0])) if c in readouts else 0.0 for c in cams])
+                    if readouts else np.array([[readout_sigma_s]]))
+    speeds = np.concatenate([b.speed for b in blocks])
+    return FrameJacobians(r, w, J, B, L, speeds, float(e_inner.sum()) / max(2 * len(e_inner), 1))
+
+
+def propagate(jac: FrameJacobians) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+    """(4,) per-axis position variance per block, (4,) predicted residual energy per block, the
+    observed residual energy after a per-frame fit beyond the corner noise's share, and the noise's
+    degrees of freedom."""
+    r, w, J = jac.r, jac.w, jac.J
+    sw = np.sqrt(w)
+    Jw = J * sw[:, None]
+    H = Jw.T @ Jw
+    try:
+        Hinv = np.linalg.inv(H + 1e-12 * np.eye(6))
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(Hinv)):
+        return None
+    rw = r * sw
+    proj = Jw @ (Hinv @ (Jw.T @ rw))
+    e_obs = float(np.sum((rw - proj) ** 2))
+    dof = float(np.sum(w) - 6)
+    var = np.zeros(4)
+    q = np.zeros(4)
+    for k, name in enumerate(BLOCKS):
+        Bk = jac.B.get(name)
+        if Bk is None or Bk.shape[1] == 0:
+            continue
+        BL = (Bk * sw[:, None]) @ jac.L[name]
+        A = Hinv @ (Jw.T @ BL)  # (6, k) pose change per unit-sigma parameter
+        var[k] = float(np.sum(A[3:] ** 2)) / 3
+        resid = BL - Jw @ A
+        q[k] = float(np.sum(resid ** 2))
+    return var, q, e_obs - jac.noise2 * dof, dof
+
+
+def _views_at(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
+              omega: np.ndarray, vel: np.ndarray) -> list[list[FrameView]]:
+    """Each output row's frames (every camera's frame within half a frame), each at its own pose."""
+    rows: list[list[FrameView]] = [[] for _ in t_out]
+    ok = np.isfinite(pos).all(1) & np.isfinite(R).all((1, 2))
+    for cf in frames:
+        cam = exp.rig.cameras[cf.camera]
+        times = np.asarray(cf.t, float)
+        half = 0.5 * float(cf.frame_interval)
+        at = np.clip(np.searchsorted(t_out, times), 0, len(t_out) - 1)
+        exact = np.abs(t_out[at] - times) < 1e-6
+        for j in np.flatnonzero(exact):
+            k = at[j]
+            det = cf.detections[int(j)]
+            if not ok[k] or not len(det.ids) or not np.isfinite(vel[k]).all():
+                continue
+            view = FrameView(cf.camera, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera,
+                             np.asarray(det.ids), np.asarray(det.corners, float).reshape(-1, 4, 2), R[k], pos[k],
+                             np.concatenate([omega[k], vel[k]]))
+            lo = np.searchsorted(t_out, times[j] - half)
+            hi = np.searchsorted(t_out, times[j] + half, side="right")
+            for kk in range(lo, hi):
+                rows[kk].append(view)
+    return rows
+
+
+def _scales(var: np.ndarray, q: np.ndarray, e: np.ndarray, dof: np.ndarray,
+            settings: UncertaintySettings, shrink: bool = True) -> dict[str, float]:
+    """Each block's scale from the residual energy of the whole capture.
+
+    Regression over the rows: e = c dof + sum_b s_b^2 q_b (e: energy beyond the within-marker
+    noise; c: corner noise the within-marker estimate misses, correlated over a square). A block
+    is shrunk to the upper end of its 2-sigma range when that is below 1 (the capture rules its
+    prior out); a block the capture cannot check keeps its prior. Then, if the residuals still
+    hold significantly more than the (shrunk) priors predict, every block is inflated by the
+    lower end of that common factor's 2-sigma range (the priors were optimistic, or something
+    unmodelled moves the corners).
+    ``shrink`` False (a posterior covariance, e.g. from refinement: its parameters were fitted to these
+    same residuals, which therefore no longer show their errors): blocks are never scaled down.
+    """
+    out = {b: 1.0 for b in BLOCKS}
+    use = np.isfinite(e) & (dof > 2) & np.isfinite(q).all(1)
+    if not settings.scale_priors or use.sum() < 20:
+        return out
+    wt = 1.0 / np.maximum(dof[use], 1.0)  # rows differ a lot in corner count
+
+    def fit(cols: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        X = np.column_stack(cols) * wt[:, None]
+        y = e[use] * wt
+        coef, _ = nnls(X, y)
+        res = y - X @ coef
+        s2 = float(res @ res) / max(len(y) - X.shape[1], 1)
+        return coef, np.sqrt(np.maximum(np.diag(s2 * np.linalg.pinv(X.T @ X)), 0.0))
+
+    ks = [k for k in range(4) if q[use, k].sum() > 0]
+    coef, se = fit([dof[use]] + [q[use, k] for k in ks])
+    for c, k in enumerate(ks, 1):
+        upper = coef[c] + 2.0 * se[c]
+        if shrink:
+            out[BLOCKS[k]] = float(np.clip(math.sqrt(max(upper, 0.0)), settings.min_scale, 1.0))
+    shrunk = q[use] @ np.array([out[b] ** 2 for b in BLOCKS])
+    coef2, se2 = fit([dof[use], shrunk])
+    lower = coef2[1] - 2.0 * se2[1]
+    inflate = float(np.clip(math.sqrt(max(lower, 1.0)), 1.0, settings.max_scale))
+    out = {b: v * inflate for b, v in out.items()}
+    log.debug("scale^2 regression: %s; common factor^2 %.3g +- %.2g",
+              ", ".join(f"{BLOCKS[k]} {coef[c]:.3g} +- {se[c]:.2g}" for c, k in enumerate(ks, 1)), coef2[1], se2[1])
+    log.info("prior scales from the residuals: %s", ", ".join(f"{b} {v:.2f}" for b, v in out.items()))
+    return out
+
+
+def row_uncertainty(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
+                    params: ParameterCovariance | None = None,
+                    settings: UncertaintySettings | None = None) -> RowUncertainty:
+    """Parameter, blur and smear figures of every trajectory row (pose of the smoothed trajectory).
+
+    ``params`` None: the experiment's priors, checked against the capture's residuals (see
+    ``_scales``); given: a posterior (refinement), only ever scaled up by that check.
+
+    ``frames`` are the pipeline's CameraFrames (camera, t, detections, frame_interval).
+    """
+    s = settings or UncertaintySettings()
+    pc = parameter_covariance(exp, params)
+    readout_sigma = exp.priors.readout_sigma_s  # shared by the cameras unless the record has its own
+    room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
+    n = len(t_out)
+    omega, vel = trajectory_twist(t_out, pos, R)
+    views = _views_at(frames, exp, t_out, pos, R, omega, vel)
+    var = np.full((n, 4), np.nan)
+    q = np.full((n, 4), np.nan)
+    e = np.full(n, np.nan)
+    dof = np.full(n, np.nan)
+    smear = np.full(n, np.nan)
+    exposure = _exposures(frames, exp, s)
+    cache: dict[int, _ViewBlock | None] = {}
+    for k in range(n):
+        if not views[k]:
+            continue
+        jac = frame_jacobians(views[k], room, pc, readout_sigma, s, cache)
+        if jac is None:
+            continue
+        out = propagate(jac)
+        if out is None:
+            continue
+        var[k], q[k], e[k], dof[k] = out
+        smear[k] = float(np.median(jac.image_speed)) * max(exposure[v.camera] for v in views[k])
+    scales = _scales(var, q, e, dof, s, shrink=params is None)
+    var = var * np.array([scales[b] ** 2 for b in BLOCKS])[None, :]
+    if log.isEnabledFor(logging.DEBUG) and np.isfinite(var).any():
+        med = np.sqrt(np.nanmedian(var, axis=0))
+        log.debug("median per-axis sigma by block (mm): %s",
+                  ", ".join(f"{b} {1e3 * v:.2f}" for b, v in zip(BLOCKS, med, strict=True)))
+    var = _kernel_average(t_out, var, s.param_window_s)
+    speed = np.linalg.norm(vel, axis=1)
+    exp_row = max(exposure.values()) if exposure else 0.0
+    blur = speed * exp_row / math.sqrt(12.0)
+    valid = np.isfinite(pos).all(1)
+    # A posed row whose own frames gave no Jacobian (e.g. bridged gap) takes its neighbours' values.
+    var[valid & ~np.isfinite(var).all(1)] = np.nan
+    var = _fill_nearest(t_out, var, valid)
+    var[~valid] = np.nan
+    blur[~valid] = np.nan
+    return RowUncertainty(var, blur, smear, scales)
+
+
+def _kernel_average(t: np.ndarray, x: np.ndarray, h: float) -> np.ndarray:
+    """Gaussian-weighted average over +-3h of the finite rows of x (N, k)."""
+    ok = np.isfinite(x).all(1)
+    out = np.full_like(x, np.nan)
+    if not ok.any() or h <= 0:
+        return x.copy()
+    tv, xv = t[ok], x[ok]
+    lo = np.searchsorted(tv, t - 3 * h)
+    hi = np.searchsorted(tv, t + 3 * h, side="right")
+    for i in range(len(t)):
+        if hi[i] <= lo[i]:
+            continue
+        dt = tv[lo[i]:hi[i]] - t[i]
+        wk = np.exp(-0.5 * (dt / h) ** 2)
+        out[i] = wk @ xv[lo[i]:hi[i]] / wk.sum()
+    return out
+
+
+def _fill_nearest(t: np.ndarray, x: np.ndarray, want: np.ndarray) -> np.ndarray:
+    ok = np.isfinite(x).all(1)
+    if not ok.any():
+        return x
+    tv = t[ok]
+    need = want & ~ok
+    j = np.clip(np.searchsorted(tv, t[need]), 1, max(len(tv) - 1, 1))
+    j0 = np.clip(j - 1, 0, len(tv) - 1)
+    j1 = np.clip(j, 0, len(tv) - 1)
+    pick = np.where(np.abs(tv[j0] - t[need]) <= np.abs(tv[j1] - t[need]), j0, j1)
+    out = x.copy()
+    out[need] = x[ok][pick]
+    return out
+
+
+def row_smear(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
+              settings: UncertaintySettings | None = None) -> np.ndarray:
+    """Predicted corner smear (px) of every row's frames: median image speed of the detected
+    corners under the trajectory's motion, times the exposure (worst camera of the row)."""
+    s = settings or UncertaintySettings()
+    room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
+    omega, vel = trajectory_twist(t_out, pos, R)
+    views = _views_at(frames, exp, t_out, pos, R, omega, vel)
+    exposure = _exposures(frames, exp, s)
+    out = np.full(len(t_out), np.nan)
+    for k, vs in enumerate(views):
+        worst = np.nan
+        for v in vs:
+            speed = image_speed(v, room)
+            if not len(speed):
+                continue
+            sm = float(np.median(speed)) * exposure[v.camera]
+            worst = sm if not np.isfinite(worst) else max(worst, sm)
+        out[k] = worst
+    return out
+
+
+def image_speed(view: FrameView, room: MarkerRoom) -> np.ndarray:
+    """Image speed (px/s) of each detected map corner of one frame under the view's motion."""
+    idx = room.index(view.ids)
+    if not (idx >= 0).any():
+        return np.zeros(0)
+    J, _ = _pose_jacobian(view, room.corners_world[idx[idx >= 0]].reshape(-1, 3))
+    return np.zeros(0) if J is None else np.linalg.norm(J @ view.twist, axis=1)
+
+
+def _exposures(frames: Sequence[VideoFrames], exp: Experiment, s: UncertaintySettings) -> dict[str, float]:
+    out = {}
+    for cf in frames:
+        cal = exp.rig.cameras[cf.camera].calibration
+        given = getattr(cal, "exposure_s", None)
+        out[cf.camera] = float(given) if given is not None else s.default_exposure_frac * float(cf.frame_interval)
+    return out
+
+
+def _pose_jacobian(v: FrameView, Xw: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """(m, 2, 6) pixel Jacobian of world points w.r.t. the bundle pose, and their projections."""
+    K = v.cal.camera_matrix
+    focal = float(np.sqrt(K[0, 0] * K[1, 1]))
+    d = Xw - v.t_wb
+    Xc = (d @ v.R_wb - v.t_bc) @ v.R_bc
+    z = Xc[:, 2]
+    if np.any(z <= 1e-6):
+        return None, np.zeros((0, 2))
+    proj = Xc[:, :2] / z[:, None]
+    dp = np.zeros((len(z), 2, 3))
+    dp[:, 0, 0] = 1 / z
+    dp[:, 1, 1] = 1 / z
+    dp[:, :, 2] = -proj / z[:, None]
+    a = focal * dp @ (v.R_bc.T @ v.R_wb.T)
+    return np.concatenate([a @ _skew(d), -a], axis=2), proj
+
+
+def smear_weights(smear_px: np.ndarray, max_smear_px: float) -> np.ndarray:
+    """Measurement covariance multiplier per frame: 1 up to max_smear_px, (smear/max)^2 beyond,
+    inf (dropped) beyond three times max_smear_px; NaN smear -> 1."""
+    sm = np.nan_to_num(np.asarray(smear_px, float), nan=0.0)
+    f = np.maximum(1.0, (sm / max_smear_px) ** 2)
+    return np.where(sm > 3 * max_smear_px, np.inf, f)
+
+
+def total_sigma(smoother_m: np.ndarray, u: RowUncertainty, settings: UncertaintySettings | None = None) -> dict[str, np.ndarray]:
+    """The trajectory's sigma columns: sigma_m (all parts in quadrature) and each part."""
+    s = settings or UncertaintySettings()
+    sm = np.asarray(smoother_m, float)
+    params = u.params_m
+    blur = np.nan_to_num(u.blur_m, nan=0.0)
+    floor = np.full(len(sm), s.unmodelled_m)
+    total = np.sqrt(sm ** 2 + np.nan_to_num(params, nan=0.0) ** 2 + blur ** 2 + floor ** 2)
+    total[~np.isfinite(sm)] = np.nan
+    out = {"sigma_m": total, "sigma_smoother_m": sm, "sigma_params_m": params, "sigma_blur_m": u.blur_m,
+           "sigma_unmodelled_m": np.where(np.isfinite(sm), floor, np.nan), "smear_px": u.smear_px}
+    return out
+
+
+def sync_time_sigma(clocks: Mapping[str, VideoClock], t_rssi: np.ndarray) -> np.ndarray:
+    """1-sigma uncertainty (s) of each RSSI time against the video clock: the worst camera's clock
+    map at that time (``annotator.core.sync.ClockMap.sigma_at``); 0 where no camera states one (manual
+    sync states none)."""
+    t = np.asarray(t_rssi, dtype=float)
+    out = np.zeros(t.shape)
+    for cm in clocks.values():
+        sig = np.asarray(cm.sigma_at(cm.to_video(t)), dtype=float)
+        out = np.fmax(out, np.broadcast_to(sig, t.shape))
+    return out

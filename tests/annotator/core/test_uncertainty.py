@@ -1,0 +1,256 @@
+"""Propagated parameter uncertainty of a pose against the Monte-Carlo spread of real pose solves,
+and the motion-blur measure against the image speed of a known motion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from annotator.core.experiment import CameraCalibration
+from annotator.core.priors import ParameterCovariance, Priors
+from annotator.core.uncertainty import (
+    BLOCKS,
+    FrameView,
+    UncertaintySettings,
+    frame_jacobians,
+    image_speed,
+    propagate,
+    smear_weights,
+)
+from annotator.vision.detection import Detections
+from annotator.vision.geometry import MarkerRoom, marker_corners_local
+from annotator.vision.pose import observe, solve_bundle_pose
+from track_helpers import make_path, make_rig, make_room, project
+
+READOUT_SIGMA = 0.02
+
+
+def _scene(k: int = 7):
+    """Room, rig, and a pose where both cameras see several markers (exact corners)."""
+    room, rig = make_room(), make_rig()
+    _, pos, rot = make_path(200, 0.1)
+    for i in range(k, len(pos)):
+        R, p = rot[i].as_matrix(), pos[i]
+        dets = {n: project(room, cam, R, p) for n, cam in rig.items()}
+        if all(len(d.ids) >= 2 for d in dets.values()):
+            return room, rig, R, p, dets
+    raise AssertionError("no pose sees markers with both cameras")
+
+
+def _views(room, rig, R, p, dets, twist=None):
+    twist = np.zeros(6) if twist is None else twist
+    return [FrameView(n, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera, dets[n].ids,
+                      dets[n].corners, R, p, twist) for n, cam in rig.items()]
+
+
+def _params(room, rig) -> ParameterCovariance:
+    return ParameterCovariance.from_priors(Priors(), [int(i) for i in room.ids],
+                                           {n: c.calibration.camera_matrix for n, c in rig.items()})
+
+
+def _propagated(room, rig, R, p, dets, twist=None, params=None) -> dict[str, float]:
+    jac = frame_jacobians(_views(room, rig, R, p, dets, twist), room, params or _params(room, rig), READOUT_SIGMA,
+                          UncertaintySettings())
+    var, *_ = propagate(jac)
+    return dict(zip(BLOCKS, np.sqrt(var), strict=True))  # per-axis 1-sigma, m
+
+
+def _solve(room, rig, dets, R, p, cams=None, cals=None):
+    obs = []
+    for n, cam in rig.items():
+        R_bc, t_bc = (cam.R_bundle_camera, cam.t_bundle_camera) if cams is None else cams[n]
+        cal = cam.calibration if cals is None else cals[n]
+        obs.append(observe(dets[n], room, cal, R_bc, t_bc))
+    pose = solve_bundle_pose(obs, room, prior=(R, p))
+    assert pose is not None
+    return pose.t_wb
+
+
+def _per_axis(errors: list[np.ndarray]) -> float:
+    e = np.array(errors)
+    return float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)) / 3))
+
+
+def _perturbed_room(room: MarkerRoom, cov: dict[int, np.ndarray], rng: np.random.Generator) -> MarkerRoom:
+    Rs, ts = [], []
+    for i, mid in enumerate(room.ids):
+        d = rng.multivariate_normal(np.zeros(6), cov[int(mid)])
+        Rs.append(Rotation.from_rotvec(d[:3]).as_matrix() @ room.R_world_marker[i])
+        ts.append(room.t_world_marker[i] + d[3:])
+    R, t = np.array(Rs), np.array(ts)
+    corners = np.einsum("mij,kj->mki", R, marker_corners_local(room.length)) + t[:, None, :]
+    return MarkerRoom(room.ids, R, t, corners, room.length)
+
+
+N_DRAWS = 200
+
+
+def test_marker_map_sigma_matches_the_spread_of_solves():
+    room, rig, R, p, dets = _scene()
+    want = _propagated(room, rig, R, p, dets)["markers"]
+    rng = np.random.default_rng(1)
+    cov = _params(room, rig).markers
+    errs = [_solve(_perturbed_room(room, cov, rng), rig, dets, R, p) - p for _ in range(N_DRAWS)]
+    assert want == pytest.approx(_per_axis(errs), rel=0.2)
+    assert want > 0.002  # not vacuous: a 1 cm survey moves the pose by millimetres
+
+
+def test_rig_sigma_matches_the_spread_of_solves():
+    room, rig, R, p, dets = _scene()
+    want = _propagated(room, rig, R, p, dets)["rig"]
+    rng = np.random.default_rng(2)
+    cov = _params(room, rig).rig
+    errs = []
+    for _ in range(N_DRAWS):
+        cams = {}
+        for n, cam in rig.items():
+            d = rng.multivariate_normal(np.zeros(6), cov[n])
+            cams[n] = (Rotation.from_rotvec(d[:3]).as_matrix() @ cam.R_bundle_camera, cam.t_bundle_camera + d[3:])
+        errs.append(_solve(room, rig, dets, R, p, cams=cams) - p)
+    assert want == pytest.approx(_per_axis(errs), rel=0.2)
+    assert want > 0.002
+
+
+def test_intrinsics_sigma_matches_the_spread_of_solves():
+    """With fx and fy strongly correlated, as a calibration's are (a full covariance is used)."""
+    room, rig, R, p, dets = _scene()
+    base = _params(room, rig)
+    cov = {}
+    for n, c in base.intrinsics.items():
+        full = c.copy()
+        full[0, 1] = full[1, 0] = 0.95 * np.sqrt(c[0, 0] * c[1, 1])
+        cov[n] = full
+    want = _propagated(room, rig, R, p, dets, params=ParameterCovariance(base.markers, base.rig, cov))["intrinsics"]
+    rng = np.random.default_rng(3)
+    errs = []
+    for _ in range(N_DRAWS):
+        cals = {}
+        for n, cam in rig.items():
+            c = cam.calibration
+            d = rng.multivariate_normal(np.zeros(4), cov[n])
+            K = c.camera_matrix.copy()
+            K[0, 0] += d[0]
+            K[1, 1] += d[1]
+            K[0, 2] += d[2]
+            K[1, 2] += d[3]
+            cals[n] = CameraCalibration(K, c.dist_coeffs, c.width, c.height, c.source, c.model)
+        errs.append(_solve(room, rig, dets, R, p, cals=cals) - p)
+    assert want == pytest.approx(_per_axis(errs), rel=0.2)
+    assert want > 0.001
+
+
+def test_readout_sensitivity_matches_a_rolling_shutter_render():
+    """Corners seen row by row while the bundle turns and walks: the solve's error is what the
+    readout column predicts."""
+    room, rig, R, p, _ = _scene()
+    omega, vel = np.array([0.0, 0.0, 0.8]), np.array([0.5, -0.3, 0.0])
+    readout = 0.01
+
+    def pose_at(dt):
+        return Rotation.from_rotvec(omega * dt).as_matrix() @ R, p + vel * dt
+
+    dets = {}
+    for n, cam in rig.items():
+        det = project(room, cam, R, p)
+        corners = det.corners.copy()
+        for _ in range(3):  # each corner where the bundle was when its row was read
+            for i in range(len(det.ids)):
+                for c in range(4):
+                    Rt, pt = pose_at(readout * corners[i, c, 1] / cam.calibration.height)
+                    moved = project(room, cam, Rt, pt)
+                    j = np.flatnonzero(moved.ids == det.ids[i])
+                    if len(j):
+                        corners[i, c] = moved.corners[j[0], c]
+        dets[n] = Detections(det.ids, corners)
+    err = np.linalg.norm(_solve(room, rig, dets, R, p) - p)
+    predicted = np.sqrt(3) * _propagated(room, rig, R, p, dets, np.concatenate([omega, vel]))["readout"]
+    predicted *= readout / READOUT_SIGMA
+    assert err > 0.002
+    assert predicted == pytest.approx(err, rel=0.2)
+
+
+def test_image_speed_of_a_sideways_walk_is_focal_times_speed_over_depth():
+    room, rig, R, p, dets = _scene()
+    cam = rig["front"]
+    # Move along the front camera's x axis (in the world): pure sideways motion for that camera.
+    side = R @ cam.R_bundle_camera[:, 0]
+    v = 0.8
+    view = _views(room, rig, R, p, dets, np.concatenate([np.zeros(3), v * side]))[0]
+    speed = image_speed(view, room)
+    idx = room.index(dets["front"].ids)
+    c_w = R @ cam.t_bundle_camera + p
+    depth = ((room.corners_world[idx].reshape(-1, 3) - c_w) @ (R @ cam.R_bundle_camera))[:, 2]
+    f = np.sqrt(cam.calibration.camera_matrix[0, 0] * cam.calibration.camera_matrix[1, 1])
+    assert speed == pytest.approx(f * v / depth, rel=0.01)
+
+
+def test_smear_weights_keep_sharp_frames_and_drop_smeared_ones():
+    w = smear_weights(np.array([0.0, 5.0, 10.0, 20.0, 29.0, 31.0, np.nan]), 10.0)
+    assert w[:3].tolist() == [1.0, 1.0, 1.0]
+    assert w[3] == pytest.approx(4.0)
+    assert w[4] == pytest.approx(8.41)
+    assert np.isinf(w[5])
+    assert w[6] == 1.0
+
+
+def test_a_correlated_covariance_is_propagated_as_a_whole():
+    """A rank-one intrinsics covariance (the front camera's focal lengths off together by 1 px): the
+    propagated sigma is the pose change that exact error causes, not what independent fx and fy
+    errors would give. (The record has no covariance between cameras: the back one is exact.)"""
+    room, rig, R, p, dets = _scene()
+    base = _params(room, rig)
+    v = np.array([1.0, 1.0, 0.0, 0.0])
+    zero = np.zeros((4, 4))
+    params = ParameterCovariance(base.markers, base.rig, {"front": np.outer(v, v), "back": zero})
+    want = _propagated(room, rig, R, p, dets, params=params)["intrinsics"]
+    cals = {n: cam.calibration for n, cam in rig.items()}
+    c = cals["front"]
+    K = c.camera_matrix.copy()
+    K[0, 0] += v[0]
+    K[1, 1] += v[1]
+    cals["front"] = CameraCalibration(K, c.dist_coeffs, c.width, c.height, c.source, c.model)
+    moved = np.linalg.norm(_solve(room, rig, dets, R, p, cals=cals) - p) / np.sqrt(3)
+    assert want == pytest.approx(moved, rel=0.05)
+    diag_only = ParameterCovariance(base.markers, base.rig, {"front": np.diag(v ** 2), "back": zero})
+    assert _propagated(room, rig, R, p, dets, params=diag_only)["intrinsics"] != pytest.approx(want, rel=0.1)
+
+
+def test_calibration_exposure_is_optional_and_checked():
+    from annotator.errors import ConfigError
+    from annotator.io.experiment import parse_calibration
+
+    d = {"camera_matrix": [[600.0, 0, 480], [0, 601.0, 270], [0, 0, 1]], "image_width": 960,
+         "image_height": 540, "distortion_coefficients": [0.0, 0.0, 0.0, 0.0, 0.0]}
+    assert parse_calibration(d, "cam.yaml").exposure_s is None
+    assert parse_calibration({**d, "exposure_s": 0.008}, "cam.yaml").exposure_s == 0.008
+    with pytest.raises(ConfigError, match="exposure_s must be between"):
+        parse_calibration({**d, "exposure_s": -0.001}, "cam.yaml")
+    with pytest.raises(ConfigError, match="exposure_s must be a number"):
+        parse_calibration({**d, "exposure_s": "fast"}, "cam.yaml")
+
+
+def test_distortion_covariance_from_a_refined_record_is_propagated():
+    """A record with distortion covariances (as refinement writes them): a k1 error of the front
+    lens moves the pose as predicted; a record without them leaves distortion out."""
+    from types import SimpleNamespace
+
+    room, rig, R, p, dets = _scene()
+    base = _params(room, rig)
+    dk = 0.004
+    dist_cov = np.zeros((5, 5))
+    dist_cov[0, 0] = dk ** 2
+    zero4 = np.zeros((4, 4))
+    record = SimpleNamespace(markers=base.markers, rig=base.rig, intrinsics={"front": zero4, "back": zero4},
+                             distortion={"front": dist_cov}, readout={})
+    want = _propagated(room, rig, R, p, dets, params=record)["intrinsics"]
+    cals = {n: cam.calibration for n, cam in rig.items()}
+    c = cals["front"]
+    d = c.dist_coeffs.copy()
+    d[0] += dk
+    cals["front"] = CameraCalibration(c.camera_matrix, d, c.width, c.height, c.source, c.model)
+    moved = np.linalg.norm(_solve(room, rig, dets, R, p, cals=cals) - p) / np.sqrt(3)
+    assert moved > 1e-4
+    assert want == pytest.approx(moved, rel=0.1)
+    without = SimpleNamespace(markers=base.markers, rig=base.rig, intrinsics={"front": zero4, "back": zero4})
+    assert _propagated(room, rig, R, p, dets, params=without)["intrinsics"] == 0.0
