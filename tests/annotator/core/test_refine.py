@@ -15,6 +15,7 @@ from annotator.core.refine import (
     Keyframe,
     RefineSettings,
     build_problem,
+    marker_floors,
     solve,
 )
 from track_helpers import make_path, make_rig, make_room, project
@@ -271,3 +272,38 @@ def test_the_refined_map_sits_where_the_survey_puts_it():
     print(f"{len(ids)} markers: datum {100 * d_survey} cm (survey) vs {100 * d_refined} cm (refined); "
           f"shape rms {100 * shape_survey:.2f} -> {100 * shape_refined:.2f} cm")
     assert shape_refined < 0.5 * shape_survey
+
+
+
+def _far_marker(truth, keyframes):
+    """The most distant marker seen in ten keyframes or more, its median distance and line of sight."""
+    rays: dict[int, list[np.ndarray]] = {}
+    for kf in keyframes:
+        for v in kf.views:
+            for i in v.ids:
+                rays.setdefault(int(i), []).append(truth[int(i)][1] - kf.t_wb)
+    far = max((m for m, r in rays.items() if len(r) >= 10), key=lambda m: np.median(np.linalg.norm(rays[m], axis=1)))
+    r = np.array(rays[far])
+    los = np.mean(r / np.linalg.norm(r, axis=1)[:, None], axis=0)
+    return far, float(np.median(np.linalg.norm(r, axis=1))), los / np.linalg.norm(los)
+
+
+def test_marker_floor_is_the_depth_error_of_a_size_error_along_the_line_of_sight():
+    """What the video cannot average away: a far marker's size in the image is a few tens of pixels,
+    so a size error common to its frames (0.3 px) is a depth error of depth x 0.3 / side along its
+    line of sight; across it, and for a near marker, only the 5 mm floor is left."""
+    truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=3, rig=(0, 0), focal_rel=0)
+    target, depth, los = _far_marker(truth, keyframes)
+    prob, _ = build_problem(survey_map, length, true_cams, keyframes, Priors())
+    settings = RefineSettings()
+    floors = marker_floors(prob, settings)
+    m = prob.markers.index(target)
+    w, V = np.linalg.eigh(floors[m, 3:, 3:])
+    side = 700 * length / depth  # px: the scene's focal length over the distance
+    assert np.sqrt(w[-1]) == pytest.approx(np.hypot(depth * settings.marker_size_floor_px / side,
+                                                    settings.marker_floor_m), rel=0.25)
+    assert abs(V[:, -1] @ los) > 0.95
+    assert np.allclose(np.sqrt(w[:2]), settings.marker_floor_m)
+    assert np.allclose(floors[m, :3, :3], np.radians(settings.marker_floor_deg) ** 2 * np.eye(3))
+    near = min(range(len(prob.markers)), key=lambda i: np.linalg.eigvalsh(floors[i, 3:, 3:])[-1])
+    assert np.sqrt(np.linalg.eigvalsh(floors[near, 3:, 3:])[-1]) < 0.3 * np.sqrt(w[-1])
