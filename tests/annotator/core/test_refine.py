@@ -307,3 +307,16 @@ def test_marker_floor_is_the_depth_error_of_a_size_error_along_the_line_of_sight
     assert np.allclose(floors[m, :3, :3], np.radians(settings.marker_floor_deg) ** 2 * np.eye(3))
     near = min(range(len(prob.markers)), key=lambda i: np.linalg.eigvalsh(floors[i, 3:, 3:])[-1])
     assert np.sqrt(np.linalg.eigvalsh(floors[near, 3:, 3:])[-1]) < 0.3 * np.sqrt(w[-1])
+
+
+def test_stated_marker_sigma_includes_the_floor():
+    """The solve's normal matrix takes every frame's corner errors as independent; the stated
+    covariance of a far marker keeps at least the depth floor the frames cannot average away."""
+    truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=3, rig=(0, 0), focal_rel=0)
+    target, _, los = _far_marker(truth, keyframes)
+    prob, sol = _solve(survey_map, true_cams, [kf for kf in keyframes for _ in range(4)], length)
+    floors = marker_floors(prob, RefineSettings())
+    m = prob.markers.index(target)
+    C = sol.covariance.markers[target][3:, 3:]
+    assert los @ C @ los >= los @ floors[m, 3:, 3:] @ los
+    assert np.linalg.eigvalsh(C - floors[m, 3:, 3:]).min() > -1e-12
