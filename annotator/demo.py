@@ -92,8 +92,11 @@ def demo_path(speed_mps: float = 0.4) -> PathModel:
     from annotator.core.floor_paths import FloorGrid, plan_route
     from annotator.io.radio_data import site_occupancy
 
-    route = plan_route(FloorGrid.from_occupancy(site_occupancy()), [DEMO_START, *DEMO_CORNERS],
-                       margin=DEMO_MARGIN_M)
+    route = plan_route(
+        FloorGrid.from_occupancy(site_occupancy()),
+        [DEMO_START, *DEMO_CORNERS],
+        margin=DEMO_MARGIN_M,
+    )
     # Mid-side points carry the height swing; the corners are rounded by the path model itself.
     plan = [tuple(route[0])]
     for i in range(1, len(route)):
@@ -102,12 +105,20 @@ def demo_path(speed_mps: float = 0.4) -> PathModel:
             plan.append(tuple((route[i] + route[i + 1]) / 2))
     n = len(plan)
     # Height: one slow swing between about 1.35 and 1.75 m per lap.
-    wps = tuple((round(float(x), 4), round(float(y), 4), round(1.55 + 0.2 * math.sin(2 * math.pi * i / n), 4))
-                for i, (x, y) in enumerate(plan))
+    wps = tuple(
+        (
+            round(float(x), 4),
+            round(float(y), 4),
+            round(1.55 + 0.2 * math.sin(2 * math.pi * i / n), 4),
+        )
+        for i, (x, y) in enumerate(plan)
+    )
     return PathModel(wps, speed_mps, 0.0, corner_radius=CORNER_RADIUS_M)
 
 
-def bundle_pose_at(path: PathModel, t0: float) -> Callable[[np.ndarray], tuple[np.ndarray, Rotation]]:
+def bundle_pose_at(
+    path: PathModel, t0: float
+) -> Callable[[np.ndarray], tuple[np.ndarray, Rotation]]:
     """pose_at for the renderer: position = the path's, bundle x along the direction of travel
     (horizontal), z up. The heading is the direction of travel averaged over +-0.3 s, so the turn
     rate too builds up gradually where a corner's arc begins (a walker eases into a turn)."""
@@ -127,18 +138,28 @@ def bundle_pose_at(path: PathModel, t0: float) -> Callable[[np.ndarray], tuple[n
 
 def rssi_events(settings: DemoSettings) -> list[CoverEvent]:
     """The cover events as the simulated agents apply them (hands over the beacon)."""
-    return [CoverEvent(s + COVER_RAMP_S / 2, d, attenuation_db=20.0, drop_prob=0.6) for s, d in settings.covers()]
+    return [
+        CoverEvent(s + COVER_RAMP_S / 2, d, attenuation_db=20.0, drop_prob=0.6)
+        for s, d in settings.covers()
+    ]
 
 
 def split_sensors(n_agents: int = len(AGENTS)) -> list[list[str]]:
     """The tetam sensors (MACs) dealt out to the agents in .dev order, in equal shares."""
     macs = list(read_dev(site_dir("tetam") / "tetam.dev").dongles)
     share = math.ceil(len(macs) / n_agents)
-    return [macs[i * share:(i + 1) * share] for i in range(n_agents)]
+    return [macs[i * share : (i + 1) * share] for i in range(n_agents)]
 
 
-def agent_config(agent_id: str, endpoint: str, sensors: list[str], path: PathModel, t0: float,
-                 events: list[CoverEvent], seed: int) -> dict[str, Any]:
+def agent_config(
+    agent_id: str,
+    endpoint: str,
+    sensors: list[str],
+    path: PathModel,
+    t0: float,
+    events: list[CoverEvent],
+    seed: int,
+) -> dict[str, Any]:
     """agent.yaml contents for one simulated agent."""
     return {
         "agent_id": agent_id,
@@ -159,6 +180,7 @@ def agent_config(agent_id: str, endpoint: str, sensors: list[str], path: PathMod
 
 
 # --- child processes --------------------------------------------------------------------------------
+
 
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -212,8 +234,13 @@ class Children:
         f = log_path.open("wb")
         # Own process group: a Ctrl-C at the terminal reaches only the demo, which then stops the
         # children in order (agents first, so the collector drains what they sent).
-        proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                start_new_session=True)
+        proc = subprocess.Popen(
+            argv,
+            stdout=f,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
         child = Child(name, proc, log_path, f)
         self.children.append(child)
         log.debug("started %s (pid %d): %s", name, proc.pid, " ".join(argv))
@@ -223,8 +250,9 @@ class Children:
         for c in self.children:
             rc = c.proc.poll()
             if rc is not None:
-                raise DemoError(f"{c.name} exited early with code {rc}: {_tail(c.log_path)} "
-                                f"(log: {c.log_path})")
+                raise DemoError(
+                    f"{c.name} exited early with code {rc}: {_tail(c.log_path)} (log: {c.log_path})"
+                )
 
     def stop(self, child: Child, timeout: float = STOP_TIMEOUT_S) -> int | None:
         if child.proc.poll() is None:
@@ -249,17 +277,26 @@ class Children:
 def run_cli(argv: list[str], what: str, timeout: float = STARTUP_TIMEOUT_S) -> str:
     """Run a short CLI command; its stdout, or DemoError with its last error line."""
     try:
-        res = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL,
-                             check=False)
+        res = subprocess.run(
+            argv,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            stdin=subprocess.DEVNULL,
+            check=False,
+        )
     except subprocess.TimeoutExpired:
         raise DemoError(f"{what}: no answer within {timeout:.0f} s") from None
     if res.returncode != 0:
         lines = [ln for ln in (res.stderr + res.stdout).splitlines() if ln.strip()]
-        raise DemoError(f"{what} failed: {lines[-1].strip() if lines else f'exit code {res.returncode}'}")
+        raise DemoError(
+            f"{what} failed: {lines[-1].strip() if lines else f'exit code {res.returncode}'}"
+        )
     return res.stdout.strip()
 
 
 # --- the capture ------------------------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class SensorFile:
@@ -290,8 +327,13 @@ def summarize_run(run_dir: Path) -> list[SensorFile]:
     return out
 
 
-def capture(settings: DemoSettings, path: PathModel, progress: Progress | None = None,
-            note: Note | None = None, clock: Callable[[], float] = time.time) -> Capture:
+def capture(
+    settings: DemoSettings,
+    path: PathModel,
+    progress: Progress | None = None,
+    note: Note | None = None,
+    clock: Callable[[], float] = time.time,
+) -> Capture:
     """Collector + three simulated agents over loopback Zenoh: one run from before t0 until after
     t0 + duration. Every child is stopped before this returns or raises."""
     note = note or (lambda _: None)
@@ -304,15 +346,19 @@ def capture(settings: DemoSettings, path: PathModel, progress: Progress | None =
     control = ["--connect", endpoint, "--site", SITE]
 
     with Children(settings.out / "logs") as kids:
-        server = kids.spawn("collector", [*collector, "serve", "--data-dir", str(cap_dir),
-                                          "--listen", endpoint, "--site", SITE])
+        server = kids.spawn(
+            "collector",
+            [*collector, "serve", "--data-dir", str(cap_dir), "--listen", endpoint, "--site", SITE],
+        )
         note(f"collector serving on {endpoint}, data in {cap_dir}")
         # `start` fails with "no collector answered" until the router is up: retry to a deadline.
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while True:
             kids.check_alive()
             try:
-                run_id = run_cli([*collector, "start", "--name", "demo", *control], "collector start")
+                run_id = run_cli(
+                    [*collector, "start", "--name", "demo", *control], "collector start"
+                )
                 break
             except DemoError:
                 if time.monotonic() > deadline:
@@ -323,7 +369,9 @@ def capture(settings: DemoSettings, path: PathModel, progress: Progress | None =
         t0 = math.floor(clock()) + settings.lead_s
         events = rssi_events(settings)
         for i, (agent_id, sensors) in enumerate(zip(AGENTS, split_sensors(), strict=True)):
-            cfg = agent_config(agent_id, endpoint, sensors, path, t0, events, settings.seed * 10 + i)
+            cfg = agent_config(
+                agent_id, endpoint, sensors, path, t0, events, settings.seed * 10 + i
+            )
             cfg_path = cfg_dir / f"{agent_id}.yaml"
             cfg_path.write_text(safe_yaml.dump(cfg, sort_keys=False), encoding="utf-8")
             kids.spawn(agent_id, [*agent, "run", "--config", str(cfg_path)])
@@ -340,11 +388,15 @@ def capture(settings: DemoSettings, path: PathModel, progress: Progress | None =
         if progress is not None:
             progress("capture", int(math.ceil(t_end - t_start)), int(math.ceil(t_end - t_start)))
         kids.check_alive()
-        run_dir = Path(run_cli([*collector, "stop", *control], "collector stop").splitlines()[-1].strip())
+        run_dir = Path(
+            run_cli([*collector, "stop", *control], "collector stop").splitlines()[-1].strip()
+        )
         for child in [c for c in kids.children if c is not server]:
             rc = kids.stop(child)
             if rc not in (0, -signal.SIGINT):
-                raise DemoError(f"{child.name} exited with code {rc} when stopped: {_tail(child.log_path)}")
+                raise DemoError(
+                    f"{child.name} exited with code {rc} when stopped: {_tail(child.log_path)}"
+                )
         kids.stop(server)
 
     if not run_dir.is_absolute():
@@ -358,23 +410,40 @@ def capture(settings: DemoSettings, path: PathModel, progress: Progress | None =
     late = [f.sensor for f in files if f.first_ns is None or f.first_ns > first_cover_ns]
     if late:
         # The agents skip what they missed: a late one cannot contribute to the first event.
-        note(f"warning: {len(late)} sensor(s) have no reading before the first cover event "
-             f"({', '.join(late)}); their agent started late (a busy machine?)")
+        note(
+            f"warning: {len(late)} sensor(s) have no reading before the first cover event "
+            f"({', '.join(late)}); their agent started late (a busy machine?)"
+        )
     return Capture(run_dir, t0, files)
 
 
 # --- render, annotate, score ------------------------------------------------------------------------
 
-def render(settings: DemoSettings, path: PathModel, t0: float, run_dir: Path,
-           progress: Progress | None = None) -> Path:
+
+def render(
+    settings: DemoSettings,
+    path: PathModel,
+    t0: float,
+    run_dir: Path,
+    progress: Progress | None = None,
+) -> Path:
     """Two-camera video of the same walk; experiment.yaml with `sync: auto` and `rssi:` the run."""
     from annotator.render import render_experiment
 
     exp_dir = settings.out / "experiment"
-    result = render_experiment(exp_dir, bundle_pose_at(path, t0), (t0, t0 + settings.duration_s),
-                               width=960, height=540, fps=30.0, start_offset=settings.start_offset_s,
-                               covers=settings.covers(), seed=settings.seed, jobs=settings.jobs,
-                               progress=progress)
+    result = render_experiment(
+        exp_dir,
+        bundle_pose_at(path, t0),
+        (t0, t0 + settings.duration_s),
+        width=960,
+        height=540,
+        fps=30.0,
+        start_offset=settings.start_offset_s,
+        covers=settings.covers(),
+        seed=settings.seed,
+        jobs=settings.jobs,
+        progress=progress,
+    )
     with contextlib.suppress(OSError):
         (exp_dir / "rssi").rmdir()  # the renderer's empty placeholder; the RSSI is the run
     doc = {
@@ -390,8 +459,13 @@ def render(settings: DemoSettings, path: PathModel, t0: float, run_dir: Path,
     return result.experiment
 
 
-def score(run: Any, path: PathModel, t0: float, true_starts: dict[str, float],
-          duration_s: float | None = None) -> dict[str, Any]:
+def score(
+    run: Any,
+    path: PathModel,
+    t0: float,
+    true_starts: dict[str, float],
+    duration_s: float | None = None,
+) -> dict[str, Any]:
     """The annotation against the truth: position error of every labelled reading (truth = the
     path at that reading's own timestamp), coverage and each camera's sync error: at its first
     frame, and (given ``duration_s``) at its last, which differs when a drift was fitted."""
@@ -406,20 +480,34 @@ def score(run: Any, path: PathModel, t0: float, true_starts: dict[str, float],
         sigma = cam.get("video_start_sigma_s")
         drift = float(cam.get("drift") or 0.0)
         # The true clocks do not drift: an error in the fitted drift grows along the video.
-        end_ms = None if duration_s is None else (found - true_starts[name] + duration_s * drift) * 1e3
-        cams[name] = {"found": found, "true": true_starts[name],
-                      "error_ms": (found - true_starts[name]) * 1e3, "error_end_ms": end_ms,
-                      "sigma_ms": None if sigma is None else float(sigma) * 1e3,
-                      "method": cam.get("method"), "drift": cam.get("drift")}
+        end_ms = (
+            None if duration_s is None else (found - true_starts[name] + duration_s * drift) * 1e3
+        )
+        cams[name] = {
+            "found": found,
+            "true": true_starts[name],
+            "error_ms": (found - true_starts[name]) * 1e3,
+            "error_end_ms": end_ms,
+            "sigma_ms": None if sigma is None else float(sigma) * 1e3,
+            "method": cam.get("method"),
+            "drift": cam.get("drift"),
+        }
 
     def cm(q: float) -> float | None:
         return float(np.percentile(err, q) * 100) if err.size else None
 
     return {
-        "error_cm": {"n": int(err.size), "median": cm(50), "p95": cm(95),
-                     "max": float(err.max() * 100) if err.size else None},
-        "coverage": {"labelled_of_tracked_span": float(rep["coverage"]["labelled_of_tracked_span"]),
-                     "labelled": int(lab.sum()), "readings_of_beacon": len(table)},
+        "error_cm": {
+            "n": int(err.size),
+            "median": cm(50),
+            "p95": cm(95),
+            "max": float(err.max() * 100) if err.size else None,
+        },
+        "coverage": {
+            "labelled_of_tracked_span": float(rep["coverage"]["labelled_of_tracked_span"]),
+            "labelled": int(lab.sum()),
+            "readings_of_beacon": len(table),
+        },
         "counts": rep["counts"],
         "sync": cams,
         "rssi_events": len(rep["sync"].get("rssi_events", [])),
@@ -435,8 +523,12 @@ class DemoResult:
     summary_path: Path
 
 
-def run_demo(settings: DemoSettings, progress: Progress | None = None, note: Note | None = None,
-             on_capture: Callable[[Capture], None] | None = None) -> DemoResult:
+def run_demo(
+    settings: DemoSettings,
+    progress: Progress | None = None,
+    note: Note | None = None,
+    on_capture: Callable[[Capture], None] | None = None,
+) -> DemoResult:
     """The whole demo; writes OUT/capture, OUT/experiment, OUT/results and OUT/demo_summary.json."""
     from annotator.commands.run import write_run_outputs
     from annotator.io.experiment import load_experiment
@@ -447,8 +539,10 @@ def run_demo(settings: DemoSettings, progress: Progress | None = None, note: Not
         if (out / sub).exists() and (not (out / sub).is_dir() or any((out / sub).iterdir())):
             raise DemoError(f"{out / sub} already holds files; give a new --out or remove it")
     if settings.duration_s < 8.0:
-        raise DemoError(f"--duration must be at least 8 s (a cover event and tracking on both "
-                        f"sides of it), got {settings.duration_s:g}")
+        raise DemoError(
+            f"--duration must be at least 8 s (a cover event and tracking on both "
+            f"sides of it), got {settings.duration_s:g}"
+        )
     out.mkdir(parents=True, exist_ok=True)
     path = demo_path(settings.speed_mps)
     started = time.monotonic()
@@ -463,19 +557,29 @@ def run_demo(settings: DemoSettings, progress: Progress | None = None, note: Not
     report = write_run_outputs(results, experiment, run)
     true_starts = {"front": cap.t0, "back": cap.t0 + settings.start_offset_s}
     summary = score(run, path, cap.t0, true_starts, settings.duration_s)
-    summary.update({
-        "duration_s": settings.duration_s,
-        "t0": cap.t0,
-        "covers": [{"start_s": s, "duration_s": d} for s, d in settings.covers()],
-        "capture": {"run_dir": str(cap.run_dir), "files": [
-            {"sensor": f.sensor, "rows": f.rows, "first_ns": f.first_ns, "last_ns": f.last_ns}
-            for f in cap.files]},
-        "experiment": str(exp_path),
-        "results": str(results),
-        "plots": [str(results / p) for p in report.get("plots", {}).values()],
-        "wall_time_s": time.monotonic() - started,
-    })
+    summary.update(
+        {
+            "duration_s": settings.duration_s,
+            "t0": cap.t0,
+            "covers": [{"start_s": s, "duration_s": d} for s, d in settings.covers()],
+            "capture": {
+                "run_dir": str(cap.run_dir),
+                "files": [
+                    {
+                        "sensor": f.sensor,
+                        "rows": f.rows,
+                        "first_ns": f.first_ns,
+                        "last_ns": f.last_ns,
+                    }
+                    for f in cap.files
+                ],
+            },
+            "experiment": str(exp_path),
+            "results": str(results),
+            "plots": [str(results / p) for p in report.get("plots", {}).values()],
+            "wall_time_s": time.monotonic() - started,
+        }
+    )
     summary_path = out / "demo_summary.json"
     summary_path.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     return DemoResult(cap, exp_path, results, summary, summary_path)
-

@@ -68,25 +68,41 @@ Progress = Callable[[str, int, int], None]  # (camera, frames done, frames expec
 
 # --- stage 1: one video -----------------------------------------------------------------------
 
-def process_video(path: Path, camera: RigCamera, markers: MarkerSetup, t_start: float,
-                  settings: TrackSettings, progress: Callable[[int, int], None] | None = None) -> CameraFrames:
+
+def process_video(
+    path: Path,
+    camera: RigCamera,
+    markers: MarkerSetup,
+    t_start: float,
+    settings: TrackSettings,
+    progress: Callable[[int, int], None] | None = None,
+) -> CameraFrames:
     """Decode, detect and solve every frame of one camera's video."""
     info = video_info(path)
     room = MarkerRoom.from_map(markers.markers, markers.length)
-    det_settings = dataclasses.replace(settings.detector, dictionary=markers.dictionary,
-                                       keep_unknown=settings.detector.keep_unknown or settings.refine != "none")
+    det_settings = dataclasses.replace(
+        settings.detector,
+        dictionary=markers.dictionary,
+        keep_unknown=settings.detector.keep_unknown or settings.refine != "none",
+    )
     detector = MarkerDetector(det_settings, room, camera.calibration)
     cal = camera.calibration
     ts, dets, poses, mposes = [], [], [], []
-    total = info.frame_count if settings.max_frames is None else min(info.frame_count, settings.max_frames)
+    total = (
+        info.frame_count
+        if settings.max_frames is None
+        else min(info.frame_count, settings.max_frames)
+    )
     prior = None
     threads = 1 if settings.jobs > 1 else None  # one process per video already keeps cores busy
     for k, (pts, frame) in enumerate(iter_frames(path, gray=True, threads=threads, luma=True)):
         if settings.max_frames is not None and k >= settings.max_frames:
             break
         if k == 0 and (frame.shape[1], frame.shape[0]) != (cal.width, cal.height):
-            raise NoDataError(f"{path}: frames are {frame.shape[1]}x{frame.shape[0]} but the calibration "
-                              f"{Path(cal.source).name} is for {cal.width}x{cal.height}")
+            raise NoDataError(
+                f"{path}: frames are {frame.shape[1]}x{frame.shape[0]} but the calibration "
+                f"{Path(cal.source).name} is for {cal.width}x{cal.height}"
+            )
         det = detector.detect(frame)
         ts.append(t_start + pts)
         dets.append(det)
@@ -115,22 +131,41 @@ def _job(args: tuple[Any, ...]) -> CameraFrames:
     return process_video(path, camera, markers, t_start, settings, report)
 
 
-def _all_videos(exp: Experiment, settings: TrackSettings, progress: Progress | None,
-                pool: ProcessPoolExecutor | None = None) -> list[CameraFrames]:
+def _all_videos(
+    exp: Experiment,
+    settings: TrackSettings,
+    progress: Progress | None,
+    pool: ProcessPoolExecutor | None = None,
+) -> list[CameraFrames]:
     if exp.video_start is None:
-        raise NoDataError(f"{exp.path}: no video start times; run the sync step first (sync.mode auto)")
+        raise NoDataError(
+            f"{exp.path}: no video start times; run the sync step first (sync.mode auto)"
+        )
     names = list(exp.videos)
     if pool is None or len(names) == 1:
         out = []
         for name in names:
             cb = None if progress is None else (lambda d, n, name=name: progress(name, d, n))
-            out.append(process_video(exp.videos[name], exp.rig.cameras[name], exp.markers,
-                                     exp.video_start[name], settings, cb))
+            out.append(
+                process_video(
+                    exp.videos[name],
+                    exp.rig.cameras[name],
+                    exp.markers,
+                    exp.video_start[name],
+                    settings,
+                    cb,
+                )
+            )
         return out
     with Manager() as mgr:
         q = mgr.Queue()
-        futures = [pool.submit(_job, (exp.videos[n], exp.rig.cameras[n], exp.markers, exp.video_start[n],
-                                      settings, q)) for n in names]
+        futures = [
+            pool.submit(
+                _job,
+                (exp.videos[n], exp.rig.cameras[n], exp.markers, exp.video_start[n], settings, q),
+            )
+            for n in names
+        ]
         while not all(f.done() for f in futures):
             try:
                 name, done, total = q.get(timeout=0.2)
@@ -177,19 +212,29 @@ class TrackResult:
     params: ParameterCovariance | None = None
 
 
-def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings, t_out: np.ndarray,
-               pool: ProcessPoolExecutor | None = None, params: ParameterCovariance | None = None) -> TrackResult:
+def _track_rig(
+    frames: list[CameraFrames],
+    exp: Experiment,
+    settings: TrackSettings,
+    t_out: np.ndarray,
+    pool: ProcessPoolExecutor | None = None,
+    params: ParameterCovariance | None = None,
+) -> TrackResult:
     """``params``: covariance of map, rig and intrinsics for sigma_m; None -> the refinement's, else the
     experiment's priors."""
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
     s = settings.smoother
-    singles = [(float(t), p) for cf in frames for t, p in zip(cf.t, cf.poses, strict=True) if p is not None]
+    singles = [
+        (float(t), p) for cf in frames for t, p in zip(cf.t, cf.poses, strict=True) if p is not None
+    ]
     if not singles:
         raise NoDataError(f"{exp.path}: no marker from the map was detected in any video")
     meas = stack_poses(resolve_ambiguities(singles, s.max_gap_s))
     pos, R, sig = smooth(meas, t_out, s, pool)
     if settings.joint and len(frames) > 1:
-        joint = resolve_ambiguities(joint_measurements(frames, exp, room, settings, t_out, pos, R, pool), s.max_gap_s)
+        joint = resolve_ambiguities(
+            joint_measurements(frames, exp, room, settings, t_out, pos, R, pool), s.max_gap_s
+        )
         meas = stack_poses(joint)
         pos, R, sig = smooth(meas, t_out, s, pool)
     refinement = None
@@ -200,8 +245,15 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
         rounds -= 1
         initial = None if refinement is None else mapped_poses(refinement)
         t0 = time.perf_counter()
-        again = refine_capture(frames, given, t_out, pos, R,
-                               RefineSettings(mode=settings.refine, exposure_s=settings.exposure_s), initial)
+        again = refine_capture(
+            frames,
+            given,
+            t_out,
+            pos,
+            R,
+            RefineSettings(mode=settings.refine, exposure_s=settings.exposure_s),
+            initial,
+        )
         clock["solve"] += time.perf_counter() - t0
         if again is None:
             break
@@ -211,14 +263,22 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
         # Track again with the refined map, rig and lenses; the last pass gives the motion.
         exp = refinement.experiment
         room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
-        joint = resolve_ambiguities(joint_measurements(frames, exp, room, settings, t_out, pos, R, pool,
-                                                       resolve_singles=True), s.max_gap_s)
+        joint = resolve_ambiguities(
+            joint_measurements(
+                frames, exp, room, settings, t_out, pos, R, pool, resolve_singles=True
+            ),
+            s.max_gap_s,
+        )
         meas = stack_poses(joint)
         pos, R, sig = smooth(meas, t_out, s, pool)
         clock["retrack"] += time.perf_counter() - t0
         if not refinement.mapped:
             break  # a second round only helps when markers were mapped from a trajectory with gaps
-    posterior = params if params is not None else (refinement.covariance if refinement is not None else None)
+    posterior = (
+        params
+        if params is not None
+        else (refinement.covariance if refinement is not None else None)
+    )
     if posterior is not None:
         params = posterior
     else:
@@ -226,11 +286,18 @@ def _track_rig(frames: list[CameraFrames], exp: Experiment, settings: TrackSetti
         params = ParameterCovariance.from_priors(exp.priors, [int(i) for i in room.ids], cams)
     # The priors (posterior None) are checked against the residuals; a posterior is not shrunk.
     u = row_uncertainty(frames, exp, t_out, pos, R, posterior, settings.uncertainty)
-    traj = Trajectory(t_out, pos, R, {**measurement_quality(meas, t_out), **total_sigma(sig, u, settings.uncertainty)})
+    traj = Trajectory(
+        t_out,
+        pos,
+        R,
+        {**measurement_quality(meas, t_out), **total_sigma(sig, u, settings.uncertainty)},
+    )
     return TrackResult(traj, refinement, params)
 
 
-def track(exp: Experiment, settings: TrackSettings | None = None, progress: Progress | None = None) -> TrackResult:
+def track(
+    exp: Experiment, settings: TrackSettings | None = None, progress: Progress | None = None
+) -> TrackResult:
     """Track the bundle over the experiment's videos (with the self-calibration's record)."""
     settings = settings or TrackSettings()
     if settings.method not in ("rig", "paper"):
@@ -241,8 +308,9 @@ def track(exp: Experiment, settings: TrackSettings | None = None, progress: Prog
         return frames_to_result(_all_videos(exp, settings, progress, pool), exp, settings, pool)
 
 
-def track_experiment(exp: Experiment, settings: TrackSettings | None = None,
-                     progress: Progress | None = None) -> Trajectory:
+def track_experiment(
+    exp: Experiment, settings: TrackSettings | None = None, progress: Progress | None = None
+) -> Trajectory:
     """Trajectory of the bundle (R_world_bundle, beacon position) over the experiment's videos."""
     return track(exp, settings, progress).trajectory
 
@@ -269,21 +337,31 @@ class RunResult:
     labels: Labels  # one per reading of `rssi`
     rssi: RssiTable  # the bundle beacon's readings
     report: dict[str, Any]  # report.json's content, without the names of the files written
-    refinement: Refinement | None = None  # what the self-calibration did (None: --refine none, paper)
+    refinement: Refinement | None = (
+        None  # what the self-calibration did (None: --refine none, paper)
+    )
     params: ParameterCovariance | None = None  # uncertainty of the map, rig and lenses tracked with
 
 
-def frames_to_trajectory(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings,
-                         pool: ProcessPoolExecutor | None = None,
-                         params: ParameterCovariance | None = None) -> Trajectory:
+def frames_to_trajectory(
+    frames: list[CameraFrames],
+    exp: Experiment,
+    settings: TrackSettings,
+    pool: ProcessPoolExecutor | None = None,
+    params: ParameterCovariance | None = None,
+) -> Trajectory:
     """Stage 2 of tracking on frames whose times are already wall-clock (joint solves in ``pool``);
     ``params`` as in ``_track_rig``."""
     return frames_to_result(frames, exp, settings, pool, params).trajectory
 
 
-def frames_to_result(frames: list[CameraFrames], exp: Experiment, settings: TrackSettings,
-                     pool: ProcessPoolExecutor | None = None,
-                     params: ParameterCovariance | None = None) -> TrackResult:
+def frames_to_result(
+    frames: list[CameraFrames],
+    exp: Experiment,
+    settings: TrackSettings,
+    pool: ProcessPoolExecutor | None = None,
+    params: ParameterCovariance | None = None,
+) -> TrackResult:
     """`frames_to_trajectory` with the self-calibration's record."""
     if not any(len(cf.t) for cf in frames):
         raise NoDataError(f"{exp.path}: the videos hold no frames")
@@ -293,8 +371,9 @@ def frames_to_result(frames: list[CameraFrames], exp: Experiment, settings: Trac
     return _track_rig(frames, exp, settings, t_out, pool, params)
 
 
-def run_experiment(exp: Experiment, settings: RunSettings | None = None,
-                   progress: Progress | None = None) -> RunResult:
+def run_experiment(
+    exp: Experiment, settings: RunSettings | None = None, progress: Progress | None = None
+) -> RunResult:
     """Everything `annotator run` computes: track, synchronise with the RSSI log, label every
     reading of the bundle's beacon. Writes nothing (see annotator.commands.run.write_run_outputs)."""
     from dataclasses import replace
@@ -324,26 +403,43 @@ def run_experiment(exp: Experiment, settings: RunSettings | None = None,
         sc = exp.sync
         cover_s = (sc.min_cover_s, sc.max_cover_s)
         # The RSSI event first: cheap, and a missing one should fail before the long video pass.
-        rssi_events = detect_rssi_events(table.t_seconds(), table.rssi, table.sensor,
-                                         name=f"RSSI of beacon {beacon}", min_duration=cover_s[0],
-                                         max_duration=cover_s[1])
+        rssi_events = detect_rssi_events(
+            table.t_seconds(),
+            table.rssi,
+            table.sensor,
+            name=f"RSSI of beacon {beacon}",
+            min_duration=cover_s[0],
+            max_duration=cover_s[1],
+        )
         with _worker_pool(track) as pool:
-            frames = _all_videos(replace(exp, video_start={n: 0.0 for n in exp.videos}), track, progress, pool)
+            frames = _all_videos(
+                replace(exp, video_start={n: 0.0 for n in exp.videos}), track, progress, pool
+            )
         series = {}
         for cf in frames:
             n = len(cf.t)
-            cb = None if progress is None else (
-                lambda k, name=cf.camera, n=n: progress(f"{name} sync", min(k, n), n))
+            cb = (
+                None
+                if progress is None
+                else (lambda k, name=cf.camera, n=n: progress(f"{name} sync", min(k, n), n))
+            )
             pts, level = brightness_series(exp.videos[cf.camera], cb)
             if len(pts) < n:
-                raise NoDataError(f"{exp.videos[cf.camera]}: decoded {len(pts)} frames, expected {n}")
+                raise NoDataError(
+                    f"{exp.videos[cf.camera]}: decoded {len(pts)} frames, expected {n}"
+                )
             if progress is not None:
                 progress(f"{cf.camera} sync", n, n)
             counts = np.array([len(d.ids) for d in cf.detections], dtype=float)
             series[cf.camera] = VideoSeries(cf.t, level[:n], counts)
-        sync = synchronise(series, rssi_events, approx_start=exp.video_start,
-                           max_start_error=sc.max_start_error,
-                           min_duration=cover_s[0], max_duration=cover_s[1])
+        sync = synchronise(
+            series,
+            rssi_events,
+            approx_start=exp.video_start,
+            max_start_error=sc.max_start_error,
+            min_duration=cover_s[0],
+            max_duration=cover_s[1],
+        )
         frames = [replace(cf, t=sync.clocks[cf.camera].to_rssi(cf.t)) for cf in frames]
     else:
         sync = manual_sync(exp.video_start or {})
@@ -354,10 +450,23 @@ def run_experiment(exp: Experiment, settings: RunSettings | None = None,
     traj = result.trajectory
 
     # Readings while hands covered the beacon carry the hands' attenuation: never labelled.
-    labels = label_readings(traj, table.t_ns, max_gap=settings.max_gap,
-                            exclude=cover_intervals(sync.rssi_events),
-                            time_sigma=sync_time_sigma(sync.clocks, table.t_seconds()))
-    report = build_report(experiment=exp.path, sync=sync, beacon=beacon, readings_total=len(everything),
-                          table=table, labels=labels, traj_t=traj.t, traj_valid=traj.valid,
-                          max_gap=settings.max_gap, method=track.method)
+    labels = label_readings(
+        traj,
+        table.t_ns,
+        max_gap=settings.max_gap,
+        exclude=cover_intervals(sync.rssi_events),
+        time_sigma=sync_time_sigma(sync.clocks, table.t_seconds()),
+    )
+    report = build_report(
+        experiment=exp.path,
+        sync=sync,
+        beacon=beacon,
+        readings_total=len(everything),
+        table=table,
+        labels=labels,
+        traj_t=traj.t,
+        traj_valid=traj.valid,
+        max_gap=settings.max_gap,
+        method=track.method,
+    )
     return RunResult(traj, sync, labels, table, report, result.refinement, result.params)

@@ -95,15 +95,27 @@ def main() -> None:
                 n += 1
             by_boot.setdefault(boot, {})[sensor] = n
         for boot, streams in by_boot.items():
-            router.put(wire.ack_key("default", "bench"), wire.to_json({"boot": boot, "streams": streams}))
+            router.put(
+                wire.ack_key("default", "bench"), wire.to_json({"boot": boot, "streams": streams})
+            )
 
     sub = router.declare_subscriber(wire.data_selector("default"), on_batch)
     with tempfile.TemporaryDirectory() as tmp:
         rec = Path(tmp) / "bench.mbd"
         rows = write_recording(rec, args.rate, args.seconds)
         log = Path(tmp) / "agent.log"
-        cmd = agent_command() + ["run", "--agent-id", "bench", "--connect", endpoint,
-                                 "--replay", str(rec), "--replay-speed", "1", "--no-wait-ack"]
+        cmd = agent_command() + [
+            "run",
+            "--agent-id",
+            "bench",
+            "--connect",
+            endpoint,
+            "--replay",
+            str(rec),
+            "--replay-speed",
+            "1",
+            "--no-wait-ack",
+        ]
         with log.open("w") as f:
             proc = subprocess.Popen(cmd, stdout=f, stderr=f)
             start = time.monotonic()
@@ -128,14 +140,22 @@ def main() -> None:
     router.close()
 
     cpu_pct = 100.0 * (c_b - c_a) / CLK_TCK / (t_b - t_a)
-    print(f"replay: {rows} rows at {args.rate:g} adverts/s over {args.seconds:g} s "
-          f"(4 sensors, batch 100 ms), agent exit code {rc}, wall {total_s:.1f} s")
-    print(f"received by the router session: {received['readings']} readings "
-          f"in {received['batches']} batches ({received['repeats']} re-sent batches seen again)")
-    print(f"agent CPU (steady state, {t_b - t_a:.1f} s window): {cpu_pct:.2f} % of one core "
-          f"(target <= 5 %)")
-    print(f"agent RSS: peak sampled {rss_peak / 1024:.1f} MB, VmHWM {hwm / 1024:.1f} MB "
-          f"(target <= 80 MB)")
+    print(
+        f"replay: {rows} rows at {args.rate:g} adverts/s over {args.seconds:g} s "
+        f"(4 sensors, batch 100 ms), agent exit code {rc}, wall {total_s:.1f} s"
+    )
+    print(
+        f"received by the router session: {received['readings']} readings "
+        f"in {received['batches']} batches ({received['repeats']} re-sent batches seen again)"
+    )
+    print(
+        f"agent CPU (steady state, {t_b - t_a:.1f} s window): {cpu_pct:.2f} % of one core "
+        f"(target <= 5 %)"
+    )
+    print(
+        f"agent RSS: peak sampled {rss_peak / 1024:.1f} MB, VmHWM {hwm / 1024:.1f} MB "
+        f"(target <= 80 MB)"
+    )
     ok = cpu_pct <= 5.0 and hwm / 1024 <= 80.0 and rc == 0 and received["readings"] == rows
     print("RESULT:", "within targets" if ok else "OUTSIDE targets")
 

@@ -45,9 +45,12 @@ def main() -> None:
         t = time.perf_counter()
         for seq in range(n_per):
             for k in range(args.sensors):
-                sensor = f"b827eb{0x4521b0 + k:06x}"
-                rows = (wire.Reading(T0 + seq * 100_000_000 + k, "e78f135624ce", -60 - seq % 30,
-                                     10**12 + seq),)
+                sensor = f"b827eb{0x4521B0 + k:06x}"
+                rows = (
+                    wire.Reading(
+                        T0 + seq * 100_000_000 + k, "e78f135624ce", -60 - seq % 30, 10**12 + seq
+                    ),
+                )
                 b = wire.Batch("pi-01", BOOT, sensor, seq, rows, sent_ns=T0 + seq, floor=0)
                 spool.append(stream_id(BOOT, sensor), seq, wire.to_wire(b))
         spool.sync()
@@ -70,8 +73,15 @@ def main() -> None:
 
         sub = router.declare_subscriber(wire.data_selector("bench"), on_sample)
         client = zenoh.open(build_config(SessionSpec(mode="client", connect=[ep])))
-        pub = Publisher(client, site="bench", agent_id="pi-01", boot_id="ffffffffffffffff",
-                        wall_ns=time.time_ns, spool=spool, resend_s=0.0)
+        pub = Publisher(
+            client,
+            site="bench",
+            agent_id="pi-01",
+            boot_id="ffffffffffffffff",
+            wall_ns=time.time_ns,
+            spool=spool,
+            resend_s=0.0,
+        )
         time.sleep(0.5)  # let the subscription reach the client
         t = time.perf_counter()
         sent = pub.resend_due()
@@ -84,11 +94,15 @@ def main() -> None:
         spool.close()
 
     rate = args.sensors * args.hz
-    print(f"backlog: {args.outage_s:g} s outage x {args.sensors} sensors x {args.hz:g} Hz = "
-          f"{total} batches, {st.bytes / MIB:.1f} MiB on disk ({per_batch:.0f} B/batch; "
-          f"built in {build_s:.1f} s)")
-    print(f"re-sent {sent} batches, received {got} in {resend_s:.2f} s = "
-          f"{got / resend_s:,.0f} batches/s")
+    print(
+        f"backlog: {args.outage_s:g} s outage x {args.sensors} sensors x {args.hz:g} Hz = "
+        f"{total} batches, {st.bytes / MIB:.1f} MiB on disk ({per_batch:.0f} B/batch; "
+        f"built in {build_s:.1f} s)"
+    )
+    print(
+        f"re-sent {sent} batches, received {got} in {resend_s:.2f} s = "
+        f"{got / resend_s:,.0f} batches/s"
+    )
     print(f"catch-up after 1 h of outage: {3600 * rate / (got / resend_s):.0f} s")
     hours = 256 * MIB / per_batch / rate / 3600
     print(f"default spool (256 MiB) covers {hours:.1f} h at this rate before dropping the oldest")

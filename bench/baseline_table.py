@@ -35,7 +35,11 @@ METHODS = ("knn", "grid-hmm")
 
 def annotator(*args: str) -> None:
     exe = Path(sys.executable).parent / "annotator"
-    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-c", "from annotator.cli import main; main()"]
+    cmd = (
+        [str(exe)]
+        if exe.is_file()
+        else [sys.executable, "-c", "from annotator.cli import main; main()"]
+    )
     res = subprocess.run([*cmd, *args], capture_output=True, text=True, check=False)
     if res.returncode:
         raise SystemExit(f"annotator {args[0]} failed: {res.stderr.strip()}")
@@ -47,8 +51,14 @@ def build_maps(dataset: Path, work: Path, cell: float, which: list[str]) -> dict
     for name in which:
         if name == "fpt":
             hst = work / "fpt.hst"
-            annotator("fingerprints", str(dataset / "fpt"), "--devices", str(dataset / "cnf" / "tetam.dev"),
-                      "--out", str(hst))
+            annotator(
+                "fingerprints",
+                str(dataset / "fpt"),
+                "--devices",
+                str(dataset / "cnf" / "tetam.dev"),
+                "--out",
+                str(hst),
+            )
         elif name == "hst":
             hst = dataset / "hst" / "set_1" / "tetam_multi_rssi.hst"
         else:
@@ -72,8 +82,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         maps = build_maps(args.dataset, Path(tmp), args.cell, args.maps.split(","))
-        print(f"radio maps ({', '.join(maps)}; {args.cell:g} m cells) built in "
-              f"{time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        print(
+            f"radio maps ({', '.join(maps)}; {args.cell:g} m cells) built in "
+            f"{time.perf_counter() - t0:.1f} s",
+            file=sys.stderr,
+        )
         for track in tracks:
             name = track.name.removesuffix("_all_sensors.mbd")
             truth = read_truth(track)
@@ -88,7 +101,9 @@ def main() -> None:
     print("| track | radio map | method | CE50 | CE75 | CE95 | estimates |")
     print("| --- | --- | --- | ---: | ---: | ---: | ---: |")
     for name, map_name, method, s, _ in rows:
-        print(f"| {name} | {map_name} | {method} | {s.ce50:.2f} | {s.ce75:.2f} | {s.ce95:.2f} | {s.n} |")
+        print(
+            f"| {name} | {map_name} | {method} | {s.ce50:.2f} | {s.ce75:.2f} | {s.ce95:.2f} | {s.n} |"
+        )
     print(f"\nmedian over {len(tracks)} track(s)\n")
     print("| radio map | method | CE50 | CE75 | CE95 |")
     print("| --- | --- | ---: | ---: | ---: |")
@@ -97,7 +112,9 @@ def main() -> None:
             sel = [r[3] for r in rows if r[1] == map_name and r[2] == method]
             med = [float(np.median([getattr(s, k) for s in sel])) for k in ("ce50", "ce75", "ce95")]
             print(f"| {map_name} | {method} | {med[0]:.2f} | {med[1]:.2f} | {med[2]:.2f} |")
-    print(f"\nlocalize + score: {sum(r[4] for r in rows):.1f} s for {len(rows)} runs", file=sys.stderr)
+    print(
+        f"\nlocalize + score: {sum(r[4] for r in rows):.1f} s for {len(rows)} runs", file=sys.stderr
+    )
 
 
 if __name__ == "__main__":

@@ -35,13 +35,25 @@ from flood_harness import make_site_pki, run_flood  # noqa: E402 - on the test p
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--scenario", choices=("macs", "maxsize", "both"), default="both")
     ap.add_argument("--macs", type=int, default=5000)
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--nofile", type=int, default=1024)
-    ap.add_argument("--streams-per-agent", type=int, default=0, help="limits.streams_per_agent (default: the collector's)")
-    ap.add_argument("--streams-total", type=int, default=0, help="limits.streams_total (default: the collector's)")
+    ap.add_argument(
+        "--streams-per-agent",
+        type=int,
+        default=0,
+        help="limits.streams_per_agent (default: the collector's)",
+    )
+    ap.add_argument(
+        "--streams-total",
+        type=int,
+        default=0,
+        help="limits.streams_total (default: the collector's)",
+    )
     ap.add_argument("--mtls", action="store_true", help="mutual TLS and the generated ACL")
     args = ap.parse_args()
     limits = {}
@@ -49,23 +61,38 @@ def main() -> None:
         limits["streams_per_agent"] = args.streams_per_agent
     if args.streams_total:
         limits["streams_total"] = args.streams_total
-    for name in (("macs", "maxsize") if args.scenario == "both" else (args.scenario,)):
+    for name in ("macs", "maxsize") if args.scenario == "both" else (args.scenario,):
         work = Path(tempfile.mkdtemp(prefix="bgt-flood-"))
         pki_dir = make_site_pki(work / "pki") if args.mtls else None
-        r = run_flood(name, work, macs=args.macs, seconds=args.seconds,
-                      nofile=args.nofile if name == "macs" else None, limits=limits, pki_dir=pki_dir)
+        r = run_flood(
+            name,
+            work,
+            macs=args.macs,
+            seconds=args.seconds,
+            nofile=args.nofile if name == "macs" else None,
+            limits=limits,
+            pki_dir=pki_dir,
+        )
         st = r.status
         print(f"{name}: {r.flood} (flood {r.flood_s} s){' over mTLS' if args.mtls else ''}")
-        print(f"  collector RSS peak {r.rss_peak_kib / 1024:.1f} MiB (sampled every 50 ms), "
-              f"VmHWM {r.hwm_kib / 1024:.1f} MiB")
+        print(
+            f"  collector RSS peak {r.rss_peak_kib / 1024:.1f} MiB (sampled every 50 ms), "
+            f"VmHWM {r.hwm_kib / 1024:.1f} MiB"
+        )
         for a, h in r.honest.items():
-            print(f"  honest {a}: {h.readings} readings, lost {h.lost}, duplicated {h.dup}, foreign {h.foreign}")
-        print(f"  drain (flood end -> every honest batch acknowledged) {r.drain_s} s"
-              f"{'' if r.settled else ' (NOT settled)'}; collector stop {r.stop_s} s; "
-              f"SIGINT to exit {r.shutdown_s} s (exit code {r.returncode})")
-        print(f"  refused streams {st['refused_streams']}; rejected {st['rejected_payloads']}; "
-              f"queue overflow {st['queue_overflow']}; flooder files {r.flood_files}; "
-              f"open files {st['streams']['open_files']}; status reply {r.status_bytes} bytes")
+            print(
+                f"  honest {a}: {h.readings} readings, lost {h.lost}, duplicated {h.dup}, foreign {h.foreign}"
+            )
+        print(
+            f"  drain (flood end -> every honest batch acknowledged) {r.drain_s} s"
+            f"{'' if r.settled else ' (NOT settled)'}; collector stop {r.stop_s} s; "
+            f"SIGINT to exit {r.shutdown_s} s (exit code {r.returncode})"
+        )
+        print(
+            f"  refused streams {st['refused_streams']}; rejected {st['rejected_payloads']}; "
+            f"queue overflow {st['queue_overflow']}; flooder files {r.flood_files}; "
+            f"open files {st['streams']['open_files']}; status reply {r.status_bytes} bytes"
+        )
 
 
 if __name__ == "__main__":

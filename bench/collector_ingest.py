@@ -39,8 +39,10 @@ def payloads(batch: int, sensors: int, count: int) -> list[tuple[str, bytes]]:
     out = []
     for k in range(count):
         s, seq = k % sensors, k // sensors
-        rows = tuple(wire.Reading(T0 + (k * batch + j) * 1000, "e78f135624ce", -30 - (j % 70))
-                     for j in range(batch))
+        rows = tuple(
+            wire.Reading(T0 + (k * batch + j) * 1000, "e78f135624ce", -30 - (j % 70))
+            for j in range(batch)
+        )
         b = wire.Batch(AGENT, BOOT, sensor_mac(s), seq, rows)
         out.append((wire.data_key("default", AGENT, b.sensor), wire.to_wire(b)))
     return out
@@ -56,8 +58,10 @@ def publisher(connect: str, seconds: float, batch: int, sensors: int, rate: floa
     from bgt_core import wire
 
     s = zenoh.open(build_config(SessionSpec(mode="client", connect=[connect])))
-    pubs = {key: s.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
-            for key, _ in pool[:sensors]}
+    pubs = {
+        key: s.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        for key, _ in pool[:sensors]
+    }
     seqs = [0] * sensors
     sent = 0
     sys.stdout.write("ready\n")
@@ -72,8 +76,16 @@ def publisher(connect: str, seconds: float, batch: int, sensors: int, rate: floa
         t = template[i]
         # Shift timestamps per batch so every row is distinct (loss shows up as missing rows).
         base = (k * batch) * 1000
-        b = wire.Batch(AGENT, BOOT, t.sensor, seqs[i],
-                       tuple(wire.Reading(T0 + base + j * 1000, r.beacon, r.rssi) for j, r in enumerate(t.readings)))
+        b = wire.Batch(
+            AGENT,
+            BOOT,
+            t.sensor,
+            seqs[i],
+            tuple(
+                wire.Reading(T0 + base + j * 1000, r.beacon, r.rssi)
+                for j, r in enumerate(t.readings)
+            ),
+        )
         pubs[wire.data_key("default", AGENT, t.sensor)].put(wire.to_wire(b))
         seqs[i] += 1
         sent += batch
@@ -89,10 +101,27 @@ def publisher(connect: str, seconds: float, batch: int, sensors: int, rate: floa
 
 
 def run_publisher(ep: str, args) -> tuple[subprocess.Popen, float]:
-    p = subprocess.Popen([sys.executable, __file__, "--role", "publisher", "--connect", ep,
-                          "--seconds", str(args.seconds), "--batch", str(args.batch),
-                          "--sensors", str(args.sensors), "--rate", str(args.rate)],
-                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    p = subprocess.Popen(
+        [
+            sys.executable,
+            __file__,
+            "--role",
+            "publisher",
+            "--connect",
+            ep,
+            "--seconds",
+            str(args.seconds),
+            "--batch",
+            str(args.batch),
+            "--sensors",
+            str(args.sensors),
+            "--rate",
+            str(args.rate),
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     assert p.stdout.readline().strip() == "ready"
     time.sleep(0.5)
     t0 = time.monotonic()
@@ -125,8 +154,12 @@ def bare(args) -> dict:
     sub.undeclare()
     s.close()
     dt = got["last"] - t0
-    return {"published": pub["readings"], "received": got["readings"], "seconds": round(dt, 2),
-            "rate": round(got["readings"] / dt)}
+    return {
+        "published": pub["readings"],
+        "received": got["readings"],
+        "seconds": round(dt, 2),
+        "rate": round(got["readings"] / dt),
+    }
 
 
 def collector(args) -> dict:
@@ -163,14 +196,24 @@ def collector(args) -> dict:
         c.close()
         lines = sum(sum(1 for _ in f.open("rb")) for f in Path(run["run_dir"]).glob("rssi/*/*.mbd"))
         dt = t_done - t0
-        return {"published": pub["readings"], "written": stopped["readings"], "lines_in_files": lines,
-                "lost": pub["readings"] - lines, "seconds": round(dt, 2), "rate": round(lines / dt),
-                "duplicates": st["duplicates_dropped"], "rejected": st["rejected_payloads"],
-                "missing_batches": stopped["missing_batches"], "max_queue_batches": depth[0]}
+        return {
+            "published": pub["readings"],
+            "written": stopped["readings"],
+            "lines_in_files": lines,
+            "lost": pub["readings"] - lines,
+            "seconds": round(dt, 2),
+            "rate": round(lines / dt),
+            "duplicates": st["duplicates_dropped"],
+            "rejected": st["rejected_payloads"],
+            "missing_batches": stopped["missing_batches"],
+            "max_queue_batches": depth[0],
+        }
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--role", default="bench", choices=["bench", "publisher"])
     ap.add_argument("--connect")
     ap.add_argument("--seconds", type=float, default=30.0)
@@ -182,14 +225,22 @@ def main() -> None:
         publisher(args.connect, args.seconds, args.batch, args.sensors, args.rate)
         return
     pace = f"paced at {args.rate:,.0f} readings/s" if args.rate > 0 else "unpaced"
-    print(f"publisher: {args.seconds:.0f} s, {pace}, batches of {args.batch} readings over {args.sensors} sensors")
+    print(
+        f"publisher: {args.seconds:.0f} s, {pace}, batches of {args.batch} readings over {args.sensors} sensors"
+    )
     b = bare(args)
-    print(f"bare zenoh subscriber: {b['rate']:>9,} readings/s  ({b['received']:,} of {b['published']:,} in {b['seconds']} s)")
+    print(
+        f"bare zenoh subscriber: {b['rate']:>9,} readings/s  ({b['received']:,} of {b['published']:,} in {b['seconds']} s)"
+    )
     c = collector(args)
-    print(f"collector (in files):  {c['rate']:>9,} readings/s  ({c['lines_in_files']:,} of {c['published']:,} in {c['seconds']} s)")
-    print(f"collector loss: {c['lost']} readings; missing batches {c['missing_batches']}; "
-          f"duplicates dropped {c['duplicates']}; rejected {c['rejected']}; "
-          f"deepest receive queue {c['max_queue_batches']} batches")
+    print(
+        f"collector (in files):  {c['rate']:>9,} readings/s  ({c['lines_in_files']:,} of {c['published']:,} in {c['seconds']} s)"
+    )
+    print(
+        f"collector loss: {c['lost']} readings; missing batches {c['missing_batches']}; "
+        f"duplicates dropped {c['duplicates']}; rejected {c['rejected']}; "
+        f"deepest receive queue {c['max_queue_batches']} batches"
+    )
 
 
 if __name__ == "__main__":

@@ -29,18 +29,26 @@ def sensor_mac(i: int) -> str:
 
 
 def rows(n: int, start: int) -> list[tuple[int, int, bytes, int]]:
-    return [(T0 + (start + k) * 1_000_003, 0, bytes.fromhex("e78f135624ce"), -40 - k % 50)
-            for k in range(n)]
+    return [
+        (T0 + (start + k) * 1_000_003, 0, bytes.fromhex("e78f135624ce"), -40 - k % 50)
+        for k in range(n)
+    ]
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--sensors", type=int, default=12)
     ap.add_argument("--rows", type=int, default=200_000, help="rows per sensor in the resumed run")
-    ap.add_argument("--boots", type=int, default=4, help="agent boots seen (streams = sensors x boots)")
+    ap.add_argument(
+        "--boots", type=int, default=4, help="agent boots seen (streams = sensors x boots)"
+    )
     ap.add_argument("--dir", type=Path, default=None, help="where to write (default: a temp dir)")
     args = ap.parse_args()
-    logging.basicConfig(level=logging.ERROR)  # the resume's "cut N bytes" warnings are expected here
+    logging.basicConfig(
+        level=logging.ERROR
+    )  # the resume's "cut N bytes" warnings are expected here
     base = Path(tempfile.mkdtemp(dir=args.dir))
     try:
         run(args, base)
@@ -68,8 +76,10 @@ def run(args: argparse.Namespace, base: Path) -> None:
         w.write_state(state)
         times.append(time.perf_counter() - t)
     size = (w.dir / "state.json").stat().st_size
-    print(f"state.json: {size} bytes for {args.sensors * args.boots} streams; durable write "
-          f"median {statistics.median(times) * 1e3:.2f} ms, max {max(times) * 1e3:.2f} ms")
+    print(
+        f"state.json: {size} bytes for {args.sensors * args.boots} streams; durable write "
+        f"median {statistics.median(times) * 1e3:.2f} ms, max {max(times) * 1e3:.2f} ms"
+    )
 
     rounds = []
     for r in range(10):
@@ -79,8 +89,10 @@ def run(args: argparse.Namespace, base: Path) -> None:
         w.fsync()
         w.write_state(w.state({"tracker": tracker.to_state()}))
         rounds.append(time.perf_counter() - t)
-    print(f"fsync round (all {args.sensors} files + state): median "
-          f"{statistics.median(rounds) * 1e3:.2f} ms, max {max(rounds) * 1e3:.2f} ms")
+    print(
+        f"fsync round (all {args.sensors} files + state): median "
+        f"{statistics.median(rounds) * 1e3:.2f} ms, max {max(rounds) * 1e3:.2f} ms"
+    )
 
     chunk = 20_000
     for s in range(args.sensors):
@@ -99,7 +111,9 @@ def run(args: argparse.Namespace, base: Path) -> None:
     StreamTracker.from_state(final["tracker"])
     dt = time.perf_counter() - t
     r.close()
-    print(f"resume of a run with {args.sensors} files, {mb:.1f} MiB, torn last lines: {dt * 1e3:.1f} ms")
+    print(
+        f"resume of a run with {args.sensors} files, {mb:.1f} MiB, torn last lines: {dt * 1e3:.1f} ms"
+    )
 
 
 if __name__ == "__main__":

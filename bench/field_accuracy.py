@@ -77,7 +77,15 @@ COVERAGE_K = 2.8  # 3-D error within 2.8 sigma_m (per-axis sigma): ~95 % for a G
 
 FIELD = ERROR_PRESETS["field"]
 VIDEO_KEYS = ("lens", "readout", "exposure", "flicker")
-FILE_KEYS = ("survey_m", "survey_deg", "rig_m", "rig_deg", "focal_rel", "principal_px", "distortion")
+FILE_KEYS = (
+    "survey_m",
+    "survey_deg",
+    "rig_m",
+    "rig_deg",
+    "focal_rel",
+    "principal_px",
+    "distortion",
+)
 
 
 @dataclass(frozen=True)
@@ -88,20 +96,34 @@ class Condition:
 
 
 CLEAN_VIDEO: dict[str, object] = {"lens": "mild", "readout": 0.0, "exposure": 0.0, "flicker": 0.0}
-CONDITIONS = {c.name: c for c in (
-    Condition("none"),
-    Condition("survey", files={"survey_m": FIELD["survey_m"], "survey_deg": FIELD["survey_deg"]}),
-    Condition("rig", files={"rig_m": FIELD["rig_m"], "rig_deg": FIELD["rig_deg"]}),
-    Condition("intrinsics", files={"focal_rel": FIELD["focal_rel"], "principal_px": FIELD["principal_px"]}),
-    Condition("rolling", video={"readout": FIELD["readout"]}),
-    Condition("exposure", video={"exposure": FIELD["exposure"]}),
-    Condition("lens", video={"lens": FIELD["lens"]}),
-    Condition("flicker", video={"flicker": FIELD["flicker"]}),
-    Condition("all", video={k: FIELD[k] for k in VIDEO_KEYS},
-              files={k: float(FIELD[k]) for k in FILE_KEYS}),
-    Condition("surveyed8", video={k: FIELD[k] for k in VIDEO_KEYS},
-              files={**{k: float(FIELD[k]) for k in FILE_KEYS}, "surveyed": 8}),
-)}
+CONDITIONS = {
+    c.name: c
+    for c in (
+        Condition("none"),
+        Condition(
+            "survey", files={"survey_m": FIELD["survey_m"], "survey_deg": FIELD["survey_deg"]}
+        ),
+        Condition("rig", files={"rig_m": FIELD["rig_m"], "rig_deg": FIELD["rig_deg"]}),
+        Condition(
+            "intrinsics",
+            files={"focal_rel": FIELD["focal_rel"], "principal_px": FIELD["principal_px"]},
+        ),
+        Condition("rolling", video={"readout": FIELD["readout"]}),
+        Condition("exposure", video={"exposure": FIELD["exposure"]}),
+        Condition("lens", video={"lens": FIELD["lens"]}),
+        Condition("flicker", video={"flicker": FIELD["flicker"]}),
+        Condition(
+            "all",
+            video={k: FIELD[k] for k in VIDEO_KEYS},
+            files={k: float(FIELD[k]) for k in FILE_KEYS},
+        ),
+        Condition(
+            "surveyed8",
+            video={k: FIELD[k] for k in VIDEO_KEYS},
+            files={**{k: float(FIELD[k]) for k in FILE_KEYS}, "surveyed": 8},
+        ),
+    )
+}
 
 
 def renderer_digest() -> str:
@@ -116,7 +138,9 @@ def video_key(args: dict[str, object]) -> str:
     return hashlib.sha256(json.dumps(args, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def render_once(cache: Path, args: dict[str, object], render: Callable[[Path], None], what: str) -> Path:
+def render_once(
+    cache: Path, args: dict[str, object], render: Callable[[Path], None], what: str
+) -> Path:
     """Folder keyed by `args`: `render(folder)` fills it once (into a .part folder, renamed when
     complete), later calls find it done."""
     folder = cache / video_key(args)
@@ -133,17 +157,43 @@ def render_once(cache: Path, args: dict[str, object], render: Callable[[Path], N
     return folder
 
 
-def cached_video(cache: Path, video: dict[str, object], duration: float, seed: int, width: int, height: int,
-                 jobs: int) -> Path:
+def cached_video(
+    cache: Path,
+    video: dict[str, object],
+    duration: float,
+    seed: int,
+    width: int,
+    height: int,
+    jobs: int,
+) -> Path:
     """Folder holding front.mp4, back.mp4 and truth.csv of this video, rendered if not cached."""
-    args = {**CLEAN_VIDEO, **video, "duration": duration, "seed": seed, "width": width, "height": height,
-            "t0": T0, "start_offset": START_OFFSET, "renderer": renderer_digest()}
+    args = {
+        **CLEAN_VIDEO,
+        **video,
+        "duration": duration,
+        "seed": seed,
+        "width": width,
+        "height": height,
+        "t0": T0,
+        "start_offset": START_OFFSET,
+        "renderer": renderer_digest(),
+    }
 
     def render(tmp: Path) -> None:
-        render_experiment(tmp, LoopTrajectory(t0=T0), (T0, T0 + duration), width=width, height=height,
-                          start_offset=START_OFFSET, seed=seed, exposure=float(video.get("exposure", 0.0)),
-                          lens=str(video.get("lens", "mild")), readout=float(video.get("readout", 0.0)),
-                          flicker=float(video.get("flicker", 0.0)), jobs=jobs)
+        render_experiment(
+            tmp,
+            LoopTrajectory(t0=T0),
+            (T0, T0 + duration),
+            width=width,
+            height=height,
+            start_offset=START_OFFSET,
+            seed=seed,
+            exposure=float(video.get("exposure", 0.0)),
+            lens=str(video.get("lens", "mild")),
+            readout=float(video.get("readout", 0.0)),
+            flicker=float(video.get("flicker", 0.0)),
+            jobs=jobs,
+        )
 
     what = ", ".join(f"{k}={v}" for k, v in video.items()) or "clean"
     return render_once(cache, args, render, f"{duration:g} s ({what}, seed {seed})")
@@ -157,16 +207,23 @@ def link(src: Path, dst: Path) -> None:
         shutil.copyfile(src, dst)
 
 
-def make_experiment(folder: Path, video_dir: Path, cond: Condition, seed: int, width: int, height: int) -> Path:
+def make_experiment(
+    folder: Path, video_dir: Path, cond: Condition, seed: int, width: int, height: int
+) -> Path:
     """The condition's experiment: the cached videos plus files carrying its errors."""
     folder.mkdir(parents=True, exist_ok=True)
     for name in ("front.mp4", "back.mp4", "truth.csv"):
         link(video_dir / name, folder / name)
     video = {**CLEAN_VIDEO, **cond.video}
-    write_experiment_files(folder, default_cameras(width, height, str(video["lens"])),
-                           read_marker_map(site_dir("tetam") / "marker_positions.dat"),
-                           {"front": T0, "back": T0 + START_OFFSET}, readout=float(video["readout"]),
-                           errors=FileErrors(**cond.files, seed=seed), settings={"condition": cond.name, **video})
+    write_experiment_files(
+        folder,
+        default_cameras(width, height, str(video["lens"])),
+        read_marker_map(site_dir("tetam") / "marker_positions.dat"),
+        {"front": T0, "back": T0 + START_OFFSET},
+        readout=float(video["readout"]),
+        errors=FileErrors(**cond.files, seed=seed),
+        settings={"condition": cond.name, **video},
+    )
     return folder / "experiment.yaml"
 
 
@@ -177,7 +234,9 @@ def annotator_cmd() -> list[str]:
 def refine_modes() -> list[str | None]:
     """[None] (today's default) or ['none', None] when `annotator track` knows --refine."""
     env = {**os.environ, "COLUMNS": "200", "NO_COLOR": "1"}
-    res = subprocess.run([*annotator_cmd(), "track", "--help"], capture_output=True, text=True, env=env, check=False)
+    res = subprocess.run(
+        [*annotator_cmd(), "track", "--help"], capture_output=True, text=True, env=env, check=False
+    )
     return ["none", None] if "--refine" in res.stdout else [None]
 
 
@@ -194,8 +253,12 @@ class Row:
     seconds: float
     n_compared: int = 0
     n_within: int = 0
-    z_median: float = float("nan")  # median of 3-D error / sigma_m (~1.5 for an honest per-axis sigma)
-    floor_cm: float = float("nan")  # median error of the survey's datum alone (see the module's doc)
+    z_median: float = float(
+        "nan"
+    )  # median of 3-D error / sigma_m (~1.5 for an honest per-axis sigma)
+    floor_cm: float = float(
+        "nan"
+    )  # median error of the survey's datum alone (see the module's doc)
 
 
 def _rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -222,17 +285,26 @@ def datum_floor_cm(exp: Path, refined: Path) -> float:
     ids = sorted(i for i in written if i in seen and i in true)
     if not ids:
         return float("nan")
-    R, t = _rigid_fit(np.array([true[i].position for i in ids], float),
-                      np.array([written[i].position for i in ids], float))
+    R, t = _rigid_fit(
+        np.array([true[i].position for i in ids], float),
+        np.array([written[i].position for i in ids], float),
+    )
     truth = read_trajectory(exp.parent / "truth.csv")
     p = truth.position
-    written_rig, true_rig = load_rig(exp.parent / "rig.yaml").cameras, load_rig(exp.parent / "true" / "rig.yaml").cameras
-    d_rig = np.mean([written_rig[n].t_bundle_camera - true_rig[n].t_bundle_camera for n in true_rig], axis=0)
+    written_rig, true_rig = (
+        load_rig(exp.parent / "rig.yaml").cameras,
+        load_rig(exp.parent / "true" / "rig.yaml").cameras,
+    )
+    d_rig = np.mean(
+        [written_rig[n].t_bundle_camera - true_rig[n].t_bundle_camera for n in true_rig], axis=0
+    )
     err = p @ R.T + t - p - truth.rotation @ d_rig
     return 100 * float(np.median(np.linalg.norm(err, axis=1)))
 
 
-def track_and_score(exp: Path, out: Path, refine: str | None, jobs: int, cond: str, seed: int) -> Row:
+def track_and_score(
+    exp: Path, out: Path, refine: str | None, jobs: int, cond: str, seed: int
+) -> Row:
     cmd = [*annotator_cmd(), "track", str(exp), "--out", str(out), "--jobs", str(jobs)]
     if refine is not None:
         cmd += ["--refine", refine]
@@ -241,37 +313,61 @@ def track_and_score(exp: Path, out: Path, refine: str | None, jobs: int, cond: s
     seconds = time.perf_counter() - t
     label = refine or "default"
     if res.returncode != 0:
-        print(f"{cond} seed {seed} refine {label}: annotator track failed:\n{res.stderr[-2000:]}", flush=True)
+        print(
+            f"{cond} seed {seed} refine {label}: annotator track failed:\n{res.stderr[-2000:]}",
+            flush=True,
+        )
         nan = float("nan")
         return Row(cond, seed, label, nan, nan, nan, nan, nan, seconds)
     traj = read_trajectory(out / "trajectory.csv")
     truth = read_trajectory(exp.parent / "truth.csv")
-    cmp = compare_to_truth(traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation)
+    cmp = compare_to_truth(
+        traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation
+    )
     ok = np.isfinite(cmp.position_error)
     err = cmp.position_error[ok]
     sigma = traj.quality.get("sigma_m")
-    within = float(np.mean(err < COVERAGE_K * sigma[ok])) if sigma is not None and ok.any() else float("nan")
+    within = (
+        float(np.mean(err < COVERAGE_K * sigma[ok]))
+        if sigma is not None and ok.any()
+        else float("nan")
+    )
     if not ok.any():
         return Row(cond, seed, label, 0.0, *(4 * [float("nan")]), seconds)
     n_within = int(np.sum(err < COVERAGE_K * sigma[ok])) if sigma is not None else 0
     z_median = float(np.median(err / sigma[ok])) if sigma is not None else float("nan")
-    return Row(cond, seed, label, float(traj.valid.mean()), 100 * float(np.median(err)),
-               100 * float(np.percentile(err, 95)), float(np.median(cmp.rotation_error_deg[ok])), within, seconds,
-               int(ok.sum()), n_within, z_median)
+    return Row(
+        cond,
+        seed,
+        label,
+        float(traj.valid.mean()),
+        100 * float(np.median(err)),
+        100 * float(np.percentile(err, 95)),
+        float(np.median(cmp.rotation_error_deg[ok])),
+        within,
+        seconds,
+        int(ok.sum()),
+        n_within,
+        z_median,
+    )
 
 
 def fmt(v: float, spec: str) -> str:
     return "-" if not np.isfinite(v) else format(v, spec)
 
 
-HEADER = (f"{'condition':11} {'seed':>4} {'refine':8} {'posed':>6} {'median':>7} {'p95':>7} {'rot med':>8} "
-          f"{'<2.8sig':>8} {'err/sig':>7} {'time':>6} {'floor':>6}")
+HEADER = (
+    f"{'condition':11} {'seed':>4} {'refine':8} {'posed':>6} {'median':>7} {'p95':>7} {'rot med':>8} "
+    f"{'<2.8sig':>8} {'err/sig':>7} {'time':>6} {'floor':>6}"
+)
 
 
 def row_text(r: Row) -> str:
-    return (f"{r.condition:11} {r.seed:4d} {r.refine:8} {fmt(100 * r.posed, '5.1f')}% {fmt(r.median_cm, '7.2f')} "
-            f"{fmt(r.p95_cm, '7.2f')} {fmt(r.rot_median_deg, '8.3f')} {fmt(100 * r.within, '7.1f')}% "
-            f"{fmt(r.z_median, '7.2f')} {r.seconds:5.0f}s {fmt(r.floor_cm, '6.2f')}")
+    return (
+        f"{r.condition:11} {r.seed:4d} {r.refine:8} {fmt(100 * r.posed, '5.1f')}% {fmt(r.median_cm, '7.2f')} "
+        f"{fmt(r.p95_cm, '7.2f')} {fmt(r.rot_median_deg, '8.3f')} {fmt(100 * r.within, '7.1f')}% "
+        f"{fmt(r.z_median, '7.2f')} {r.seconds:5.0f}s {fmt(r.floor_cm, '6.2f')}"
+    )
 
 
 def pooled_text(rows: list[Row]) -> list[str]:
@@ -283,50 +379,88 @@ def pooled_text(rows: list[Row]) -> list[str]:
         n, k = sum(r.n_compared for r in mine), sum(r.n_within for r in mine)
         if n:
             seeds = ",".join(str(r.seed) for r in mine)
-            out.append(f"{cond:11} {refine:8} seeds {seeds:12} {100 * k / n:6.1f}% of {n} rows within "
-                       f"{COVERAGE_K} sigma; per seed {', '.join(fmt(100 * r.within, '.1f') for r in mine)} %")
+            out.append(
+                f"{cond:11} {refine:8} seeds {seeds:12} {100 * k / n:6.1f}% of {n} rows within "
+                f"{COVERAGE_K} sigma; per seed {', '.join(fmt(100 * r.within, '.1f') for r in mine)} %"
+            )
     return out
 
 
 def side_by_side(rows: list[Row]) -> str:
     """Per condition and seed: `--refine none` beside the default (median / p95 cm, rotation deg)."""
     by = {(r.condition, r.seed, r.refine): r for r in rows}
-    lines = [f"{'condition':11} {'seed':>4} | {'refine none: med / p95 / rot':>30} | {'default: med / p95 / rot':>30} | "
-             f"{'refine s':>8}"]
+    lines = [
+        f"{'condition':11} {'seed':>4} | {'refine none: med / p95 / rot':>30} | {'default: med / p95 / rot':>30} | "
+        f"{'refine s':>8}"
+    ]
     for cond, seed in dict.fromkeys((r.condition, r.seed) for r in rows):
         a, b = by.get((cond, seed, "none")), by.get((cond, seed, "default"))
         if a is None or b is None:
             continue
-        cell = lambda r: (f"{fmt(r.median_cm, '6.2f')} / {fmt(r.p95_cm, '6.2f')} cm / "  # noqa: E731
-                          f"{fmt(r.rot_median_deg, '5.2f')} deg")
-        lines.append(f"{cond:11} {seed:4d} | {cell(a):>30} | {cell(b):>30} | {b.seconds - a.seconds:7.0f}s")
-    lines.append("refine s: the default's time minus refine none's (the refinement and the second pass).")
+
+        def cell(r: Row) -> str:
+            return f"{fmt(r.median_cm, '6.2f')} / {fmt(r.p95_cm, '6.2f')} cm / {fmt(r.rot_median_deg, '5.2f')} deg"
+
+        lines.append(
+            f"{cond:11} {seed:4d} | {cell(a):>30} | {cell(b):>30} | {b.seconds - a.seconds:7.0f}s"
+        )
+    lines.append(
+        "refine s: the default's time minus refine none's (the refinement and the second pass)."
+    )
     return "\n".join(lines)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--duration", type=float, default=30.0, help="length of the walk, s (default 30)")
-    ap.add_argument("--conditions", default=",".join(CONDITIONS),
-                    help=f"comma-separated subset of {', '.join(CONDITIONS)} (default all of them)")
-    ap.add_argument("--seeds", default="0", help="comma-separated seeds (render noise and error draws), default 0")
-    ap.add_argument("--jobs", type=int, default=2, help="processes for rendering and for `annotator track`")
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--duration", type=float, default=30.0, help="length of the walk, s (default 30)"
+    )
+    ap.add_argument(
+        "--conditions",
+        default=",".join(CONDITIONS),
+        help=f"comma-separated subset of {', '.join(CONDITIONS)} (default all of them)",
+    )
+    ap.add_argument(
+        "--seeds",
+        default="0",
+        help="comma-separated seeds (render noise and error draws), default 0",
+    )
+    ap.add_argument(
+        "--jobs", type=int, default=2, help="processes for rendering and for `annotator track`"
+    )
     ap.add_argument("--width", type=int, default=960)
     ap.add_argument("--height", type=int, default=540)
-    ap.add_argument("--keep", type=Path, help="keep each condition's experiment and trajectory under this folder")
-    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "ble-groundtruth-field-videos",
-                    help="rendered videos, keyed by their render arguments (default: in the temp folder)")
+    ap.add_argument(
+        "--keep",
+        type=Path,
+        help="keep each condition's experiment and trajectory under this folder",
+    )
+    ap.add_argument(
+        "--cache",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "ble-groundtruth-field-videos",
+        help="rendered videos, keyed by their render arguments (default: in the temp folder)",
+    )
     ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
-    ap.add_argument("--default-only", action="store_true", help="track with the default refinement only")
+    ap.add_argument(
+        "--default-only", action="store_true", help="track with the default refinement only"
+    )
     args = ap.parse_args()
     names = [c.strip() for c in args.conditions.split(",") if c.strip()]
     unknown = [n for n in names if n not in CONDITIONS]
     if unknown:
-        raise SystemExit(f"--conditions: unknown {', '.join(unknown)} (known: {', '.join(CONDITIONS)})")
+        raise SystemExit(
+            f"--conditions: unknown {', '.join(unknown)} (known: {', '.join(CONDITIONS)})"
+        )
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     modes = [None] if args.default_only else refine_modes()
-    print(f"walk {args.duration:g} s, {args.width}x{args.height}, two cameras; refine modes: "
-          f"{', '.join(m or 'default' for m in modes)}", flush=True)
+    print(
+        f"walk {args.duration:g} s, {args.width}x{args.height}, two cameras; refine modes: "
+        f"{', '.join(m or 'default' for m in modes)}",
+        flush=True,
+    )
     args.cache.mkdir(parents=True, exist_ok=True)
     work = args.keep or Path(tempfile.mkdtemp(prefix="field-accuracy-"))
     rows: list[Row] = []
@@ -334,8 +468,12 @@ def main() -> None:
         for seed in seeds:
             for name in names:
                 cond = CONDITIONS[name]
-                vdir = cached_video(args.cache, cond.video, args.duration, seed, args.width, args.height, args.jobs)
-                exp = make_experiment(work / f"{name}-s{seed}", vdir, cond, seed, args.width, args.height)
+                vdir = cached_video(
+                    args.cache, cond.video, args.duration, seed, args.width, args.height, args.jobs
+                )
+                exp = make_experiment(
+                    work / f"{name}-s{seed}", vdir, cond, seed, args.width, args.height
+                )
                 mine = []
                 for mode in modes:
                     out = exp.parent / f"track-{mode or 'default'}"
@@ -355,10 +493,12 @@ def main() -> None:
     if len(modes) > 1:
         print()
         print(side_by_side(rows))
-    print(f"conditions: {', '.join(names)} (see --help); errors in cm against the exact truth at the same time; "
-          f"'<2.8sig' = share of posed rows with 3-D error < {COVERAGE_K} x sigma_m (~95 % if sigma is honest); "
-          f"'err/sig' = median of 3-D error / sigma_m (~1.5 if honest); 'floor' = median error the survey's datum and the "
-          f"rig's mean position error leave (cm, see --help).")
+    print(
+        f"conditions: {', '.join(names)} (see --help); errors in cm against the exact truth at the same time; "
+        f"'<2.8sig' = share of posed rows with 3-D error < {COVERAGE_K} x sigma_m (~95 % if sigma is honest); "
+        f"'err/sig' = median of 3-D error / sigma_m (~1.5 if honest); 'floor' = median error the survey's datum and the "
+        f"rig's mean position error leave (cm, see --help)."
+    )
     print()
     print("pooled over seeds (errors of one capture are correlated: judge sigma over many seeds):")
     for line in pooled_text(rows):

@@ -52,28 +52,55 @@ from bgt_core.sites import site_dir  # noqa: E402
 T0 = 1_700_000_000.0
 START_OFFSET = 0.35  # the demo's
 COVERAGE_K = 2.8
-CLEAN_VIDEO: dict[str, object] = {"lens": "mild", "readout": 0.0, "exposure": 1 / 120, "flicker": 0.0}
+CLEAN_VIDEO: dict[str, object] = {
+    "lens": "mild",
+    "readout": 0.0,
+    "exposure": 1 / 120,
+    "flicker": 0.0,
+}
 CONDITIONS: dict[str, tuple[dict[str, object], dict[str, float]]] = {
     "none": ({}, {}),
     "all": ({k: FIELD[k] for k in VIDEO_KEYS}, {k: float(FIELD[k]) for k in FILE_KEYS}),
 }
 
 
-def cached_video(cache: Path, video: dict[str, object], settings: demo.DemoSettings, jobs: int) -> Path:
+def cached_video(
+    cache: Path, video: dict[str, object], settings: demo.DemoSettings, jobs: int
+) -> Path:
     """Folder holding front.mp4 and back.mp4 of the demo walk with these video errors."""
-    args = {**CLEAN_VIDEO, **video, "scenario": "demo-walk", "duration": settings.duration_s,
-            "seed": settings.seed, "covers": settings.covers(), "t0": T0, "start_offset": START_OFFSET,
-            "renderer": renderer_digest()}
+    args = {
+        **CLEAN_VIDEO,
+        **video,
+        "scenario": "demo-walk",
+        "duration": settings.duration_s,
+        "seed": settings.seed,
+        "covers": settings.covers(),
+        "t0": T0,
+        "start_offset": START_OFFSET,
+        "renderer": renderer_digest(),
+    }
 
     def render(tmp: Path) -> None:
-        render_experiment(tmp, demo.bundle_pose_at(demo.demo_path(settings.speed_mps), T0),
-                          (T0, T0 + settings.duration_s), width=960, height=540, start_offset=START_OFFSET,
-                          covers=settings.covers(), seed=settings.seed, exposure=float(args["exposure"]),
-                          lens=str(args["lens"]), readout=float(args["readout"]),
-                          flicker=float(args["flicker"]), jobs=jobs)
+        render_experiment(
+            tmp,
+            demo.bundle_pose_at(demo.demo_path(settings.speed_mps), T0),
+            (T0, T0 + settings.duration_s),
+            width=960,
+            height=540,
+            start_offset=START_OFFSET,
+            covers=settings.covers(),
+            seed=settings.seed,
+            exposure=float(args["exposure"]),
+            lens=str(args["lens"]),
+            readout=float(args["readout"]),
+            flicker=float(args["flicker"]),
+            jobs=jobs,
+        )
 
     what = "clean" if not video else ", ".join(f"{k}={v}" for k, v in video.items())
-    return render_once(cache, args, render, f"{settings.duration_s:g} s (seed {settings.seed}, {what})")
+    return render_once(
+        cache, args, render, f"{settings.duration_s:g} s (seed {settings.seed}, {what})"
+    )
 
 
 def write_readings(run_dir: Path, settings: demo.DemoSettings) -> int:
@@ -84,15 +111,24 @@ def write_readings(run_dir: Path, settings: demo.DemoSettings) -> int:
     path = demo.demo_path(settings.speed_mps)
     n = 0
     for i, (agent, sensors) in enumerate(zip(demo.AGENTS, demo.split_sensors(), strict=True)):
-        sim = Simulation(pick_sensors(devices, sensors), tuple(devices.beacons), path, round(T0 * 1e9),
-                         seed=settings.seed * 10 + i, rate_hz=10, events=demo.rssi_events(settings))
+        sim = Simulation(
+            pick_sensors(devices, sensors),
+            tuple(devices.beacons),
+            path,
+            round(T0 * 1e9),
+            seed=settings.seed * 10 + i,
+            rate_hz=10,
+            events=demo.rssi_events(settings),
+        )
         sim.skip_to(-5.0)  # the agents start before t0
         rows: dict[str, list[str]] = {}
         for mac, r in sim.generate(settings.duration_s + 1.0):
             rows.setdefault(mac, []).append(format_row(r.t_ns, mac, r.beacon, r.rssi))
         (run_dir / "rssi" / agent).mkdir(parents=True, exist_ok=True)
         for mac, lines in rows.items():
-            (run_dir / "rssi" / agent / f"{mac.replace(':', '')}.mbd").write_text("".join(lines), encoding="utf-8")
+            (run_dir / "rssi" / agent / f"{mac.replace(':', '')}.mbd").write_text(
+                "".join(lines), encoding="utf-8"
+            )
             n += len(lines)
     return n
 
@@ -103,16 +139,24 @@ def make_experiment(folder: Path, video_dir: Path, cond: str, settings: demo.Dem
     folder.mkdir(parents=True, exist_ok=True)
     for name in ("front.mp4", "back.mp4"):
         link(video_dir / name, folder / name)
-    write_experiment_files(folder, default_cameras(960, 540, str(video["lens"])),
-                           read_marker_map(site_dir("tetam") / "marker_positions.dat"),
-                           {"front": T0, "back": T0 + START_OFFSET}, readout=float(video["readout"]),
-                           errors=FileErrors(**files, seed=settings.seed),
-                           settings={"condition": cond, **video})
+    write_experiment_files(
+        folder,
+        default_cameras(960, 540, str(video["lens"])),
+        read_marker_map(site_dir("tetam") / "marker_positions.dat"),
+        {"front": T0, "back": T0 + START_OFFSET},
+        readout=float(video["readout"]),
+        errors=FileErrors(**files, seed=settings.seed),
+        settings={"condition": cond, **video},
+    )
     shutil.rmtree(folder / "rssi", ignore_errors=True)
     write_readings(folder / "run", settings)
-    doc = {"markers": {"file": "marker_positions.dat", "dictionary": "DICT_6X6_50", "length": 0.298},
-           "rig": "rig.yaml", "videos": {"front": "front.mp4", "back": "back.mp4"}, "rssi": "run",
-           "sync": {"mode": "auto"}}
+    doc = {
+        "markers": {"file": "marker_positions.dat", "dictionary": "DICT_6X6_50", "length": 0.298},
+        "rig": "rig.yaml",
+        "videos": {"front": "front.mp4", "back": "back.mp4"},
+        "rssi": "run",
+        "sync": {"mode": "auto"},
+    }
     exp = folder / "experiment.yaml"
     exp.write_text(safe_yaml.dump(doc, sort_keys=False), encoding="utf-8")
     return exp
@@ -144,24 +188,38 @@ def run_and_score(exp: Path, settings: demo.DemoSettings, jobs: int) -> dict[str
 
 def row_text(cond: str, seed: int, s: dict) -> str:
     e = s["error_cm"]
-    cams = "  ".join(f"{n} {c['error_ms']:+6.1f} ms (sigma {c['sigma_ms'] or float('nan'):5.1f})"
-                     for n, c in s["sync"].items())
-    return (f"{cond:5} {seed:4d} {e['n']:6d} {e['median']:7.2f} {e['p95']:7.2f} {e['max']:7.2f} "
-            f"{100 * s['within']:7.1f}%  {cams}  {s['seconds']:4.0f}s")
+    cams = "  ".join(
+        f"{n} {c['error_ms']:+6.1f} ms (sigma {c['sigma_ms'] or float('nan'):5.1f})"
+        for n, c in s["sync"].items()
+    )
+    return (
+        f"{cond:5} {seed:4d} {e['n']:6d} {e['median']:7.2f} {e['p95']:7.2f} {e['max']:7.2f} "
+        f"{100 * s['within']:7.1f}%  {cams}  {s['seconds']:4.0f}s"
+    )
 
 
-HEADER = (f"{'cond':5} {'seed':>4} {'labels':>6} {'median':>7} {'p95':>7} {'max':>7} {'<2.8sig':>8}  "
-          "video start error per camera (reported sigma)  time")
+HEADER = (
+    f"{'cond':5} {'seed':>4} {'labels':>6} {'median':>7} {'p95':>7} {'max':>7} {'<2.8sig':>8}  "
+    "video start error per camera (reported sigma)  time"
+)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--duration", type=float, default=30.0, help="seconds of video (default 30)")
     ap.add_argument("--conditions", default="none,all", help="comma-separated subset of none, all")
-    ap.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (render, radio and error draws)")
+    ap.add_argument(
+        "--seeds", default="0,1,2", help="comma-separated seeds (render, radio and error draws)"
+    )
     ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--keep", type=Path, help="keep each experiment and its results under this folder")
-    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "ble-groundtruth-field-videos")
+    ap.add_argument(
+        "--keep", type=Path, help="keep each experiment and its results under this folder"
+    )
+    ap.add_argument(
+        "--cache", type=Path, default=Path(tempfile.gettempdir()) / "ble-groundtruth-field-videos"
+    )
     ap.add_argument("--json", type=Path, help="also write the summaries as JSON here")
     args = ap.parse_args()
     conds = [c.strip() for c in args.conditions.split(",") if c.strip()]
@@ -172,11 +230,19 @@ def main() -> None:
     args.cache.mkdir(parents=True, exist_ok=True)
     work = args.keep or Path(tempfile.mkdtemp(prefix="field-labels-"))
     rows: list[tuple[str, int, dict]] = []
-    print(f"demo walk {args.duration:g} s, 960x540, two cameras, sync auto, refine default", flush=True)
+    print(
+        f"demo walk {args.duration:g} s, 960x540, two cameras, sync auto, refine default",
+        flush=True,
+    )
     try:
         for seed in seeds:
-            settings = demo.DemoSettings(out=work, duration_s=args.duration, seed=seed,
-                                         start_offset_s=START_OFFSET, jobs=args.jobs)
+            settings = demo.DemoSettings(
+                out=work,
+                duration_s=args.duration,
+                seed=seed,
+                start_offset_s=START_OFFSET,
+                jobs=args.jobs,
+            )
             for cond in conds:
                 vdir = cached_video(args.cache, CONDITIONS[cond][0], settings, args.jobs)
                 exp = make_experiment(work / f"{cond}-s{seed}", vdir, cond, settings)
@@ -189,15 +255,21 @@ def main() -> None:
     print(HEADER)
     for r in rows:
         print(row_text(*r))
-    print("errors in cm: labelled reading's position against the true path at the reading's timestamp")
+    print(
+        "errors in cm: labelled reading's position against the true path at the reading's timestamp"
+    )
     for cond in conds:
         mine = [s for c, _, s in rows if c == cond]
         n, k = sum(s["n_sigma"] for s in mine), sum(s["n_within"] for s in mine)
         if n:
-            print(f"{cond}: pooled over seeds {100 * k / n:.1f} % of {n} labels within {COVERAGE_K} sigma")
+            print(
+                f"{cond}: pooled over seeds {100 * k / n:.1f} % of {n} labels within {COVERAGE_K} sigma"
+            )
     if args.json is not None:
-        args.json.write_text(json.dumps([{"condition": c, "seed": s, **v} for c, s, v in rows], indent=1),
-                             encoding="utf-8")
+        args.json.write_text(
+            json.dumps([{"condition": c, "seed": s, **v} for c, s, v in rows], indent=1),
+            encoding="utf-8",
+        )
 
 
 if __name__ == "__main__":

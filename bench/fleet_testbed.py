@@ -34,7 +34,9 @@ def main() -> int:
         return 1
     t0 = time.monotonic()
     _path, took, built = tb.build_rootfs(force=a.cold)
-    print(f"rootfs {'cold build' if built else 'cached'}: {took if built else time.monotonic() - t0:.1f} s")
+    print(
+        f"rootfs {'cold build' if built else 'cached'}: {took if built else time.monotonic() - t0:.1f} s"
+    )
     state = Path(tempfile.mkdtemp(prefix="bgt-testbed-bench-"))
     tb.STATE = state
     try:
@@ -43,7 +45,9 @@ def main() -> int:
         for label in ("first", "second"):
             r = tb.deploy([])
             changed = {h: c.get("changed") for h, c in r.recap.items()}
-            print(f"playbook {label} run: {r.seconds:.1f} s, exit {r.returncode}, changed {changed}")
+            print(
+                f"playbook {label} run: {r.seconds:.1f} s, exit {r.returncode}, changed {changed}"
+            )
             if r.returncode != 0:
                 print(r.output[-3000:])
                 return 1

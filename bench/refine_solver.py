@@ -38,12 +38,26 @@ def make_problem(n_kf: int, seed: int) -> tuple[rf.Problem, dict, list[rf.Camera
     cams_true = []
     for name, cam in default_cameras(960, 540, "mild").items():
         R, t = RIG_EXTRINSICS[name]
-        cams_true.append(rf.CameraParams(name, np.asarray(R, float), np.asarray(t, float), cam.K,
-                                         np.asarray(cam.dist, float), "radtan", 0.0, 540))
+        cams_true.append(
+            rf.CameraParams(
+                name,
+                np.asarray(R, float),
+                np.asarray(t, float),
+                cam.K,
+                np.asarray(cam.dist, float),
+                "radtan",
+                0.0,
+                540,
+            )
+        )
     s = np.linspace(0, 2 * np.pi, n_kf, endpoint=False)
     pos = np.stack([9.5 + 2.5 * np.cos(s), 8.9 + 2.5 * np.sin(s), 1.5 + 0.05 * np.sin(3 * s)], 1)
-    rot = Rotation.from_euler("zyx", np.stack([s + np.pi / 2, 0.05 * np.sin(2 * s), 0.04 * np.cos(s)], 1)).as_matrix()
-    truth = {int(m): (room.R_world_marker[i], room.t_world_marker[i]) for i, m in enumerate(room.ids)}
+    rot = Rotation.from_euler(
+        "zyx", np.stack([s + np.pi / 2, 0.05 * np.sin(2 * s), 0.04 * np.cos(s)], 1)
+    ).as_matrix()
+    truth = {
+        int(m): (room.R_world_marker[i], room.t_world_marker[i]) for i, m in enumerate(room.ids)
+    }
     # Every marker in front of a camera and inside its image, from the true geometry.
     keyframes = []
     for k in range(n_kf):
@@ -55,7 +69,9 @@ def make_problem(n_kf: int, seed: int) -> tuple[rf.Problem, dict, list[rf.Camera
                 Xc = (room.corners_world[i] - c_w) @ R_wc
                 if Xc[:, 2].min() < 0.3 or np.linalg.norm(Xc.mean(0)) > 8:
                     continue
-                if (R_wc.T @ room.R_world_marker[i][:, 2]) @ Xc.mean(0) > -0.25 * np.linalg.norm(Xc.mean(0)):
+                if (R_wc.T @ room.R_world_marker[i][:, 2]) @ Xc.mean(0) > -0.25 * np.linalg.norm(
+                    Xc.mean(0)
+                ):
                     continue
                 xy = Xc[:, :2] / Xc[:, 2:]
                 xyd = rf.distort_normalised(xy, np.repeat(cam.dist[None], 4, 0), "radtan")
@@ -68,21 +84,42 @@ def make_problem(n_kf: int, seed: int) -> tuple[rf.Problem, dict, list[rf.Camera
                 views.append(rf.FrameView(c, np.array(ids), np.array(corners)))
         R0 = Rotation.from_rotvec(np.radians(0.3) * rng.standard_normal(3)).as_matrix() @ rot[k]
         keyframes.append(rf.Keyframe(R0, pos[k] + 0.01 * rng.standard_normal(3), views))
-    survey = {m: (Rotation.from_rotvec(np.radians(1.0) * rng.standard_normal(3)).as_matrix() @ R,
-                  c + 0.015 * rng.standard_normal(3)) for m, (R, c) in truth.items()}
+    survey = {
+        m: (
+            Rotation.from_rotvec(np.radians(1.0) * rng.standard_normal(3)).as_matrix() @ R,
+            c + 0.015 * rng.standard_normal(3),
+        )
+        for m, (R, c) in truth.items()
+    }
     cams = []
     for cam in cams_true:
         K = cam.K.copy()
         K[:2, :2] *= 1 + 0.004 * rng.standard_normal()
         dR = Rotation.from_rotvec(np.radians(1.0) * rng.standard_normal(3)).as_matrix()
-        cams.append(rf.CameraParams(cam.name, dR @ cam.R_bc, cam.t_bc + 0.003 * rng.standard_normal(3), K,
-                                    cam.dist, "radtan", 0.0, 540))
+        cams.append(
+            rf.CameraParams(
+                cam.name,
+                dR @ cam.R_bc,
+                cam.t_bc + 0.003 * rng.standard_normal(3),
+                K,
+                cam.dist,
+                "radtan",
+                0.0,
+                540,
+            )
+        )
     prob, _ = rf.build_problem(survey, 0.298, cams, keyframes, Priors())
     return prob, truth, cams_true
 
 
-def scores(prob: rf.Problem, R_m: np.ndarray, t_m: np.ndarray, K: list[np.ndarray], truth: dict,
-           cams_true: list[rf.CameraParams]) -> str:
+def scores(
+    prob: rf.Problem,
+    R_m: np.ndarray,
+    t_m: np.ndarray,
+    K: list[np.ndarray],
+    truth: dict,
+    cams_true: list[rf.CameraParams],
+) -> str:
     seen = np.bincount(prob.obs.marker, minlength=len(prob.markers)) >= 40
     err = [np.linalg.norm(t_m[m] - truth[mid][1]) for m, mid in enumerate(prob.markers) if seen[m]]
     f = [abs(k[0, 0] / c.K[0, 0] - 1) for k, c in zip(K, cams_true, strict=True)]
@@ -90,7 +127,9 @@ def scores(prob: rf.Problem, R_m: np.ndarray, t_m: np.ndarray, K: list[np.ndarra
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--keyframes", type=int, default=120)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-nfev", type=int, default=100, help="scipy's evaluation budget")
@@ -100,8 +139,14 @@ def main() -> None:
     settings = rf.RefineSettings()
     seen = np.zeros(len(prob.markers), bool)
     seen[np.unique(prob.obs.marker)] = True
-    layout = rf._Layout(len(prob.R_k), len(prob.markers), len(prob.cameras), 5, seen,
-                        (rf.RIG, rf.INTR, rf.DIST, rf.READOUT))
+    layout = rf._Layout(
+        len(prob.R_k),
+        len(prob.markers),
+        len(prob.cameras),
+        5,
+        seen,
+        (rf.RIG, rf.INTR, rf.DIST, rf.READOUT),
+    )
     lm = rf._LM(prob, layout, settings)  # one stage, noise 1 px, the same priors for both solvers
     n_pose, n_static = layout.n_pose, layout.n_static
     x0 = np.zeros(n_pose + n_static)
@@ -109,8 +154,11 @@ def main() -> None:
     def report(name: str, x: np.ndarray, seconds: float, work: str) -> None:
         v = lm.model.static_values(x)
         K = [np.array([[k[0], 0, k[2]], [0, k[1], k[3]], [0, 0, 1]]) for k in v["K"]]
-        print(f"{name:16} {seconds:6.1f} s, {work:18} cost {lm.cost(x)[0]:10.1f}; "
-              f"{scores(prob, v['R_m'], v['t_m'], K, truth, cams_true)}", flush=True)
+        print(
+            f"{name:16} {seconds:6.1f} s, {work:18} cost {lm.cost(x)[0]:10.1f}; "
+            f"{scores(prob, v['R_m'], v['t_m'], K, truth, cams_true)}",
+            flush=True,
+        )
 
     report("start", x0, 0.0, "")
     t = time.perf_counter()
@@ -141,11 +189,22 @@ def main() -> None:
     ar, ac = np.nonzero(A)
     rows.append(2 * N + n_static + ar)
     cols.append(n_pose + ac)
-    pattern = sp.csr_matrix((np.ones(sum(len(r) for r in rows)), (np.concatenate(rows), np.concatenate(cols))),
-                            shape=(2 * N + n_static + len(A), n_pose + n_static))
+    pattern = sp.csr_matrix(
+        (np.ones(sum(len(r) for r in rows)), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(2 * N + n_static + len(A), n_pose + n_static),
+    )
     t = time.perf_counter()
-    res = least_squares(residuals, x0, jac_sparsity=pattern, method="trf", loss="huber",
-                        f_scale=settings.huber_px, x_scale="jac", max_nfev=args.max_nfev, tr_solver="lsmr")
+    res = least_squares(
+        residuals,
+        x0,
+        jac_sparsity=pattern,
+        method="trf",
+        loss="huber",
+        f_scale=settings.huber_px,
+        x_scale="jac",
+        max_nfev=args.max_nfev,
+        tr_solver="lsmr",
+    )
     report("scipy trf", res.x, time.perf_counter() - t, f"{res.nfev} evaluations,")
     print(f"scipy status {res.status}: {res.message}")
 

@@ -49,30 +49,39 @@ def main() -> int:
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     scale = Scale(sensors=args.sensors, beacons=args.beacons, rate_hz=10, duration_s=args.seconds)
-    long = Scale(sensors=args.sensors, beacons=args.beacons, rate_hz=10,
-                 duration_s=max(args.seconds, 50.0))
+    long = Scale(
+        sensors=args.sensors, beacons=args.beacons, rate_hz=10, duration_s=max(args.seconds, 50.0)
+    )
     only = set(args.only.split(","))
     work = Path(tempfile.mkdtemp(prefix="bgt-reliability-"))
     runs = {
-        "kill9": lambda d: collector_outage(d, scale, mode="kill9", outage_s=3.0,
-                                            name="collector kill9, back 3s"),
-        "stop30": lambda d: collector_outage(d, long, mode="sigstop", outage_s=30.0,
-                                             name="collector SIGSTOP 30s"),
-        "kill30": lambda d: collector_outage(d, long, mode="kill9", outage_s=30.0,
-                                             name="collector kill9, back 30s"),
+        "kill9": lambda d: collector_outage(
+            d, scale, mode="kill9", outage_s=3.0, name="collector kill9, back 3s"
+        ),
+        "stop30": lambda d: collector_outage(
+            d, long, mode="sigstop", outage_s=30.0, name="collector SIGSTOP 30s"
+        ),
+        "kill30": lambda d: collector_outage(
+            d, long, mode="kill9", outage_s=30.0, name="collector kill9, back 30s"
+        ),
         # Longer than the publisher's in-memory cache (600 batches = 60 s per stream): only the
         # spool and the re-send can fill this gap.
-        "kill90": lambda d: collector_outage(d, Scale(args.sensors, args.beacons, 10,
-                                                      max(args.seconds, 110.0)),
-                                             mode="kill9", outage_s=90.0,
-                                             name="collector kill9, back 90s"),
+        "kill90": lambda d: collector_outage(
+            d,
+            Scale(args.sensors, args.beacons, 10, max(args.seconds, 110.0)),
+            mode="kill9",
+            outage_s=90.0,
+            name="collector kill9, back 90s",
+        ),
         "agent": lambda d: agent_restart(d, scale),
         "fuzz": lambda d: fuzz_scenario(d, scale, n_data=args.fuzz, n_queries=1000),
         "disk": lambda d: full_disk(d, scale, hold_s=10.0, side="collector"),
         "adisk": lambda d: full_disk(d, scale, hold_s=10.0, size="1m", side="agent"),
     }
-    print(f"{args.sensors} sensors x {args.beacons} beacons x 10 Hz, {args.seconds:g} s streams; "
-          f"work folder {work}")
+    print(
+        f"{args.sensors} sensors x {args.beacons} beacons x 10 Hz, {args.seconds:g} s streams; "
+        f"work folder {work}"
+    )
     results: list[Result] = []
     try:
         for key, fn in runs.items():
@@ -88,13 +97,16 @@ def main() -> int:
     finally:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
-    bpb = [r.notes["spool_bytes_per_batch"] for r in results
-           if r.notes.get("spool_bytes_per_batch")]
+    bpb = [
+        r.notes["spool_bytes_per_batch"] for r in results if r.notes.get("spool_bytes_per_batch")
+    ]
     if bpb:
         b = max(bpb)
         hours = 256 * MIB / (b * 12 * 10) / 3600
-        print(f"spool: {b:.0f} bytes per batch ({args.beacons} readings) -> the default 256 MiB "
-              f"covers {hours:.1f} h of outage at 12 sensors x 10 batches/s")
+        print(
+            f"spool: {b:.0f} bytes per batch ({args.beacons} readings) -> the default 256 MiB "
+            f"covers {hours:.1f} h of outage at 12 sensors x 10 batches/s"
+        )
     return 0 if all(r.tally.ok() and not r.problems for r in results) else 1
 
 

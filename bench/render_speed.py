@@ -26,18 +26,28 @@ def main() -> None:
     cam = default_cameras(args.width, args.height)["front"]
     t = time.perf_counter()
     build_distortion_map(cam)
-    print(f"distortion map {args.width}x{args.height}: {time.perf_counter() - t:.2f} s (once per camera)")
+    print(
+        f"distortion map {args.width}x{args.height}: {time.perf_counter() - t:.2f} s (once per camera)"
+    )
 
     traj = LoopTrajectory()
     for jobs in args.jobs:
         with tempfile.TemporaryDirectory() as tmp:
             t = time.perf_counter()
-            res = render_experiment(tmp, traj, (traj.t0, traj.t0 + args.duration), width=args.width,
-                                    height=args.height, jobs=jobs)
+            res = render_experiment(
+                tmp,
+                traj,
+                (traj.t0, traj.t0 + args.duration),
+                width=args.width,
+                height=args.height,
+                jobs=jobs,
+            )
             wall = time.perf_counter() - t
         n = sum(res.frames.values())
-        print(f"{args.duration:g} s two-camera render {args.width}x{args.height}, jobs={jobs}: "
-              f"{wall:.1f} s wall, {n} frames, {n / wall:.1f} frames/s")
+        print(
+            f"{args.duration:g} s two-camera render {args.width}x{args.height}, jobs={jobs}: "
+            f"{wall:.1f} s wall, {n} frames, {n / wall:.1f} frames/s"
+        )
 
 
 if __name__ == "__main__":

@@ -29,15 +29,21 @@ IB = wire.IBeacon("f7826da64fa24e988024bc5b71e0893e", 1, 42, -59)
 
 
 def sensor_mac(i: int) -> str:
-    return f"b827eb{0x4521b0 + i:06x}"
+    return f"b827eb{0x4521B0 + i:06x}"
 
 
 def batch_payload(sensor: int, seq: int, readings: int, ibeacon: bool) -> bytes:
     t = T0 + seq * 100_000_000
-    rows = tuple(wire.Reading(t + j * 37_000_000 + sensor * 1_000, "e78f135624ce",
-                              -55 - (seq + j + sensor) % 30, mono_ns=123_456_789_000_000 + t % 10**12,
-                              ibeacon=IB if ibeacon else None)
-                 for j in range(readings))
+    rows = tuple(
+        wire.Reading(
+            t + j * 37_000_000 + sensor * 1_000,
+            "e78f135624ce",
+            -55 - (seq + j + sensor) % 30,
+            mono_ns=123_456_789_000_000 + t % 10**12,
+            ibeacon=IB if ibeacon else None,
+        )
+        for j in range(readings)
+    )
     b = wire.Batch(AGENT, BOOT, sensor_mac(sensor), 100_000 + seq, rows, sent_ns=t + 2_000_000)
     return wire.to_wire(b)
 
@@ -50,8 +56,11 @@ def bytes_per_batch(root: Path, sensors: int, readings: int, ibeacon: bool) -> f
         with Spool(d, 256 * MIB) as sp:
             for seq in range(600):
                 for s in range(sensors):
-                    sp.append(f"{BOOT}/{sensor_mac(s)}", 100_000 + seq,
-                              batch_payload(s, seq, readings, ibeacon))
+                    sp.append(
+                        f"{BOOT}/{sensor_mac(s)}",
+                        100_000 + seq,
+                        batch_payload(s, seq, readings, ibeacon),
+                    )
                     n += 1
             size = sp.stats().bytes
         return size / n
@@ -59,7 +68,9 @@ def bytes_per_batch(root: Path, sensors: int, readings: int, ibeacon: bool) -> f
         shutil.rmtree(d)
 
 
-def append_rate(root: Path, sensors: int, seconds: float, fsync_interval_s: float) -> tuple[float, float]:
+def append_rate(
+    root: Path, sensors: int, seconds: float, fsync_interval_s: float
+) -> tuple[float, float]:
     """(records/s appended, records/s read back by pending())."""
     d = Path(tempfile.mkdtemp(dir=root))
     pool = [batch_payload(s, seq, 1, False) for seq in range(50) for s in range(sensors)]
@@ -94,10 +105,14 @@ def main() -> None:
     budget = args.max_mb * MIB
     segment = min(8 * MIB, budget // 16)
 
-    print(f"spool {args.max_mb} MiB = {budget} bytes, segments {segment} bytes; "
-          f"{args.sensors} sensors x {args.hz:g} Hz")
-    print(f"{'batch_ms':>8} {'readings/batch':>14} {'iBeacon':>7} {'bytes/batch':>11} "
-          f"{'batches/s':>9} {'KiB/s':>7} {'outage covered':>15} {'kept after a drop':>18}")
+    print(
+        f"spool {args.max_mb} MiB = {budget} bytes, segments {segment} bytes; "
+        f"{args.sensors} sensors x {args.hz:g} Hz"
+    )
+    print(
+        f"{'batch_ms':>8} {'readings/batch':>14} {'iBeacon':>7} {'bytes/batch':>11} "
+        f"{'batches/s':>9} {'KiB/s':>7} {'outage covered':>15} {'kept after a drop':>18}"
+    )
     for batch_ms in (100, 200):
         readings = max(1, round(args.hz * batch_ms / 1000))
         batches_per_s = args.sensors * 1000 / batch_ms
@@ -106,15 +121,24 @@ def main() -> None:
             rate = per * batches_per_s
             covered_h = budget / rate / 3600
             kept_h = (budget - segment) / rate / 3600
-            print(f"{batch_ms:>8} {readings:>14} {'yes' if ibeacon else 'no':>7} {per:>11.1f} "
-                  f"{batches_per_s:>9.0f} {rate / 1024:>7.1f} {covered_h:>13.1f} h "
-                  f"{kept_h:>16.1f} h")
+            print(
+                f"{batch_ms:>8} {readings:>14} {'yes' if ibeacon else 'no':>7} {per:>11.1f} "
+                f"{batches_per_s:>9.0f} {rate / 1024:>7.1f} {covered_h:>13.1f} h "
+                f"{kept_h:>16.1f} h"
+            )
 
-    for label, interval in ((f"fsync every {DEFAULT_FSYNC_INTERVAL_S * 1000:.0f} ms (default)",
-                             DEFAULT_FSYNC_INTERVAL_S), ("fsync every record", 0.0)):
+    for label, interval in (
+        (
+            f"fsync every {DEFAULT_FSYNC_INTERVAL_S * 1000:.0f} ms (default)",
+            DEFAULT_FSYNC_INTERVAL_S,
+        ),
+        ("fsync every record", 0.0),
+    ):
         w, r = append_rate(root, args.sensors, args.seconds, interval)
-        print(f"append, {label}: {w:,.0f} records/s  "
-              f"(needed: {args.sensors * args.hz:,.0f}/s at batch_ms 100); pending() reads {r:,.0f}/s")
+        print(
+            f"append, {label}: {w:,.0f} records/s  "
+            f"(needed: {args.sensors * args.hz:,.0f}/s at batch_ms 100); pending() reads {r:,.0f}/s"
+        )
 
 
 if __name__ == "__main__":

@@ -21,14 +21,24 @@ from annotator.core.sync import CoverEvent, detect_rssi_events, detect_video_eve
 T0 = 1_700_000_000.0
 
 
-def video(rng: np.random.Generator, cover: float, release: float, fps: float, noise: float,
-          ramp: float, duration: float = 10.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def video(
+    rng: np.random.Generator,
+    cover: float,
+    release: float,
+    fps: float,
+    noise: float,
+    ramp: float,
+    duration: float = 10.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Box-exposure frames of a moving scene; the lens covered over [cover, release] (ramp midpoints)."""
     pts = np.arange(0.0, duration, 1.0 / fps)
     sub = (np.arange(16) + 0.5) / 16 - 0.5
     s = pts[:, None] + sub[None, :] / fps
     if ramp > 0:
-        f = np.minimum(np.clip((s - cover + ramp / 2) / ramp, 0, 1), np.clip((release + ramp / 2 - s) / ramp, 0, 1))
+        f = np.minimum(
+            np.clip((s - cover + ramp / 2) / ramp, 0, 1),
+            np.clip((release + ramp / 2 - s) / ramp, 0, 1),
+        )
     else:
         f = ((s >= cover) & (s < release)).astype(float)
     f = f.mean(axis=1)
@@ -37,8 +47,16 @@ def video(rng: np.random.Generator, cover: float, release: float, fps: float, no
     return pts, b, np.where(f > 0.4, 0, 4)
 
 
-def rssi(rng: np.random.Generator, cover: float, release: float, rate: float, keep: float,
-         drop_db: float, sensors: int = 12, duration: float = 30.0) -> tuple[np.ndarray, ...]:
+def rssi(
+    rng: np.random.Generator,
+    cover: float,
+    release: float,
+    rate: float,
+    keep: float,
+    drop_db: float,
+    sensors: int = 12,
+    duration: float = 30.0,
+) -> tuple[np.ndarray, ...]:
     ts, rs, ss = [], [], []
     for k in range(sensors):
         n = rng.poisson(rate * duration)
@@ -56,11 +74,15 @@ def rssi(rng: np.random.Generator, cover: float, release: float, rate: float, ke
 def row(label: str, err: np.ndarray, sig: np.ndarray | None = None) -> None:
     e = np.abs(err) * 1e3
     extra = f"   mean reported sigma {np.mean(sig) * 1e3:6.2f} ms" if sig is not None else ""
-    print(f"  {label:<34} mean {np.mean(err) * 1e3:+6.2f} ms   median |err| {np.median(e):6.2f} ms"
-          f"   p95 {np.percentile(e, 95):6.2f} ms   max {e.max():6.2f} ms{extra}")
+    print(
+        f"  {label:<34} mean {np.mean(err) * 1e3:+6.2f} ms   median |err| {np.median(e):6.2f} ms"
+        f"   p95 {np.percentile(e, 95):6.2f} ms   max {e.max():6.2f} ms{extra}"
+    )
 
 
-def demo_readings(seed: int, duration: float) -> tuple[tuple[np.ndarray, ...], list[tuple[float, float]]]:
+def demo_readings(
+    seed: int, duration: float
+) -> tuple[tuple[np.ndarray, ...], list[tuple[float, float]]]:
     """The pooled readings `annotator demo` records (three simulated agents, four sensors each) and
     the true (cover, release) times, both in seconds after T0."""
     from annotator import demo
@@ -71,8 +93,15 @@ def demo_readings(seed: int, duration: float) -> tuple[tuple[np.ndarray, ...], l
     devices = load_site("tetam")
     ts, rs, ss = [], [], []
     for i, sensors in enumerate(demo.split_sensors()):
-        sim = Simulation(pick_sensors(devices, sensors), tuple(devices.beacons), demo.demo_path(),
-                         round(T0 * 1e9), seed=seed * 10 + i, rate_hz=10, events=events)
+        sim = Simulation(
+            pick_sensors(devices, sensors),
+            tuple(devices.beacons),
+            demo.demo_path(),
+            round(T0 * 1e9),
+            seed=seed * 10 + i,
+            rate_hz=10,
+            events=events,
+        )
         sim.skip_to(-5.0)  # as an agent started before t0 does
         for mac, r in sim.generate(duration + 1.0):
             ts.append(r.t_ns / 1e9)
@@ -93,7 +122,10 @@ def demo_scenario(trials: int, duration: float) -> None:
             mine += [ev.cover - T0 - c, ev.release - T0 - rel]
             sigs += [ev.cover_sigma, ev.release_sigma]
             for edge in (c, rel):
-                oracle.append(0.5 * (advert_t[advert_t < edge].max() + advert_t[advert_t >= edge].min()) - edge)
+                oracle.append(
+                    0.5 * (advert_t[advert_t < edge].max() + advert_t[advert_t >= edge].min())
+                    - edge
+                )
         errs += mine
         common.append(np.mean(mine))  # what the video start inherits (video edges exact)
     row(f"demo {duration:g} s, RSSI edges", np.array(errs), np.array(sigs))
@@ -131,8 +163,10 @@ def main() -> None:
             sigs += [ev.cover_sigma, ev.release_sigma]
         row(f"{rate}/s, keep {keep}, drop {drop} dB", np.array(errs), np.array(sigs))
 
-    print("RSSI edges in the `annotator demo` scenario (3 agents x 4 sensors, 10 adverts/s each, "
-          "-20 dB and 60 % loss while covered; one seed per trial):")
+    print(
+        "RSSI edges in the `annotator demo` scenario (3 agents x 4 sensors, 10 adverts/s each, "
+        "-20 dB and 60 % loss while covered; one seed per trial):"
+    )
     for duration in (12.0, 30.0):
         demo_scenario(max(args.trials // 4, 10), duration)
 
@@ -143,7 +177,9 @@ def main() -> None:
         c = rng.uniform(6, 8)
         r = c + rng.uniform(1.0, 2.0)
         pts, b, mc = video(rng, c - start, r - start, 30, 2, 0.15, duration=20.0)
-        cm = fit_clock_map(detect_video_events(pts, b, mc), detect_rssi_events(*rssi(rng, c, r, 8, 0.3, 12)))
+        cm = fit_clock_map(
+            detect_video_events(pts, b, mc), detect_rssi_events(*rssi(rng, c, r, 8, 0.3, 12))
+        )
         errs.append(cm.video_start - T0 - start)
         sigs.append(cm.video_start_sigma)
     row("offset", np.array(errs), np.array(sigs))
@@ -153,8 +189,15 @@ def main() -> None:
     for _ in range(args.trials):
         drift = rng.uniform(-1e-3, 1e-3)
         v = [CoverEvent(2.0, 3.5, 0.01, 0.01), CoverEvent(102.0, 103.2, 0.01, 0.01)]
-        rr = [CoverEvent(T0 + e.cover * (1 + drift) + rng.normal(0, 0.01), T0 + e.release * (1 + drift)
-                         + rng.normal(0, 0.01), 0.01, 0.01) for e in v]
+        rr = [
+            CoverEvent(
+                T0 + e.cover * (1 + drift) + rng.normal(0, 0.01),
+                T0 + e.release * (1 + drift) + rng.normal(0, 0.01),
+                0.01,
+                0.01,
+            )
+            for e in v
+        ]
         errs.append(fit_clock_map(v, rr).drift - drift)
     e = np.abs(errs) * 1e6
     print(f"  drift error median {np.median(e):.1f} ppm, p95 {np.percentile(e, 95):.1f} ppm")

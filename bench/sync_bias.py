@@ -70,8 +70,10 @@ def stats(x: np.ndarray) -> str:
 
 def coverage(err: np.ndarray, sig: np.ndarray) -> str:
     z = np.abs(err) / sig
-    return (f"median sigma {1e3 * np.median(sig):5.2f} ms   within 1 sigma {100 * np.mean(z <= 1):5.1f} %   "
-            f"within 2 sigma {100 * np.mean(z <= 2):5.1f} %")
+    return (
+        f"median sigma {1e3 * np.median(sig):5.2f} ms   within 1 sigma {100 * np.mean(z <= 1):5.1f} %   "
+        f"within 2 sigma {100 * np.mean(z <= 2):5.1f} %"
+    )
 
 
 def true_edges(settings: demo.DemoSettings) -> list[tuple[float, float]]:
@@ -86,31 +88,59 @@ def sent_adverts(seed: int, duration: float) -> np.ndarray:
     devices = load_site("tetam")
     out = []
     for i, sensors in enumerate(demo.split_sensors()):
-        sim = Simulation(pick_sensors(devices, sensors), tuple(devices.beacons), demo.demo_path(),
-                         round(T0 * 1e9), seed=seed * 10 + i, rate_hz=10,
-                         radio=RadioModel(drop_prob=0.0, floor_dbm=-1000.0))
+        sim = Simulation(
+            pick_sensors(devices, sensors),
+            tuple(devices.beacons),
+            demo.demo_path(),
+            round(T0 * 1e9),
+            seed=seed * 10 + i,
+            rate_hz=10,
+            radio=RadioModel(drop_prob=0.0, floor_dbm=-1000.0),
+        )
         sim.skip_to(-5.0)
         out.append([r.t_ns / 1e9 - T0 for _, r in sim.generate(duration + 1.0)])
     return np.unique(np.concatenate(out))
 
 
-def render_video(settings: demo.DemoSettings, width: int, height: int, work: Path) -> dict[str, list[CoverEvent]]:
+def render_video(
+    settings: demo.DemoSettings, width: int, height: int, work: Path
+) -> dict[str, list[CoverEvent]]:
     """Cover events found in each camera of one render of the demo walk (PTS seconds)."""
     out = work / f"render-{settings.duration_s:g}"
-    render_experiment(out, demo.bundle_pose_at(demo.demo_path(settings.speed_mps), T0),
-                      (T0, T0 + settings.duration_s), width=width, height=height,
-                      start_offset=settings.start_offset_s, covers=settings.covers(), seed=0, jobs=1)
-    return {cam: detect_video_events(*brightness_series(out / f"{cam}.mp4"), name=cam) for cam in CAMERAS}
+    render_experiment(
+        out,
+        demo.bundle_pose_at(demo.demo_path(settings.speed_mps), T0),
+        (T0, T0 + settings.duration_s),
+        width=width,
+        height=height,
+        start_offset=settings.start_offset_s,
+        covers=settings.covers(),
+        seed=0,
+        jobs=1,
+    )
+    return {
+        cam: detect_video_events(*brightness_series(out / f"{cam}.mp4"), name=cam)
+        for cam in CAMERAS
+    }
 
 
-def score_rssi(acc: dict[str, list], seed: int, t: np.ndarray, found: list[CoverEvent],
-               truth: list[tuple[float, float]], sent: np.ndarray, seed0: list[str]) -> None:
+def score_rssi(
+    acc: dict[str, list],
+    seed: int,
+    t: np.ndarray,
+    found: list[CoverEvent],
+    truth: list[tuple[float, float]],
+    sent: np.ndarray,
+    seed0: list[str],
+) -> None:
     """Each RSSI edge against the truth, the two oracles and the gap round each true edge."""
     adverts = np.unique(t) - T0
     for i, (ev, (c, rel)) in enumerate(zip(found, truth, strict=True)):
         errs = []
-        for kind, got, sig, true in (("cover", ev.cover, ev.cover_sigma, c),
-                                     ("release", ev.release, ev.release_sigma, rel)):
+        for kind, got, sig, true in (
+            ("cover", ev.cover, ev.cover_sigma, c),
+            ("release", ev.release, ev.release_sigma, rel),
+        ):
             key = f"{kind} {i + 1}"
             before, after = adverts[adverts < true].max(), adverts[adverts >= true].min()
             acc[f"err {key}"].append(got - T0 - true)
@@ -120,14 +150,22 @@ def score_rssi(acc: dict[str, list], seed: int, t: np.ndarray, found: list[Cover
             acc["gaps"].append(after - before)
             errs.append(got - T0 - true)
             if seed == 0:
-                seed0.append(f"    RSSI {key:<9} error {1e3 * (got - T0 - true):+7.1f} ms (sigma "
-                             f"{1e3 * sig:5.1f})   adverts heard {1e3 * (before - true):+6.1f} / "
-                             f"{1e3 * (after - true):+6.1f} ms around the true edge")
+                seed0.append(
+                    f"    RSSI {key:<9} error {1e3 * (got - T0 - true):+7.1f} ms (sigma "
+                    f"{1e3 * sig:5.1f})   adverts heard {1e3 * (before - true):+6.1f} / "
+                    f"{1e3 * (after - true):+6.1f} ms around the true edge"
+                )
         acc["common"].append(float(np.mean(errs)))
 
 
-def score_clocks(acc: dict[str, list], seed: int, video: dict[str, list[CoverEvent]], found: list[CoverEvent],
-                 duration: float, seed0: list[str]) -> None:
+def score_clocks(
+    acc: dict[str, list],
+    seed: int,
+    video: dict[str, list[CoverEvent]],
+    found: list[CoverEvent],
+    duration: float,
+    seed0: list[str],
+) -> None:
     """Each camera's clock map against the truth at its first and last frame; the front camera
     also with the flat drift prior of the fit before the mixture prior."""
     for cam, offset in CAMERAS.items():
@@ -139,48 +177,75 @@ def score_clocks(acc: dict[str, list], seed: int, video: dict[str, list[CoverEve
                 acc[f"{cam}{label} {where} err"].append(float(cm.to_rssi(pts)) - T0 - offset - pts)
                 acc[f"{cam}{label} {where} sig"].append(float(cm.sigma_at(pts)))
             if seed == 0 and not label:
-                seed0.append(f"    {cam} video start error {1e3 * (cm.video_start - T0 - offset):+6.1f} ms "
-                             f"(sigma {1e3 * cm.video_start_sigma:4.1f}), drift {cm.drift:+.1e}, "
-                             f"edge bias {1e3 * cm.edge_bias:+5.1f} ms")
+                seed0.append(
+                    f"    {cam} video start error {1e3 * (cm.video_start - T0 - offset):+6.1f} ms "
+                    f"(sigma {1e3 * cm.video_start_sigma:4.1f}), drift {cm.drift:+.1e}, "
+                    f"edge bias {1e3 * cm.edge_bias:+5.1f} ms"
+                )
 
 
-def report(acc: dict[str, list], kinds: list[str], video: dict[str, list[CoverEvent]],
-           truth: list[tuple[float, float]], seed0: list[str], lag: float) -> None:
-    print("RSSI edges against the truth (seconds after t0 when the hands are halfway over the beacon):")
+def report(
+    acc: dict[str, list],
+    kinds: list[str],
+    video: dict[str, list[CoverEvent]],
+    truth: list[tuple[float, float]],
+    seed0: list[str],
+    lag: float,
+) -> None:
+    print(
+        "RSSI edges against the truth (seconds after t0 when the hands are halfway over the beacon):"
+    )
     for k in kinds:
         e, sg = np.array(acc[f"err {k}"]), np.array(acc[f"sig {k}"])
         print(f"  {k:<10} {stats(e)}   {coverage(e, sg)}")
     print(f"  {'common':<10} {stats(np.array(acc['common']))}   (what the video start inherits)")
     gaps = np.array(acc["gaps"])
-    print(f"  oracle gap middle: {stats(np.array(acc['oracle']))}; gap round a true edge: median "
-          f"{1e3 * np.median(gaps):.0f} ms, p95 {1e3 * np.percentile(gaps, 95):.0f} ms, max {1e3 * gaps.max():.0f} ms")
+    print(
+        f"  oracle gap middle: {stats(np.array(acc['oracle']))}; gap round a true edge: median "
+        f"{1e3 * np.median(gaps):.0f} ms, p95 {1e3 * np.percentile(gaps, 95):.0f} ms, max {1e3 * gaps.max():.0f} ms"
+    )
     print(f"  oracle knowing every advert sent: {stats(np.array(acc['sent']))}")
     print("video edges of the render against the truth (PTS):")
     for cam, offset in CAMERAS.items():
         parts = []
         for ev in video[cam]:
-            c, rel = min(truth, key=lambda cr, ev=ev: abs(cr[0] - offset - ev.cover) if math.isfinite(ev.cover)
-                         else abs(cr[1] - offset - ev.release))
-            parts.append(f"cover {1e3 * (ev.cover - (c - offset)):+6.1f} / release "
-                         f"{1e3 * (ev.release - (rel - offset)):+6.1f} ms (sigma {1e3 * ev.cover_sigma:.1f})")
+            c, rel = min(
+                truth,
+                key=lambda cr, ev=ev: (
+                    abs(cr[0] - offset - ev.cover)
+                    if math.isfinite(ev.cover)
+                    else abs(cr[1] - offset - ev.release)
+                ),
+            )
+            parts.append(
+                f"cover {1e3 * (ev.cover - (c - offset)):+6.1f} / release "
+                f"{1e3 * (ev.release - (rel - offset)):+6.1f} ms (sigma {1e3 * ev.cover_sigma:.1f})"
+            )
         print(f"  {cam:<6} " + ";  ".join(parts))
     print("video clock map over seeds (error of the mapped time at the first / last frame):")
     for cam, label in (*((c, "") for c in CAMERAS), ("front", " flat")):
         for where in ("first", "last"):
-            e, sg = np.array(acc[f"{cam}{label} {where} err"]), np.array(acc[f"{cam}{label} {where} sig"])
+            e, sg = (
+                np.array(acc[f"{cam}{label} {where} err"]),
+                np.array(acc[f"{cam}{label} {where} sig"]),
+            )
             note = "   (flat drift prior: the fit before)" if label else ""
             print(f"  {cam:<6} {where + ' frame':<11} {stats(e)}   {coverage(e, sg)}{note}")
     print("seed 0 (the demo's default):")
     print("\n".join(seed0))
     if acc["lag"]:
-        print(f"check: every RSSI timestamp {1e3 * lag:g} ms late -> front start {stats(np.array(acc['lag']))}")
+        print(
+            f"check: every RSSI timestamp {1e3 * lag:g} ms late -> front start {stats(np.array(acc['lag']))}"
+        )
 
 
 def drift_grid(trials: int) -> None:
     """The drift prior against the flat fit on synthetic edges: two events `span` s apart, RSSI
     edges with 17 ms of noise (the demo's), a true drift; rms error of the mapped time at the first
     and last frame, and the share within 2 reported sigma."""
-    print(f"\n=== drift prior vs flat fit: two events span s apart, 17 ms RSSI edges, {trials} trials ===")
+    print(
+        f"\n=== drift prior vs flat fit: two events span s apart, 17 ms RSSI edges, {trials} trials ==="
+    )
     print("  span    drift    flat: rms, within 2 sigma    prior: rms, within 2 sigma")
     for span in (25.0, 110.0, 590.0):
         for drift in (0.0, 50e-6, 300e-6, 1000e-6):
@@ -189,27 +254,44 @@ def drift_grid(trials: int) -> None:
             for label, prior in (("flat", None), ("prior", DRIFT_PRIOR)):
                 err, sig = [], []
                 for _ in range(trials):
-                    v = [CoverEvent(2.0, 3.5, 0.0056, 0.0056), CoverEvent(2.0 + span, 3.5 + span, 0.0056, 0.0056)]
-                    r = [CoverEvent(T0 + e.cover * (1 + drift) + rng.normal(0, 0.017) - 0.02,
-                                    T0 + e.release * (1 + drift) + rng.normal(0, 0.017) + 0.02, 0.017, 0.017)
-                         for e in v]
+                    v = [
+                        CoverEvent(2.0, 3.5, 0.0056, 0.0056),
+                        CoverEvent(2.0 + span, 3.5 + span, 0.0056, 0.0056),
+                    ]
+                    r = [
+                        CoverEvent(
+                            T0 + e.cover * (1 + drift) + rng.normal(0, 0.017) - 0.02,
+                            T0 + e.release * (1 + drift) + rng.normal(0, 0.017) + 0.02,
+                            0.017,
+                            0.017,
+                        )
+                        for e in v
+                    ]
                     cm = fit_clock_map(v, r, drift_prior=prior)
                     for pts in (0.0, span + 5.0):
                         err.append(float(cm.to_rssi(pts)) - T0 - pts * (1 + drift))
                         sig.append(float(cm.sigma_at(pts)))
                 e, sg = np.array(err), np.array(sig)
-                res[label] = f"{1e3 * np.sqrt(np.mean(e**2)):5.1f} ms, {100 * np.mean(np.abs(e) <= 2 * sg):5.1f} %"
-            print(f"  {span:4.0f} s {1e6 * drift:5.0f} ppm    {res['flat']}            {res['prior']}")
+                res[label] = (
+                    f"{1e3 * np.sqrt(np.mean(e**2)):5.1f} ms, {100 * np.mean(np.abs(e) <= 2 * sg):5.1f} %"
+                )
+            print(
+                f"  {span:4.0f} s {1e6 * drift:5.0f} ppm    {res['flat']}            {res['prior']}"
+            )
 
 
-def one_duration(duration: float, seeds: int, width: int, height: int, lag: float, work: Path) -> None:
+def one_duration(
+    duration: float, seeds: int, width: int, height: int, lag: float, work: Path
+) -> None:
     settings = demo.DemoSettings(out=None, duration_s=duration)  # type: ignore[arg-type]
     truth = true_edges(settings)
     t_render = time.perf_counter()
     video = render_video(settings, width, height, work)
     t_render = time.perf_counter() - t_render
-    print(f"\n=== {duration:g} s captures, {len(truth)} cover event(s), {seeds} seeds "
-          f"(render {width}x{height} in {t_render:.0f} s) ===")
+    print(
+        f"\n=== {duration:g} s captures, {len(truth)} cover event(s), {seeds} seeds "
+        f"(render {width}x{height} in {t_render:.0f} s) ==="
+    )
     kinds = [f"{k} {i + 1}" for i in range(len(truth)) for k in ("cover", "release")]
     acc: dict[str, list] = defaultdict(list)
     seed0: list[str] = []
@@ -222,18 +304,31 @@ def one_duration(duration: float, seeds: int, width: int, height: int, lag: floa
         score_rssi(acc, seed, t, found, truth, sent_adverts(seed, duration), seed0)
         score_clocks(acc, seed, video, found, duration, seed0)
         if lag > 0:
-            acc["lag"].append(fit_clock_map(video["front"], detect_rssi_events(t + lag, r, s)).video_start - T0)
+            acc["lag"].append(
+                fit_clock_map(video["front"], detect_rssi_events(t + lag, r, s)).video_start - T0
+            )
     report(acc, kinds, video, truth, seed0, lag)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--seeds", type=int, default=20)
-    ap.add_argument("--durations", default="12,30", help="comma-separated capture lengths, s (default 12,30)")
+    ap.add_argument(
+        "--durations", default="12,30", help="comma-separated capture lengths, s (default 12,30)"
+    )
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=180)
-    ap.add_argument("--lag-ms", type=float, default=13.0, help="the check's RSSI delay (0: skip the check)")
-    ap.add_argument("--drift-trials", type=int, default=300, help="trials per cell of the drift-prior table (0: skip)")
+    ap.add_argument(
+        "--lag-ms", type=float, default=13.0, help="the check's RSSI delay (0: skip the check)"
+    )
+    ap.add_argument(
+        "--drift-trials",
+        type=int,
+        default=300,
+        help="trials per cell of the drift-prior table (0: skip)",
+    )
     args = ap.parse_args()
     t_start = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix="sync-bias-"))

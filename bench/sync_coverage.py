@@ -25,20 +25,36 @@ from annotator.core.sync import detect_rssi_events, detect_video_events, fit_clo
 
 def row(label: str, err: np.ndarray, sig: np.ndarray) -> None:
     z = np.abs(err) / sig
-    print(f"  {label:<26} n {len(err):4d}   median |err| {1e3 * np.median(np.abs(err)):6.2f} ms   "
-          f"median sigma {1e3 * np.median(sig):6.2f} ms   within 1 sigma {100 * np.mean(z <= 1):5.1f} %   "
-          f"within 2 sigma {100 * np.mean(z <= 2):5.1f} %", flush=True)
+    print(
+        f"  {label:<26} n {len(err):4d}   median |err| {1e3 * np.median(np.abs(err)):6.2f} ms   "
+        f"median sigma {1e3 * np.median(sig):6.2f} ms   within 1 sigma {100 * np.mean(z <= 1):5.1f} %   "
+        f"within 2 sigma {100 * np.mean(z <= 2):5.1f} %",
+        flush=True,
+    )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=200)
     ap.add_argument("--duration", type=float, default=12.0)
-    ap.add_argument("--drift-ppm", type=float, default=30.0,
-                    help="the video clock runs fast or slow by up to this much (uniform), default 30 ppm")
+    ap.add_argument(
+        "--drift-ppm",
+        type=float,
+        default=30.0,
+        help="the video clock runs fast or slow by up to this much (uniform), default 30 ppm",
+    )
     args = ap.parse_args()
     t_start = time.perf_counter()
-    edge_err, edge_sig, off_err, off_sig, drift_z, fitted, mid_err, mid_sig = [], [], [], [], [], [], [], []
+    edge_err, edge_sig, off_err, off_sig, drift_z, fitted, mid_err, mid_sig = (
+        [],
+        [],
+        [],
+        [],
+        [],
+        [],
+        [],
+        [],
+    )
     for seed in range(args.seeds):
         rng = np.random.default_rng(10_000 + seed)
         (t, r, s), truth = demo_readings(seed, args.duration)
@@ -56,7 +72,9 @@ def main() -> None:
         pts, b, mc = video(rng, pts_of(c0), pts_of(r0), 30, 2, 0.15, duration=args.duration - start)
         if rest:  # the second cover as well (drift)
             c1, r1 = rest[0]
-            pts, b2, mc2 = video(rng, pts_of(c1), pts_of(r1), 30, 2, 0.15, duration=args.duration - start)
+            pts, b2, mc2 = video(
+                rng, pts_of(c1), pts_of(r1), 30, 2, 0.15, duration=args.duration - start
+            )
             late = pts > pts_of(0.5 * (r0 + c1))
             b, mc = np.where(late, b2, b), np.where(late, mc2, mc)
         cm = fit_clock_map(detect_video_events(pts, b, mc), found)
@@ -73,9 +91,11 @@ def main() -> None:
     row("video start (clock offset)", np.array(off_err), np.array(off_sig))
     row("mapped time mid-capture", np.array(mid_err), np.array(mid_sig))
     if drift_z:
-        print(f"  drift sigma stated in {len(drift_z)} of {args.seeds} seeds, drift fitted in {sum(fitted)} "
-              f"(true drift within +-{args.drift_ppm:g} ppm); drift error within 2 sigma in "
-              f"{100 * np.mean(np.array(drift_z) <= 2):.1f} %")
+        print(
+            f"  drift sigma stated in {len(drift_z)} of {args.seeds} seeds, drift fitted in {sum(fitted)} "
+            f"(true drift within +-{args.drift_ppm:g} ppm); drift error within 2 sigma in "
+            f"{100 * np.mean(np.array(drift_z) <= 2):.1f} %"
+        )
     print(f"({time.perf_counter() - t_start:.0f} s)")
 
 

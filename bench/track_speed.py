@@ -29,7 +29,10 @@ from annotator.vision.detection import DetectorSettings
 
 def cpu_seconds() -> float:
     """CPU time of this process plus its finished children (the pool workers)."""
-    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    me, kids = (
+        resource.getrusage(resource.RUSAGE_SELF),
+        resource.getrusage(resource.RUSAGE_CHILDREN),
+    )
     return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
@@ -43,20 +46,40 @@ def render(out: Path, duration: float, fps: float) -> None:
 
     from annotator.cli import app
 
-    res = CliRunner().invoke(app, ["simulate", "--out", str(out), "--duration", str(duration), "--fps", str(fps),
-                                   "--width", "1920", "--height", "1080", "--jobs", "2"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "simulate",
+            "--out",
+            str(out),
+            "--duration",
+            str(duration),
+            "--fps",
+            str(fps),
+            "--width",
+            "1920",
+            "--height",
+            "1080",
+            "--jobs",
+            "2",
+        ],
+    )
     if res.exit_code != 0:
         raise SystemExit(f"render failed: {res.output}")
 
 
 def median_error_cm(traj, truth) -> tuple[float, float, int]:
-    cmp = compare_to_truth(traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation)
+    cmp = compare_to_truth(
+        traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation
+    )
     e = 100 * cmp.position_error[np.isfinite(cmp.position_error)]
     return float(np.median(e)), float(np.percentile(e, 95)), len(e)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--experiment", type=Path)
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--fps", type=float, default=60.0)
@@ -81,7 +104,10 @@ def main() -> None:
             ("--no-board-refine", DetectorSettings(dictionary=d, board_refine=False)),
             ("--thorough-detect", DetectorSettings(dictionary=d, threshold_windows=(3, 23, 10))),
             ("--downscale 1", DetectorSettings(dictionary=d, downscale=1.0)),
-            ("--downscale 1 --thorough-detect", DetectorSettings(dictionary=d, downscale=1.0, threshold_windows=(3, 23, 10))),
+            (
+                "--downscale 1 --thorough-detect",
+                DetectorSettings(dictionary=d, downscale=1.0, threshold_windows=(3, 23, 10)),
+            ),
         ]
         # Best of N interleaved rounds: other work on a shared machine only ever slows a run down.
         best = {"decode only": np.inf} | {name: np.inf for name, _ in variants}
@@ -105,14 +131,19 @@ def main() -> None:
         cores = min(args.jobs, os.cpu_count() or 1)
         dec = n_frames / best["decode only"]
         print(f"{'':40} {'wall fps':>8} {'ratio':>6} {'CPU ms/frame':>13} {'capacity fps':>13}")
-        print(f"{'decode only':40} {dec:8.1f} {1.0:6.2f} {1000 * cpu['decode only'] / n_frames:13.2f} "
-              f"{cores * n_frames / cpu['decode only']:13.1f}   ({n_frames} frames, best of {args.rounds})")
+        print(
+            f"{'decode only':40} {dec:8.1f} {1.0:6.2f} {1000 * cpu['decode only'] / n_frames:13.2f} "
+            f"{cores * n_frames / cpu['decode only']:13.1f}   ({n_frames} frames, best of {args.rounds})"
+        )
         for name, _ in variants:
             fps = n_frames / best[name]
             med, p95, n = errors[name]
-            print(f"{name:40} {fps:8.1f} {fps / dec:6.2f} {1000 * cpu[name] / n_frames:13.2f} "
-                  f"{cores * n_frames / cpu[name]:13.1f}   position median {med:.2f} cm, p95 {p95:.2f} cm")
+            print(
+                f"{name:40} {fps:8.1f} {fps / dec:6.2f} {1000 * cpu[name] / n_frames:13.2f} "
+                f"{cores * n_frames / cpu[name]:13.1f}   position median {med:.2f} cm, p95 {p95:.2f} cm"
+            )
         print(f"load average after: {os.getloadavg()[0]:.1f}")
+
 
 if __name__ == "__main__":
     main()

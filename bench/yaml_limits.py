@@ -27,7 +27,8 @@ from bgt_core.safe_yaml import MAX_NODES
 from bgt_core.sites import site_dir
 
 BILLION_LAUGHS = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n' + "".join(
-    f"{n}: &{n} [{','.join(['*' + p] * 9)}]\n" for p, n in zip("abcdefgh", "bcdefghi", strict=True))
+    f"{n}: &{n} [{','.join(['*' + p] * 9)}]\n" for p, n in zip("abcdefgh", "bcdefghi", strict=True)
+)
 
 RIG = """\
 cameras:
@@ -80,23 +81,38 @@ def main() -> None:
         print(f"billion-laughs calibration: {len(BILLION_LAUGHS)} bytes")
 
         code, wall, peak, _, err = run_measured(
-            [sys.executable, "-m", "annotator.cli", "track", str(d / "experiment.yaml"), "--out", str(d / "out")])
+            [
+                sys.executable,
+                "-m",
+                "annotator.cli",
+                "track",
+                str(d / "experiment.yaml"),
+                "--out",
+                str(d / "out"),
+            ]
+        )
         lines = err.strip().splitlines()
-        print(f"annotator track: exit {code} in {wall:.2f} s, peak RSS {peak:.0f} MiB, "
-              f"{len(lines)} line(s) on stderr: {lines[0] if lines else ''}")
+        print(
+            f"annotator track: exit {code} in {wall:.2f} s, peak RSS {peak:.0f} MiB, "
+            f"{len(lines)} line(s) on stderr: {lines[0] if lines else ''}"
+        )
 
         for name, path in [("billion laughs", d / "front.yaml")]:
             code, wall, peak, out, _ = run_measured([sys.executable, "-c", CHILD, str(path)])
             secs, outcome = out.strip().split("|", 1)
-            print(f"safe_yaml, {name}: {outcome} ({secs} s to decide; child peak RSS {peak:.0f} MiB)")
+            print(
+                f"safe_yaml, {name}: {outcome} ({secs} s to decide; child peak RSS {peak:.0f} MiB)"
+            )
 
         for n in (MAX_NODES - 1, 16 * MAX_NODES):
             p = d / f"list_{n}.yaml"
             p.write_text("[" + ",".join(["1"] * n) + "]\n")
             code, wall, peak, out, _ = run_measured([sys.executable, "-c", CHILD, str(p)])
             secs, outcome = out.strip().split("|", 1)
-            print(f"safe_yaml, list of {n} values ({p.stat().st_size / 2**20:.1f} MiB): "
-                  f"{outcome.split(':')[0]} in {secs} s, child peak RSS {peak:.0f} MiB")
+            print(
+                f"safe_yaml, list of {n} values ({p.stat().st_size / 2**20:.1f} MiB): "
+                f"{outcome.split(':')[0]} in {secs} s, child peak RSS {peak:.0f} MiB"
+            )
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ def _tlv(buf: bytes, off: int) -> tuple[int, int, int]:
         k = n & 0x7F
         if not 1 <= k <= 4 or off + k > len(buf):
             raise CertificateError("bad DER length")
-        n = int.from_bytes(buf[off:off + k], "big")
+        n = int.from_bytes(buf[off : off + k], "big")
         off += k
     if off + n > len(buf):
         raise CertificateError("truncated DER")
@@ -59,8 +59,12 @@ def subject_cn(der: bytes) -> str | None:
     for _set_tag, rs, re_ in _children(der, s, e):  # RelativeDistinguishedName (SET)
         for _seq_tag, as_, ae in _children(der, rs, re_):  # AttributeTypeAndValue
             parts = _children(der, as_, ae)
-            if len(parts) == 2 and der[as_:parts[0][2]] == _CN_OID and parts[1][0] in _STRING_TAGS:
-                raw = der[parts[1][1]:parts[1][2]]
+            if (
+                len(parts) == 2
+                and der[as_ : parts[0][2]] == _CN_OID
+                and parts[1][0] in _STRING_TAGS
+            ):
+                raw = der[parts[1][1] : parts[1][2]]
                 return raw.decode("utf-16-be" if parts[1][0] == 0x1E else "utf-8", errors="replace")
     return None
 

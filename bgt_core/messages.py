@@ -134,12 +134,20 @@ class ClockSample:
     @classmethod
     def from_dict(cls, d: object) -> ClockSample:
         m = _mapping(d, "clock sample")
-        return cls(_str(m, "at", "clock sample"), _num(m, "offset_ms", "clock sample"),
-                   _num(m, "rtt_ms", "clock sample"), _obj(m, "chrony", "clock sample", None))
+        return cls(
+            _str(m, "at", "clock sample"),
+            _num(m, "offset_ms", "clock sample"),
+            _num(m, "rtt_ms", "clock sample"),
+            _obj(m, "chrony", "clock sample", None),
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"at": self.at, "offset_ms": self.offset_ms, "rtt_ms": self.rtt_ms,
-                "chrony": self.chrony}
+        return {
+            "at": self.at,
+            "offset_ms": self.offset_ms,
+            "rtt_ms": self.rtt_ms,
+            "chrony": self.chrony,
+        }
 
 
 # -- acknowledgements (contract 2) -------------------------------------------------------------
@@ -188,19 +196,31 @@ class AdapterStatus:
     def from_dict(cls, d: object, what: str = "adapter") -> AdapterStatus:
         m = _mapping(d, what)
         return cls(
-            name=_str(m, "name", what, None), mac=_str(m, "mac", what, ""),
-            backend=_str(m, "backend", what, None), mode=_str(m, "mode", what, None),
+            name=_str(m, "name", what, None),
+            mac=_str(m, "mac", what, ""),
+            backend=_str(m, "backend", what, None),
+            mode=_str(m, "mode", what, None),
             adverts_per_s=_num(m, "adverts_per_s", what, None),
             last_advert_age_s=_num(m, "last_advert_age_s", what, None),
-            restarts=_int(m, "restarts", what, 0), readings_total=_int(m, "readings_total", what, 0),
+            restarts=_int(m, "restarts", what, 0),
+            readings_total=_int(m, "readings_total", what, 0),
             bad_readings=_int(m, "bad_readings", what, 0),
-            power_cycles=_int(m, "power_cycles", what, 0))
+            power_cycles=_int(m, "power_cycles", what, 0),
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "mac": self.mac, "backend": self.backend, "mode": self.mode,
-                "adverts_per_s": self.adverts_per_s, "last_advert_age_s": self.last_advert_age_s,
-                "restarts": self.restarts, "readings_total": self.readings_total,
-                "bad_readings": self.bad_readings, "power_cycles": self.power_cycles}
+        return {
+            "name": self.name,
+            "mac": self.mac,
+            "backend": self.backend,
+            "mode": self.mode,
+            "adverts_per_s": self.adverts_per_s,
+            "last_advert_age_s": self.last_advert_age_s,
+            "restarts": self.restarts,
+            "readings_total": self.readings_total,
+            "bad_readings": self.bad_readings,
+            "power_cycles": self.power_cycles,
+        }
 
     def matches(self, sensor: str) -> bool:
         """Whether this adapter is sensor ``sensor`` (a MAC in wire form: 12 lowercase hex)."""
@@ -237,19 +257,34 @@ class AgentStatus:
             boot_id=_str(m, "boot_id", what, None),
             # A version is text, but a hand-written YAML may make it a number (1.0): keep it.
             version=None if version is None else str(version),
-            backend=_str(m, "backend", what, None), hostname=_str(m, "hostname", what, None),
-            started_ns=_int(m, "started_ns", what, None), now_ns=_int(m, "now_ns", what, None),
-            adapters=tuple(AdapterStatus.from_dict(a, f"{what}: adapters[{i}]")
-                           for i, a in enumerate(adapters)),
-            spool=_obj(m, "spool", what, None), resent=_int(m, "resent", what, 0),
-            chrony=_obj(m, "chrony", what, None), bad_readings=_int(m, "bad_readings", what, 0))
+            backend=_str(m, "backend", what, None),
+            hostname=_str(m, "hostname", what, None),
+            started_ns=_int(m, "started_ns", what, None),
+            now_ns=_int(m, "now_ns", what, None),
+            adapters=tuple(
+                AdapterStatus.from_dict(a, f"{what}: adapters[{i}]") for i, a in enumerate(adapters)
+            ),
+            spool=_obj(m, "spool", what, None),
+            resent=_int(m, "resent", what, 0),
+            chrony=_obj(m, "chrony", what, None),
+            bad_readings=_int(m, "bad_readings", what, 0),
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"agent_id": self.agent_id, "boot_id": self.boot_id, "version": self.version,
-                "backend": self.backend, "hostname": self.hostname,
-                "started_ns": self.started_ns, "now_ns": self.now_ns,
-                "adapters": [a.to_dict() for a in self.adapters], "spool": self.spool,
-                "resent": self.resent, "chrony": self.chrony, "bad_readings": self.bad_readings}
+        return {
+            "agent_id": self.agent_id,
+            "boot_id": self.boot_id,
+            "version": self.version,
+            "backend": self.backend,
+            "hostname": self.hostname,
+            "started_ns": self.started_ns,
+            "now_ns": self.now_ns,
+            "adapters": [a.to_dict() for a in self.adapters],
+            "spool": self.spool,
+            "resent": self.resent,
+            "chrony": self.chrony,
+            "bad_readings": self.bad_readings,
+        }
 
     def adapter(self, sensor: str) -> AdapterStatus | None:
         return next((a for a in self.adapters if a.matches(sensor)), None)
@@ -308,16 +343,28 @@ class StartReply:
         warnings = m.get("clock_warnings") or []
         if not (isinstance(warnings, list) and all(isinstance(w, str) for w in warnings)):
             raise InvalidField(f"{what}: clock_warnings must be a list of strings")
-        return cls(_str(m, "run_id", what), _str(m, "run_dir", what),
-                   {a: AgentClock(_num(_mapping(v, f"{what}: clock.{a}"), "offset_ms", what),
-                                  _num(v, "rtt_ms", what)) for a, v in clock.items()},
-                   tuple(warnings))
+        return cls(
+            _str(m, "run_id", what),
+            _str(m, "run_dir", what),
+            {
+                a: AgentClock(
+                    _num(_mapping(v, f"{what}: clock.{a}"), "offset_ms", what),
+                    _num(v, "rtt_ms", what),
+                )
+                for a, v in clock.items()
+            },
+            tuple(warnings),
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"run_id": self.run_id, "run_dir": self.run_dir,
-                "clock": {a: {"offset_ms": c.offset_ms, "rtt_ms": c.rtt_ms}
-                          for a, c in self.clock.items()},
-                "clock_warnings": list(self.clock_warnings)}
+        return {
+            "run_id": self.run_id,
+            "run_dir": self.run_dir,
+            "clock": {
+                a: {"offset_ms": c.offset_ms, "rtt_ms": c.rtt_ms} for a, c in self.clock.items()
+            },
+            "clock_warnings": list(self.clock_warnings),
+        }
 
 
 @dataclass(frozen=True, slots=True)
@@ -333,14 +380,24 @@ class StopReply:
     def from_dict(cls, d: object) -> StopReply:
         what = "stop reply"
         m = _mapping(d, what)
-        return cls(_str(m, "run_id", what), _str(m, "run_dir", what), _int(m, "readings", what),
-                   _int(m, "gaps", what, 0), _int(m, "missing_batches", what, 0),
-                   _int(m, "lost_batches", what, 0))
+        return cls(
+            _str(m, "run_id", what),
+            _str(m, "run_dir", what),
+            _int(m, "readings", what),
+            _int(m, "gaps", what, 0),
+            _int(m, "missing_batches", what, 0),
+            _int(m, "lost_batches", what, 0),
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"run_id": self.run_id, "run_dir": self.run_dir, "readings": self.readings,
-                "gaps": self.gaps, "missing_batches": self.missing_batches,
-                "lost_batches": self.lost_batches}
+        return {
+            "run_id": self.run_id,
+            "run_dir": self.run_dir,
+            "readings": self.readings,
+            "gaps": self.gaps,
+            "missing_batches": self.missing_batches,
+            "lost_batches": self.lost_batches,
+        }
 
 
 @dataclass(frozen=True, slots=True)
@@ -395,13 +452,22 @@ class SensorRate:
         recent = m.get("recent_rssi") or []
         if not (isinstance(recent, list) and all(_is_int(v) for v in recent)):
             raise InvalidField(f"{what}: recent_rssi must be a list of integers")
-        return cls(_num(m, "rate_hz", what, 0.0), _num(m, "last_seen_age_s", what, None),
-                   _int(m, "last_rssi", what, None), _int(m, "readings", what, 0), tuple(recent))
+        return cls(
+            _num(m, "rate_hz", what, 0.0),
+            _num(m, "last_seen_age_s", what, None),
+            _int(m, "last_rssi", what, None),
+            _int(m, "readings", what, 0),
+            tuple(recent),
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"rate_hz": self.rate_hz, "last_seen_age_s": self.last_seen_age_s,
-                "last_rssi": self.last_rssi, "readings": self.readings,
-                "recent_rssi": list(self.recent_rssi)}
+        return {
+            "rate_hz": self.rate_hz,
+            "last_seen_age_s": self.last_seen_age_s,
+            "last_rssi": self.last_rssi,
+            "readings": self.readings,
+            "recent_rssi": list(self.recent_rssi),
+        }
 
 
 @dataclass(frozen=True, slots=True)
@@ -416,8 +482,10 @@ class AgentLive:
         if not isinstance(alive, bool):
             raise InvalidField(f"{what}: alive must be true or false")
         sensors = _obj(m, "sensors", what, {})
-        return cls(alive, {mac: SensorRate.from_dict(s, f"{what}: sensors.{mac}")
-                           for mac, s in sensors.items()})
+        return cls(
+            alive,
+            {mac: SensorRate.from_dict(s, f"{what}: sensors.{mac}") for mac, s in sensors.items()},
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return {"alive": self.alive, "sensors": {k: s.to_dict() for k, s in self.sensors.items()}}
@@ -446,18 +514,32 @@ class RunStatus:
         if not isinstance(stopping, bool):
             raise InvalidField(f"{what}: stopping must be true or false")
         clock = _obj(m, "clock", what, {})
-        return cls(_str(m, "run_id", what), _int(m, "readings", what, 0), _str(m, "name", what, ""),
-                   _str(m, "run_dir", what, ""), _str(m, "start", what, ""),
-                   _int(m, "sensors", what, 0), stopping, _int(m, "restarts", what, 0),
-                   _int(m, "buffered_bytes", what, 0),
-                   {a: ClockSample.from_dict(v) for a, v in clock.items()})
+        return cls(
+            _str(m, "run_id", what),
+            _int(m, "readings", what, 0),
+            _str(m, "name", what, ""),
+            _str(m, "run_dir", what, ""),
+            _str(m, "start", what, ""),
+            _int(m, "sensors", what, 0),
+            stopping,
+            _int(m, "restarts", what, 0),
+            _int(m, "buffered_bytes", what, 0),
+            {a: ClockSample.from_dict(v) for a, v in clock.items()},
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"run_id": self.run_id, "name": self.name, "run_dir": self.run_dir,
-                "start": self.start, "readings": self.readings, "sensors": self.sensors,
-                "stopping": self.stopping, "restarts": self.restarts,
-                "buffered_bytes": self.buffered_bytes,
-                "clock": {a: c.to_dict() for a, c in self.clock.items()}}
+        return {
+            "run_id": self.run_id,
+            "name": self.name,
+            "run_dir": self.run_dir,
+            "start": self.start,
+            "readings": self.readings,
+            "sensors": self.sensors,
+            "stopping": self.stopping,
+            "restarts": self.restarts,
+            "buffered_bytes": self.buffered_bytes,
+            "clock": {a: c.to_dict() for a, c in self.clock.items()},
+        }
 
 
 @dataclass(frozen=True, slots=True)
@@ -470,12 +552,20 @@ class StreamCounts:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> StreamCounts:
         what = "status: streams"
-        return cls(_int(d, "total", what, 0), _int(d, "shown", what, 0),
-                   _int(d, "admitted", what, 0), _int(d, "open_files", what, 0))
+        return cls(
+            _int(d, "total", what, 0),
+            _int(d, "shown", what, 0),
+            _int(d, "admitted", what, 0),
+            _int(d, "open_files", what, 0),
+        )
 
     def to_dict(self) -> dict[str, int]:
-        return {"total": self.total, "shown": self.shown, "admitted": self.admitted,
-                "open_files": self.open_files}
+        return {
+            "total": self.total,
+            "shown": self.shown,
+            "admitted": self.admitted,
+            "open_files": self.open_files,
+        }
 
 
 @dataclass(frozen=True, slots=True)
@@ -489,8 +579,9 @@ class RefusedStreams:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RefusedStreams:
         what = "status: refused_streams"
-        return cls(_int(d, "batches", what, 0), _int(d, "streams", what, 0),
-                   _counts(d, "by_agent", what))
+        return cls(
+            _int(d, "batches", what, 0), _int(d, "streams", what, 0), _counts(d, "by_agent", what)
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return {"batches": self.batches, "streams": self.streams, "by_agent": dict(self.by_agent)}
@@ -537,15 +628,18 @@ class CollectorStatus:
             discarded_no_run=_int(m, "discarded_no_run", what, 0),
             duplicates_dropped=_int(m, "duplicates_dropped", what, 0),
             rejected_payloads=_counts(m, "rejected_payloads", what),
-            queue=_int(m, "queue", what, 0), write_errors=_int(m, "write_errors", what, 0),
-            disk_full=disk_full, deferred_batches=_int(m, "deferred_batches", what, 0),
+            queue=_int(m, "queue", what, 0),
+            write_errors=_int(m, "write_errors", what, 0),
+            disk_full=disk_full,
+            deferred_batches=_int(m, "deferred_batches", what, 0),
             queue_overflow=_int(m, "queue_overflow", what, 0),
             unknown_agents=_counts(m, "unknown_agents", what),
             quarantine_dropped=_int(m, "quarantine_dropped", what, 0),
             streams=StreamCounts.from_dict(_obj(m, "streams", what, {})),
             refused_streams=RefusedStreams.from_dict(_obj(m, "refused_streams", what, {})),
             shared_sensors={k: list(v) for k, v in shared.items()},
-            queue_bytes=_int(m, "queue_bytes", what, 0))
+            queue_bytes=_int(m, "queue_bytes", what, 0),
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -553,11 +647,15 @@ class CollectorStatus:
             "agents": {a: v.to_dict() for a, v in self.agents.items()},
             "discarded_no_run": self.discarded_no_run,
             "duplicates_dropped": self.duplicates_dropped,
-            "rejected_payloads": dict(self.rejected_payloads), "queue": self.queue,
-            "write_errors": self.write_errors, "disk_full": self.disk_full,
-            "deferred_batches": self.deferred_batches, "queue_overflow": self.queue_overflow,
+            "rejected_payloads": dict(self.rejected_payloads),
+            "queue": self.queue,
+            "write_errors": self.write_errors,
+            "disk_full": self.disk_full,
+            "deferred_batches": self.deferred_batches,
+            "queue_overflow": self.queue_overflow,
             "unknown_agents": dict(self.unknown_agents),
-            "quarantine_dropped": self.quarantine_dropped, "streams": self.streams.to_dict(),
+            "quarantine_dropped": self.quarantine_dropped,
+            "streams": self.streams.to_dict(),
             "refused_streams": self.refused_streams.to_dict(),
             "shared_sensors": {k: list(v) for k, v in self.shared_sensors.items()},
             "queue_bytes": self.queue_bytes,

@@ -47,14 +47,20 @@ class CoverEvent:
         if not 0.0 <= self.drop_prob <= 1.0:
             raise MotionError(f"cover event drop_prob must be in [0, 1], got {self.drop_prob!r}")
         if self.attenuation_db < 0:
-            raise MotionError(f"cover event attenuation_db must be >= 0, got {self.attenuation_db!r}")
+            raise MotionError(
+                f"cover event attenuation_db must be >= 0, got {self.attenuation_db!r}"
+            )
 
     def active(self, t_s: float) -> bool:
         return self.start_s <= t_s < self.start_s + self.duration_s
 
     def to_dict(self) -> dict[str, float]:
-        return {"start_s": self.start_s, "duration_s": self.duration_s,
-                "attenuation_db": self.attenuation_db, "drop_prob": self.drop_prob}
+        return {
+            "start_s": self.start_s,
+            "duration_s": self.duration_s,
+            "attenuation_db": self.attenuation_db,
+            "drop_prob": self.drop_prob,
+        }
 
     @staticmethod
     def from_dict(d: Mapping[str, Any]) -> CoverEvent:
@@ -62,8 +68,12 @@ class CoverEvent:
         if unknown:
             raise MotionError(f"cover event: unknown key {sorted(unknown)[0]!r}")
         try:
-            return CoverEvent(float(d["start_s"]), float(d["duration_s"]),
-                              float(d.get("attenuation_db", 20.0)), float(d.get("drop_prob", 0.6)))
+            return CoverEvent(
+                float(d["start_s"]),
+                float(d["duration_s"]),
+                float(d.get("attenuation_db", 20.0)),
+                float(d.get("drop_prob", 0.6)),
+            )
         except KeyError as e:
             raise MotionError(f"cover event: missing {e.args[0]!r}") from None
         except (TypeError, ValueError) as e:
@@ -190,10 +200,15 @@ class PathModel:
         return self._locate(t_s)[2]
 
     def to_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"waypoints": [list(p) for p in self.waypoints], "speed_mps": self.speed_mps,
-                             "dwell_s": self.dwell_s}
+        d: dict[str, Any] = {
+            "waypoints": [list(p) for p in self.waypoints],
+            "speed_mps": self.speed_mps,
+            "dwell_s": self.dwell_s,
+        }
         if self.corner_radius:
-            d["corner_radius"] = self.corner_radius  # absent = sharp corners, as older readers expect
+            d["corner_radius"] = (
+                self.corner_radius
+            )  # absent = sharp corners, as older readers expect
         return d
 
     @staticmethod
@@ -204,8 +219,12 @@ class PathModel:
         wps = d.get("waypoints", DEFAULT_WAYPOINTS)
         if not isinstance(wps, Sequence) or isinstance(wps, str):
             raise MotionError("path waypoints must be a list of [x, y, z]")
-        return PathModel(tuple(wps), d.get("speed_mps", DEFAULT_SPEED_MPS), d.get("dwell_s", 0.0),
-                         d.get("corner_radius", 0.0))
+        return PathModel(
+            tuple(wps),
+            d.get("speed_mps", DEFAULT_SPEED_MPS),
+            d.get("dwell_s", 0.0),
+            d.get("corner_radius", 0.0),
+        )
 
 
 _Arc = tuple[Point, Point, Point, float, float]
@@ -238,8 +257,10 @@ def _corners(pts: tuple[Point, ...], radius: float) -> list[tuple[Point, Point, 
             out.append((w, w, None))
             continue
         if turn > math.pi - 1e-6:
-            raise MotionError(f"path corner_radius: waypoint {i} turns straight back; a U-turn cannot be "
-                              "rounded (add a waypoint beside it)")
+            raise MotionError(
+                f"path corner_radius: waypoint {i} turns straight back; a U-turn cannot be "
+                "rounded (add a waypoint beside it)"
+            )
         d = radius * math.tan(turn / 2)
         nv = tuple(vv - cos_turn * uu for uu, vv in zip(u, v, strict=True))
         nn = math.sqrt(sum(x * x for x in nv))
@@ -254,8 +275,10 @@ def _corners(pts: tuple[Point, ...], radius: float) -> list[tuple[Point, Point, 
         side = math.dist(pts[i], pts[j])
         d_out = 0.0 if out[i][2] is None else math.dist(pts[i], out[i][1])
         if d_out + cut[j] > side + 1e-9:
-            raise MotionError(f"path corner_radius {radius:g} m is too large: the arcs at waypoints {i} and {j} "
-                              f"need {d_out + cut[j]:.3f} m of the {side:.3f} m side between them")
+            raise MotionError(
+                f"path corner_radius {radius:g} m is too large: the arcs at waypoints {i} and {j} "
+                f"need {d_out + cut[j]:.3f} m of the {side:.3f} m side between them"
+            )
     return out
 
 

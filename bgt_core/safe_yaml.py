@@ -75,21 +75,29 @@ def _check_events(text: str, source: str, loader: type, max_depth: int, max_node
         while parser.check_event():
             ev = parser.get_event()
             if isinstance(ev, yaml.AliasEvent):
-                raise YamlError(f"{_where(source, ev.start_mark)}: aliases (*{ev.anchor}) are not "
-                                "allowed; write the value out")
+                raise YamlError(
+                    f"{_where(source, ev.start_mark)}: aliases (*{ev.anchor}) are not "
+                    "allowed; write the value out"
+                )
             if isinstance(ev, yaml.NodeEvent):
                 if ev.anchor is not None:
-                    raise YamlError(f"{_where(source, ev.start_mark)}: anchors (&{ev.anchor}) are "
-                                    "not allowed; write the value out")
+                    raise YamlError(
+                        f"{_where(source, ev.start_mark)}: anchors (&{ev.anchor}) are "
+                        "not allowed; write the value out"
+                    )
                 nodes += 1
                 if nodes > max_nodes:
-                    raise YamlError(f"{_where(source, ev.start_mark)}: more than {max_nodes} values "
-                                    "in one document")
+                    raise YamlError(
+                        f"{_where(source, ev.start_mark)}: more than {max_nodes} values "
+                        "in one document"
+                    )
                 if isinstance(ev, yaml.CollectionStartEvent):
                     depth += 1
                     if depth > max_depth:
-                        raise YamlError(f"{_where(source, ev.start_mark)}: nested deeper than "
-                                        f"{max_depth} levels")
+                        raise YamlError(
+                            f"{_where(source, ev.start_mark)}: nested deeper than "
+                            f"{max_depth} levels"
+                        )
             elif isinstance(ev, yaml.CollectionEndEvent):
                 depth -= 1
     except yaml.YAMLError as e:
@@ -99,8 +107,14 @@ def _check_events(text: str, source: str, loader: type, max_depth: int, max_node
         parser.dispose()
 
 
-def loads(text: str | bytes, source: str = "<yaml>", *, loader: type | None = None,
-          max_depth: int = MAX_DEPTH, max_nodes: int = MAX_NODES) -> Any:
+def loads(
+    text: str | bytes,
+    source: str = "<yaml>",
+    *,
+    loader: type | None = None,
+    max_depth: int = MAX_DEPTH,
+    max_nodes: int = MAX_NODES,
+) -> Any:
     """Parse one YAML document (``None`` when it is empty) within the limits; YamlError else.
 
     ``loader`` must be :class:`SafeLoader` or a subclass of it."""
@@ -129,8 +143,9 @@ def decode_utf8(data: bytes, source: str) -> str:
         return data.decode("utf-8")
     except UnicodeDecodeError as e:
         line = data.count(b"\n", 0, e.start) + 1
-        raise YamlError(f"{source}:{line}: not UTF-8 text (byte {data[e.start]:#04x} at offset "
-                        f"{e.start})") from None
+        raise YamlError(
+            f"{source}:{line}: not UTF-8 text (byte {data[e.start]:#04x} at offset {e.start})"
+        ) from None
 
 
 def read_bytes_limited(path: str | Path, max_bytes: int = MAX_BYTES) -> bytes:
@@ -150,9 +165,15 @@ def read_bytes_limited(path: str | Path, max_bytes: int = MAX_BYTES) -> bytes:
     return data
 
 
-def load_file(path: str | Path, *, loader: type | None = None, max_bytes: int = MAX_BYTES,
-              max_depth: int = MAX_DEPTH, max_nodes: int = MAX_NODES,
-              preprocess: Any = None) -> Any:
+def load_file(
+    path: str | Path,
+    *,
+    loader: type | None = None,
+    max_bytes: int = MAX_BYTES,
+    max_depth: int = MAX_DEPTH,
+    max_nodes: int = MAX_NODES,
+    preprocess: Any = None,
+) -> Any:
     """Read and parse a YAML file within the limits; every problem is one YamlError line.
 
     ``preprocess`` (text -> text) runs on the decoded text before parsing."""

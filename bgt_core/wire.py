@@ -162,7 +162,12 @@ class IBeacon:
     tx_power: int  # measured power at 1 m, dBm
 
     def to_dict(self) -> dict[str, Any]:
-        return {"uuid": self.uuid, "major": self.major, "minor": self.minor, "tx_power": self.tx_power}
+        return {
+            "uuid": self.uuid,
+            "major": self.major,
+            "minor": self.minor,
+            "tx_power": self.tx_power,
+        }
 
     @staticmethod
     def from_dict(d: Any) -> IBeacon:
@@ -184,9 +189,17 @@ class Eddystone:
     tx_power: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: v for k, v in (("frame", self.frame), ("namespace", self.namespace),
-                                   ("instance", self.instance), ("url", self.url),
-                                   ("tx_power", self.tx_power)) if v is not None}
+        return {
+            k: v
+            for k, v in (
+                ("frame", self.frame),
+                ("namespace", self.namespace),
+                ("instance", self.instance),
+                ("url", self.url),
+                ("tx_power", self.tx_power),
+            )
+            if v is not None
+        }
 
     @staticmethod
     def from_dict(d: Any) -> Eddystone:
@@ -237,8 +250,12 @@ def _is_int(v: object) -> TypeGuard[int]:
 
 
 def to_wire(batch: Batch) -> bytes:
-    meta: dict[str, Any] = {"agent": batch.agent_id, "boot": batch.boot_id,
-                            "sensor": batch.sensor, "seq": batch.seq}
+    meta: dict[str, Any] = {
+        "agent": batch.agent_id,
+        "boot": batch.boot_id,
+        "sensor": batch.sensor,
+        "seq": batch.seq,
+    }
     if batch.sent_ns:
         meta["sent_ns"] = batch.sent_ns
     if batch.floor >= 0:
@@ -345,8 +362,9 @@ def _reading_extras(i: int, e: object) -> tuple[IBeacon | None, Eddystone | None
     return ib, ed
 
 
-def from_wire(data: bytes | bytearray | memoryview, *,
-              skipped: list[tuple[int, str]] | None = None) -> Batch:
+def from_wire(
+    data: bytes | bytearray | memoryview, *, skipped: list[tuple[int, str]] | None = None
+) -> Batch:
     """Decode and validate one batch; raises a WireError subclass for anything malformed.
 
     With ``skipped`` (a list), an implausible reading does not fail the batch: it is left out
@@ -361,7 +379,9 @@ def from_wire(data: bytes | bytearray | memoryview, *,
 
     readings = []
     off += meta_len
-    for i, (t_ns, mono_ns, mac, rssi) in enumerate(BATCH_READING.iter_unpack(data[off:end_readings])):
+    for i, (t_ns, mono_ns, mac, rssi) in enumerate(
+        BATCH_READING.iter_unpack(data[off:end_readings])
+    ):
         why = check_reading(t_ns, rssi, mono_ns)
         if why is not None:
             if skipped is None:

@@ -20,21 +20,39 @@ from bgt_core.wire import WireError
 from collector.errors import CollectorError
 from collector.fleet import app as fleet_app
 
-app = typer.Typer(name="collector", no_args_is_help=True, pretty_exceptions_show_locals=False,
-                  help="Receives BLE RSSI batches from sensor agents over Zenoh and writes one "
-                       ".mbd file per sensor per capture run.")
-app.add_typer(fleet_app, name="fleet", help="The fleet in a deploy/ inventory: agents alive, versions, adapters, clocks.")
+app = typer.Typer(
+    name="collector",
+    no_args_is_help=True,
+    pretty_exceptions_show_locals=False,
+    help="Receives BLE RSSI batches from sensor agents over Zenoh and writes one "
+    ".mbd file per sensor per capture run.",
+)
+app.add_typer(
+    fleet_app,
+    name="fleet",
+    help="The fleet in a deploy/ inventory: agents alive, versions, adapters, clocks.",
+)
 console = Console()
 err_console = Console(stderr=True)
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
-ConfigOpt = Annotated[Path | None, typer.Option("--config", help="collector.yaml; flags override it.")]
+ConfigOpt = Annotated[
+    Path | None, typer.Option("--config", help="collector.yaml; flags override it.")
+]
 ConnectOpt = Annotated[str, typer.Option("--connect", help="Endpoint of the running collector.")]
 SiteOpt = Annotated[str, typer.Option("--site", help="Site name (the first part of every key).")]
-RootCaOpt = Annotated[Path | None, typer.Option("--root-ca", help="Site CA certificate, for a tls/... collector.")]
-CertOpt = Annotated[Path | None, typer.Option("--cert", help="Operator certificate (PEM), for a tls/... collector.")]
-KeyOpt = Annotated[Path | None, typer.Option("--key", help="Operator private key (PEM), for a tls/... collector.")]
-InsecureOpt = Annotated[bool, typer.Option("--insecure", help="Allow plain TCP listening on a non-loopback address.")]
+RootCaOpt = Annotated[
+    Path | None, typer.Option("--root-ca", help="Site CA certificate, for a tls/... collector.")
+]
+CertOpt = Annotated[
+    Path | None, typer.Option("--cert", help="Operator certificate (PEM), for a tls/... collector.")
+]
+KeyOpt = Annotated[
+    Path | None, typer.Option("--key", help="Operator private key (PEM), for a tls/... collector.")
+]
+InsecureOpt = Annotated[
+    bool, typer.Option("--insecure", help="Allow plain TCP listening on a non-loopback address.")
+]
 
 
 def _fail(e: Exception) -> typer.Exit:
@@ -43,14 +61,23 @@ def _fail(e: Exception) -> typer.Exit:
 
 
 @app.callback()
-def _root(verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log debug messages.")] = False) -> None:
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+def _root(
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log debug messages.")] = False,
+) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
     logging.getLogger("zenoh").setLevel(logging.WARNING)
 
 
-def _load(config: Path | None, data_dir: Path | None, listen: list[str] | None, site: str | None,
-          insecure: bool):
+def _load(
+    config: Path | None,
+    data_dir: Path | None,
+    listen: list[str] | None,
+    site: str | None,
+    insecure: bool,
+):
     from collector.config import CollectorConfig, load_config
 
     cfg = load_config(config) if config is not None else CollectorConfig()
@@ -74,11 +101,27 @@ def _wait_for_signal(seconds: float | None = None) -> None:
 @app.command()
 def serve(
     config: ConfigOpt = None,
-    data_dir: Annotated[Path | None, typer.Option("--data-dir", help="Where run directories go (default ./data).")] = None,
-    listen: Annotated[list[str] | None, typer.Option("--listen", help="Endpoint to listen on; repeatable (default tcp/127.0.0.1:7447).")] = None,
-    site: Annotated[str | None, typer.Option("--site", help="Site name (default: from the config, else 'default').")] = None,
+    data_dir: Annotated[
+        Path | None, typer.Option("--data-dir", help="Where run directories go (default ./data).")
+    ] = None,
+    listen: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--listen", help="Endpoint to listen on; repeatable (default tcp/127.0.0.1:7447)."
+        ),
+    ] = None,
+    site: Annotated[
+        str | None,
+        typer.Option("--site", help="Site name (default: from the config, else 'default')."),
+    ] = None,
     insecure: InsecureOpt = False,
-    check: Annotated[bool, typer.Option("--check", help="Only validate the config (and its TLS and ACL files), print the resolved settings as JSON and exit.")] = False,
+    check: Annotated[
+        bool,
+        typer.Option(
+            "--check",
+            help="Only validate the config (and its TLS and ACL files), print the resolved settings as JSON and exit.",
+        ),
+    ] = False,
 ) -> None:
     """Run the collector: the Zenoh router agents connect to. Stops cleanly on Ctrl-C / SIGTERM.
 
@@ -96,9 +139,13 @@ def serve(
         collector = Collector(cfg).open()
     except CollectorError as e:
         raise _fail(e) from None
-    console.print(f"collector listening on {', '.join(cfg.listen)}, site {cfg.site!r}, data in {cfg.data_dir}")
+    console.print(
+        f"collector listening on {', '.join(cfg.listen)}, site {cfg.site!r}, data in {cfg.data_dir}"
+    )
     if collector.resumed_run is not None:
-        err_console.print(f"[yellow]resumed run {collector.resumed_run} (the collector was not stopped cleanly)")
+        err_console.print(
+            f"[yellow]resumed run {collector.resumed_run} (the collector was not stopped cleanly)"
+        )
     try:
         _wait_for_signal()
     finally:
@@ -108,10 +155,16 @@ def serve(
 @app.command()
 def record(
     name: Annotated[str, typer.Option("--name", help="Run name (part of the run id).")],
-    duration: Annotated[float | None, typer.Option("--duration", help="Seconds to record (default: until Ctrl-C).")] = None,
+    duration: Annotated[
+        float | None, typer.Option("--duration", help="Seconds to record (default: until Ctrl-C).")
+    ] = None,
     config: ConfigOpt = None,
-    data_dir: Annotated[Path | None, typer.Option("--data-dir", help="Where run directories go.")] = None,
-    listen: Annotated[list[str] | None, typer.Option("--listen", help="Endpoint to listen on; repeatable.")] = None,
+    data_dir: Annotated[
+        Path | None, typer.Option("--data-dir", help="Where run directories go.")
+    ] = None,
+    listen: Annotated[
+        list[str] | None, typer.Option("--listen", help="Endpoint to listen on; repeatable.")
+    ] = None,
     site: Annotated[str | None, typer.Option("--site", help="Site name.")] = None,
     insecure: InsecureOpt = False,
 ) -> None:
@@ -144,7 +197,9 @@ def _client(connect: str, site: str, root_ca: Path | None, cert: Path | None, ke
     files = {"--root-ca": root_ca, "--cert": cert, "--key": key}
     given = [k for k, v in files.items() if v is not None]
     if given and len(given) != 3:
-        raise ConfigError("--root-ca, --cert and --key go together (a tls/... collector needs all three)")
+        raise ConfigError(
+            "--root-ca, --cert and --key go together (a tls/... collector needs all three)"
+        )
     for flag, path in files.items():
         if path is not None and not path.is_file():
             raise ConfigError(f"{flag}: file not found: {path}")
@@ -154,9 +209,23 @@ def _client(connect: str, site: str, root_ca: Path | None, cert: Path | None, ke
 
 @app.command()
 def start(
-    name: Annotated[str | None, typer.Option("--name", help="Run name (part of the run id).")] = None,
-    max_offset_ms: Annotated[float, typer.Option("--max-offset-ms", help="Warn about agents whose clock is off by more than this (measured at start).")] = 50.0,
-    strict: Annotated[bool, typer.Option("--strict", help="Refuse to start (exit 1) if an agent's clock is off by more than --max-offset-ms.")] = False,
+    name: Annotated[
+        str | None, typer.Option("--name", help="Run name (part of the run id).")
+    ] = None,
+    max_offset_ms: Annotated[
+        float,
+        typer.Option(
+            "--max-offset-ms",
+            help="Warn about agents whose clock is off by more than this (measured at start).",
+        ),
+    ] = 50.0,
+    strict: Annotated[
+        bool,
+        typer.Option(
+            "--strict",
+            help="Refuse to start (exit 1) if an agent's clock is off by more than --max-offset-ms.",
+        ),
+    ] = False,
     connect: ConnectOpt = DEFAULT_ENDPOINT,
     site: SiteOpt = "default",
     root_ca: RootCaOpt = None,
@@ -176,8 +245,13 @@ def start(
 
 
 @app.command()
-def stop(connect: ConnectOpt = DEFAULT_ENDPOINT, site: SiteOpt = "default", root_ca: RootCaOpt = None,
-         cert: CertOpt = None, key: KeyOpt = None) -> None:
+def stop(
+    connect: ConnectOpt = DEFAULT_ENDPOINT,
+    site: SiteOpt = "default",
+    root_ca: RootCaOpt = None,
+    cert: CertOpt = None,
+    key: KeyOpt = None,
+) -> None:
     """Stop the current run after draining what is in flight; prints the run directory."""
     try:
         with _client(connect, site, root_ca, cert, key) as c:
@@ -193,7 +267,9 @@ def stop(connect: ConnectOpt = DEFAULT_ENDPOINT, site: SiteOpt = "default", root
 def status(
     connect: ConnectOpt = DEFAULT_ENDPOINT,
     site: SiteOpt = "default",
-    as_json: Annotated[bool, typer.Option("--json", help="Print the raw status reply as JSON.")] = False,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print the raw status reply as JSON.")
+    ] = False,
     root_ca: RootCaOpt = None,
     cert: CertOpt = None,
     key: KeyOpt = None,
@@ -236,8 +312,13 @@ def runs(
     for col in ("run id", "name", "start", "stop", "readings"):
         table.add_column(col, overflow="fold")
     for r in items:
-        table.add_row(str(r["run_id"]), str(r.get("name") or ""), str(r.get("start") or ""),
-                      str(r.get("stop") or "[yellow]not stopped"), str(r.get("readings") or 0))
+        table.add_row(
+            str(r["run_id"]),
+            str(r.get("name") or ""),
+            str(r.get("start") or ""),
+            str(r.get("stop") or "[yellow]not stopped"),
+            str(r.get("readings") or 0),
+        )
     console.print(table)
 
 
@@ -246,7 +327,9 @@ def live(
     connect: ConnectOpt = DEFAULT_ENDPOINT,
     site: SiteOpt = "default",
     interval: Annotated[float, typer.Option("--interval", help="Seconds between refreshes.")] = 0.5,
-    duration: Annotated[float | None, typer.Option("--duration", help="Quit after this many seconds.")] = None,
+    duration: Annotated[
+        float | None, typer.Option("--duration", help="Quit after this many seconds.")
+    ] = None,
     root_ca: RootCaOpt = None,
     cert: CertOpt = None,
     key: KeyOpt = None,
@@ -263,8 +346,15 @@ def live(
 
 @app.command()
 def export(
-    run_dir: Annotated[Path, typer.Argument(help="A run directory (holds run.yaml and rssi/<agent>/).")],
-    out: Annotated[Path | None, typer.Option("--out", help="Where to write <sensor_mac>.mbd files (default RUN_DIR/merged).")] = None,
+    run_dir: Annotated[
+        Path, typer.Argument(help="A run directory (holds run.yaml and rssi/<agent>/).")
+    ],
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out", help="Where to write <sensor_mac>.mbd files (default RUN_DIR/merged)."
+        ),
+    ] = None,
 ) -> None:
     """Write the published layout, one <sensor_mac>.mbd per sensor, merging the per-agent files
     of a run in time order (a sensor heard by two agents gets both agents' rows)."""
@@ -275,8 +365,11 @@ def export(
         counts = export_merged(run_dir, dest)
     except CollectorError as e:
         raise _fail(e) from None
-    console.print(f"{sum(counts.values())} readings of {len(counts)} sensor(s) in {dest}",
-                  highlight=False, soft_wrap=True)
+    console.print(
+        f"{sum(counts.values())} readings of {len(counts)} sensor(s) in {dest}",
+        highlight=False,
+        soft_wrap=True,
+    )
 
 
 def main() -> None:

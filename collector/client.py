@@ -19,8 +19,13 @@ TIMEOUTS = {"start": 15.0, "stop": 60.0, "status": 10.0, "runs": 10.0}
 
 
 class CollectorClient:
-    def __init__(self, connect: str = DEFAULT_ENDPOINT, site: str = "default",
-                 connect_timeout_s: float = 3.0, tls: TlsFiles | None = None) -> None:
+    def __init__(
+        self,
+        connect: str = DEFAULT_ENDPOINT,
+        site: str = "default",
+        connect_timeout_s: float = 3.0,
+        tls: TlsFiles | None = None,
+    ) -> None:
         self.connect = connect
         self.site = site
         self.tls = tls  # the operator's certificate when the collector listens on tls/...
@@ -30,8 +35,12 @@ class CollectorClient:
     def __enter__(self) -> CollectorClient:
         import zenoh
 
-        spec = SessionSpec(mode="client", connect=[self.connect], tls=self.tls,
-                           extra={"connect/timeout_ms": self._timeout_ms})
+        spec = SessionSpec(
+            mode="client",
+            connect=[self.connect],
+            tls=self.tls,
+            extra={"connect/timeout_ms": self._timeout_ms},
+        )
         try:
             self._session = zenoh.open(build_config(spec))
         except zenoh.ZError:
@@ -49,8 +58,10 @@ class CollectorClient:
     def _no_reply(self, command: str) -> str:
         # The session opened, so a router is there: either it is not our collector, or its ACL
         # drops this query (a certificate the collector does not let drive runs).
-        return (f"no reply to {command} from {self.connect} — the collector is not running there, "
-                "or it is not allowed for this certificate?")
+        return (
+            f"no reply to {command} from {self.connect} — the collector is not running there, "
+            "or it is not allowed for this certificate?"
+        )
 
     def call(self, command: str, request: dict[str, Any] | None = None) -> dict[str, Any]:
         """Send one control request; returns the reply without its "ok" field."""
@@ -63,22 +74,25 @@ class CollectorClient:
             if reply.ok is None:
                 why = "no reason given" if reply.err is None else reply.err.payload.to_string()
                 raise CommandFailed(f"{command}: {why}")
-            msg = Reply.from_dict(wire.from_json(reply.ok.payload.to_bytes(), f"{command} reply"),
-                                  command)
+            msg = Reply.from_dict(
+                wire.from_json(reply.ok.payload.to_bytes(), f"{command} reply"), command
+            )
             if not msg.ok:
                 raise CommandFailed(f"{command}: {msg.error or 'failed without a reason'}")
             return msg.body
         raise Unreachable(self._no_reply(command))
 
-    def start(self, name: str | None = None, *, max_offset_ms: float | None = None,
-              strict: bool = False) -> dict[str, Any]:
+    def start(
+        self, name: str | None = None, *, max_offset_ms: float | None = None, strict: bool = False
+    ) -> dict[str, Any]:
         return self.call("start", StartRequest(name, max_offset_ms, strict).to_dict())
 
     def stop(self) -> dict[str, Any]:
         return self.call("stop")
 
-    def start_typed(self, name: str | None = None, *, max_offset_ms: float | None = None,
-                    strict: bool = False) -> StartReply:
+    def start_typed(
+        self, name: str | None = None, *, max_offset_ms: float | None = None, strict: bool = False
+    ) -> StartReply:
         """``start``, its reply checked and typed."""
         return StartReply.from_dict(self.start(name, max_offset_ms=max_offset_ms, strict=strict))
 

@@ -18,8 +18,17 @@ from bgt_core.zenoh_config import (
 )
 from collector.errors import ConfigError
 
-KEYS = ("site", "data_dir", "listen", "tls", "insecure", "acl", "fsync_interval_s", "clock_interval_s",
-        "limits")
+KEYS = (
+    "site",
+    "data_dir",
+    "listen",
+    "tls",
+    "insecure",
+    "acl",
+    "fsync_interval_s",
+    "clock_interval_s",
+    "limits",
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -37,8 +46,12 @@ class Limits:
     open_files: int = 256
     queue_mb: float = 64.0
 
-    RANGES = {"streams_per_agent": (1, 100_000), "streams_total": (1, 1_000_000),
-              "open_files": (1, 65_536), "queue_mb": (1, 65_536)}
+    RANGES = {
+        "streams_per_agent": (1, 100_000),
+        "streams_total": (1, 1_000_000),
+        "open_files": (1, 65_536),
+        "queue_mb": (1, 65_536),
+    }
 
 
 @dataclass(frozen=True, slots=True)
@@ -56,8 +69,14 @@ class CollectorConfig:
     def session_spec(self, acl_text: str | None = None) -> SessionSpec:
         return SessionSpec(mode="router", listen=self.listen, tls=self.tls, acl=acl_text)
 
-    def with_overrides(self, *, data_dir: Path | None = None, listen: list[str] | None = None,
-                       site: str | None = None, insecure: bool = False) -> CollectorConfig:
+    def with_overrides(
+        self,
+        *,
+        data_dir: Path | None = None,
+        listen: list[str] | None = None,
+        site: str | None = None,
+        insecure: bool = False,
+    ) -> CollectorConfig:
         """Apply CLI flags (None/False = keep the file's value) and re-check the result."""
         cfg = self
         if insecure:
@@ -73,12 +92,19 @@ class CollectorConfig:
 
     def describe(self) -> dict[str, Any]:
         """The resolved settings as plain data (what `collector serve --check` prints)."""
-        return {"site": self.site, "data_dir": str(self.data_dir), "listen": list(self.listen),
-                "tls": None if self.tls is None else {"root_ca": self.tls.root_ca,
-                                                      "cert": self.tls.cert, "key": self.tls.key},
-                "insecure": self.insecure, "acl": None if self.acl is None else str(self.acl),
-                "fsync_interval_s": self.fsync_interval_s, "clock_interval_s": self.clock_interval_s,
-                "limits": {k: getattr(self.limits, k) for k in Limits.RANGES}}
+        return {
+            "site": self.site,
+            "data_dir": str(self.data_dir),
+            "listen": list(self.listen),
+            "tls": None
+            if self.tls is None
+            else {"root_ca": self.tls.root_ca, "cert": self.tls.cert, "key": self.tls.key},
+            "insecure": self.insecure,
+            "acl": None if self.acl is None else str(self.acl),
+            "fsync_interval_s": self.fsync_interval_s,
+            "clock_interval_s": self.clock_interval_s,
+            "limits": {k: getattr(self.limits, k) for k in Limits.RANGES},
+        }
 
     def validate(self, where: str) -> None:
         """Checks that involve several fields; raises ConfigError naming `where`."""
@@ -89,12 +115,15 @@ class CollectorConfig:
         for ep in self.listen:
             _check_endpoint(ep, where, "listen")
             if ep.startswith("tls/") and self.tls is None:
-                raise ConfigError(f"{where}: listen endpoint {ep} needs tls: {{root_ca, cert, key}}")
+                raise ConfigError(
+                    f"{where}: listen endpoint {ep} needs tls: {{root_ca, cert, key}}"
+                )
         exposed = insecure_endpoints(self.listen)
         if exposed and not self.insecure:
             raise ConfigError(
                 f"{where}: listen endpoint {exposed[0]} is unencrypted beyond this machine; "
-                "use tls/... with tls files, or allow it with insecure: true / --insecure")
+                "use tls/... with tls files, or allow it with insecure: true / --insecure"
+            )
 
 
 def _check_endpoint(ep: Any, where: str, field: str) -> None:
@@ -189,15 +218,23 @@ def _limits(raw: Any, name: str) -> Limits:
         raise ConfigError(f"{name}: limits must be a mapping ({', '.join(Limits.RANGES)})")
     unknown = sorted(set(raw) - set(Limits.RANGES))
     if unknown:
-        raise ConfigError(f"{name}: unknown key limits.{unknown[0]} (known: {', '.join(Limits.RANGES)})")
+        raise ConfigError(
+            f"{name}: unknown key limits.{unknown[0]} (known: {', '.join(Limits.RANGES)})"
+        )
     kw: dict[str, Any] = {}
     for k, v in raw.items():
         lo, hi = Limits.RANGES[k]
         whole = k != "queue_mb"
-        ok = not isinstance(v, bool) and isinstance(v, int if whole else int | float) and lo <= v <= hi
+        ok = (
+            not isinstance(v, bool)
+            and isinstance(v, int if whole else int | float)
+            and lo <= v <= hi
+        )
         if not ok:
-            raise ConfigError(f"{name}: limits.{k} must be {'an integer' if whole else 'a number'} "
-                              f"in [{lo}, {hi}], got {v!r}")
+            raise ConfigError(
+                f"{name}: limits.{k} must be {'an integer' if whole else 'a number'} "
+                f"in [{lo}, {hi}], got {v!r}"
+            )
         kw[k] = v if whole else float(v)
     return replace(Limits(), **kw)
 
@@ -223,17 +260,21 @@ def check_files(cfg: CollectorConfig) -> None:
         from cryptography import x509
         from cryptography.hazmat.primitives.serialization import load_pem_private_key
 
-        checks = (("tls.root_ca", cfg.tls.root_ca, x509.load_pem_x509_certificate),
-                  ("tls.cert", cfg.tls.cert, x509.load_pem_x509_certificate),
-                  ("tls.key", cfg.tls.key, lambda b: load_pem_private_key(b, password=None)))
+        checks = (
+            ("tls.root_ca", cfg.tls.root_ca, x509.load_pem_x509_certificate),
+            ("tls.cert", cfg.tls.cert, x509.load_pem_x509_certificate),
+            ("tls.key", cfg.tls.key, lambda b: load_pem_private_key(b, password=None)),
+        )
         for field, path, load in checks:
             try:
                 load(Path(path).read_bytes())
             except OSError as e:
                 raise ConfigError(f"{field}: cannot read {path}: {e.strerror}") from None
             except (ValueError, TypeError) as e:
-                raise ConfigError(f"{field}: {path} is not a usable PEM file: "
-                                  f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+                raise ConfigError(
+                    f"{field}: {path} is not a usable PEM file: "
+                    f"{str(e).splitlines()[0] if str(e) else type(e).__name__}"
+                ) from None
     try:
         build_config(cfg.session_spec(acl_text))
     except Exception as e:  # noqa: BLE001 - zenoh reports config problems as ZError or ValueError

@@ -60,8 +60,9 @@ class AgentState:
     error: str | None = None
 
 
-def _clock_of(session, site: str, agent_id: str, clock: Callable[[], int], timeout: float
-              ) -> ClockSample | None:
+def _clock_of(
+    session, site: str, agent_id: str, clock: Callable[[], int], timeout: float
+) -> ClockSample | None:
     """The four-timestamp clock exchange with one agent (as the collector does it); None if it
     did not answer."""
     t1 = clock()

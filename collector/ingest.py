@@ -17,7 +17,6 @@ from bgt_core.messages import Ack
 log = logging.getLogger(__name__)
 
 
-
 @dataclass(frozen=True, slots=True)
 class RawBatch:
     """A validated batch whose readings stay as struct tuples (t_ns, mono_ns, mac6, rssi).
@@ -54,24 +53,34 @@ def decode(payload: bytes) -> RawBatch:
         return fast
     skipped: list[tuple[int, str]] = []
     b = wire.from_wire(payload, skipped=skipped)
-    return RawBatch(b.agent_id, b.boot_id, b.sensor, b.seq,
-                    [(r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi) for r in b.readings],
-                    getattr(b, "floor", -1), len(skipped),
-                    f"reading {skipped[0][0]}: {skipped[0][1]}" if skipped else "")
+    return RawBatch(
+        b.agent_id,
+        b.boot_id,
+        b.sensor,
+        b.seq,
+        [(r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi) for r in b.readings],
+        getattr(b, "floor", -1),
+        len(skipped),
+        f"reading {skipped[0][0]}: {skipped[0][1]}" if skipped else "",
+    )
 
 
 def _decode_fast(data: bytes) -> RawBatch | None:
     if len(data) > wire.MAX_PAYLOAD_BYTES or len(data) < wire.BATCH_HEAD.size:
         return None
     magic, version, meta_len, n = wire.BATCH_HEAD.unpack_from(data, 0)
-    if magic != wire.MAGIC or version != wire.SCHEMA_VERSION or meta_len > wire.MAX_META_BYTES \
-            or n > wire.MAX_READINGS:
+    if (
+        magic != wire.MAGIC
+        or version != wire.SCHEMA_VERSION
+        or meta_len > wire.MAX_META_BYTES
+        or n > wire.MAX_READINGS
+    ):
         return None
     start = wire.BATCH_HEAD.size + meta_len
     end = start + n * wire.BATCH_READING.size
     if len(data) != end:  # trailing extras (or a bad length): let the full decoder judge
         return None
-    meta = json.loads(data[wire.BATCH_HEAD.size:start].decode("utf-8"))
+    meta = json.loads(data[wire.BATCH_HEAD.size : start].decode("utf-8"))
     if not isinstance(meta, dict):
         return None
     agent = wire.check_id(meta.get("agent"), "agent id")
@@ -92,8 +101,13 @@ def _decode_fast(data: bytes) -> RawBatch | None:
     if rows:
         ts = [r[0] for r in rows]
         rs = [r[3] for r in rows]
-        if min(ts) < wire.T_NS_MIN or max(ts) > wire.T_NS_MAX or min(rs) < wire.RSSI_MIN \
-                or max(rs) > wire.RSSI_MAX or min(r[1] for r in rows) < 0:
+        if (
+            min(ts) < wire.T_NS_MIN
+            or max(ts) > wire.T_NS_MAX
+            or min(rs) < wire.RSSI_MIN
+            or max(rs) > wire.RSSI_MAX
+            or min(r[1] for r in rows) < 0
+        ):
             return None  # the canonical decoder skips the implausible readings one by one
     return RawBatch(agent, boot, sensor, seq, rows, floor)
 
@@ -142,8 +156,13 @@ class RejectCounter:
                 return
             self._last_log[reason] = now
             skipped, self._suppressed[reason] = self._suppressed[reason], 0
-        log.warning("rejected payload on %s (%s): %s%s", key, reason, message,
-                    f" [{skipped} more like it not logged]" if skipped else "")
+        log.warning(
+            "rejected payload on %s (%s): %s%s",
+            key,
+            reason,
+            message,
+            f" [{skipped} more like it not logged]" if skipped else "",
+        )
 
     def snapshot(self) -> dict[str, int]:
         with self._lock:
@@ -152,9 +171,13 @@ class RejectCounter:
 
 def reject_reason(err: Exception) -> str:
     """A short stable name for a decode error, used as the counter key."""
-    names = {wire.BadMagic: "bad_magic", wire.UnsupportedVersion: "bad_version",
-             wire.Oversized: "oversized", wire.Truncated: "truncated",
-             wire.InvalidField: "invalid_field"}
+    names = {
+        wire.BadMagic: "bad_magic",
+        wire.UnsupportedVersion: "bad_version",
+        wire.Oversized: "oversized",
+        wire.Truncated: "truncated",
+        wire.InvalidField: "invalid_field",
+    }
     for cls, name in names.items():
         if isinstance(err, cls):
             return name
@@ -185,21 +208,34 @@ class StreamState:
         return self.lost + max(0, self.implicit_floor - len(self.before_first))
 
     def to_dict(self) -> dict[str, Any]:
-        return {"done_upto": self.done_upto, "ahead": sorted(self.ahead), "max_seq": self.max_seq,
-                "gaps": self.gaps, "first_seq": self.first_seq,
-                "before_first": sorted(self.before_first), "floor": self.floor,
-                "lost": self.lost, "implicit_floor": self.implicit_floor}
+        return {
+            "done_upto": self.done_upto,
+            "ahead": sorted(self.ahead),
+            "max_seq": self.max_seq,
+            "gaps": self.gaps,
+            "first_seq": self.first_seq,
+            "before_first": sorted(self.before_first),
+            "floor": self.floor,
+            "lost": self.lost,
+            "implicit_floor": self.implicit_floor,
+        }
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> StreamState:
         done = int(d["done_upto"])
         # What was persisted is durable by construction: the state is written after the fsync.
-        return StreamState(done_upto=done, acked_upto=done, ahead={int(x) for x in d["ahead"]},
-                           max_seq=int(d["max_seq"]), gaps=int(d["gaps"]),
-                           first_seq=int(d["first_seq"]),
-                           before_first={int(x) for x in d["before_first"]},
-                           floor=int(d["floor"]), lost=int(d["lost"]),
-                           implicit_floor=int(d["implicit_floor"]))
+        return StreamState(
+            done_upto=done,
+            acked_upto=done,
+            ahead={int(x) for x in d["ahead"]},
+            max_seq=int(d["max_seq"]),
+            gaps=int(d["gaps"]),
+            first_seq=int(d["first_seq"]),
+            before_first={int(x) for x in d["before_first"]},
+            floor=int(d["floor"]),
+            lost=int(d["lost"]),
+            implicit_floor=int(d["implicit_floor"]),
+        )
 
 
 SEQ_LIMIT = 2**40  # seqs at or above are refused: 348 years of 100 batches/s
@@ -260,12 +296,17 @@ class StreamTracker:
         self._boots[(agent, sensor)].remove(boot)
         r = self.retired.setdefault((agent, sensor), [0, 0])
         r[0] += st.gaps
-        r[1] += (st.lost_total() - self.lost_base.pop("/".join(stream), 0)
-                 + max(0, st.max_seq - st.done_upto - len(st.ahead)))
+        r[1] += (
+            st.lost_total()
+            - self.lost_base.pop("/".join(stream), 0)
+            + max(0, st.max_seq - st.done_upto - len(st.ahead))
+        )
 
     def accept(self, stream: tuple[str, str, str], seq: int, floor: int = -1) -> bool:
         """True for a batch not seen before (call once per received batch, then handle it)."""
-        floor = min(floor, seq)  # a floor above its own batch would be a broken agent; never skip it
+        floor = min(
+            floor, seq
+        )  # a floor above its own batch would be a broken agent; never skip it
         st = self.streams.get(stream)
         if st is None:
             self._new_stream(stream)
@@ -274,11 +315,16 @@ class StreamTracker:
             else:
                 # An older agent (no floor) first seen at seq k: treated as floor = k. Earlier seqs
                 # that still turn up (e.g. from the publisher's history) are written once.
-                st = StreamState(done_upto=seq - 1, acked_upto=seq - 1, first_seq=seq,
-                                 implicit_floor=seq)
+                st = StreamState(
+                    done_upto=seq - 1, acked_upto=seq - 1, first_seq=seq, implicit_floor=seq
+                )
                 if seq > 0:
-                    log.warning("stream %s/%s/%s first seen at seq %d without a floor; "
-                                "treating seqs below it as lost", *stream, seq)
+                    log.warning(
+                        "stream %s/%s/%s first seen at seq %d without a floor; "
+                        "treating seqs below it as lost",
+                        *stream,
+                        seq,
+                    )
             self.streams[stream] = st
         if floor > st.floor:
             st.floor = floor
@@ -312,9 +358,14 @@ class StreamTracker:
         self.given_up += skipped
         st.done_upto = low - 1
         self._advance(st)
-        log.warning("stream %s/%s/%s: more than %d batches waited above a gap; gave up on %d "
-                    "missing batch(es) below seq %d (counted lost)", *stream, self.max_ahead,
-                    skipped, low)
+        log.warning(
+            "stream %s/%s/%s: more than %d batches waited above a gap; gave up on %d "
+            "missing batch(es) below seq %d (counted lost)",
+            *stream,
+            self.max_ahead,
+            skipped,
+            low,
+        )
 
     @staticmethod
     def _apply_floor(st: StreamState, floor: int) -> None:
@@ -340,7 +391,9 @@ class StreamTracker:
     def open_gaps(self) -> int:
         return sum(self.missing(s) for s in self.streams)
 
-    def stream_totals(self, lost_base: dict[str, int] | None = None) -> dict[tuple[str, str], StreamTotals]:
+    def stream_totals(
+        self, lost_base: dict[str, int] | None = None
+    ) -> dict[tuple[str, str], StreamTotals]:
         """Per (agent, sensor): gaps, missing and lost batches since the run started, and boots."""
         base = self.lost_base if lost_base is None else lost_base
         out: dict[tuple[str, str], StreamTotals] = {}
@@ -377,7 +430,7 @@ class StreamTracker:
                 streams = per_boot.setdefault(b, {})
                 if st.acked_upto >= 0:
                     streams[s] = st.acked_upto
-        boots = list(per_boot.items())[-self.MAX_ACK_BOOTS:]
+        boots = list(per_boot.items())[-self.MAX_ACK_BOOTS :]
         return [Ack(b, s) for b, s in boots]
 
     def ack_message(self, agent_id: str) -> Ack | None:
@@ -387,10 +440,15 @@ class StreamTracker:
 
     def to_state(self) -> dict[str, Any]:
         """Only what is durable: acked_upto is what the persisted files cover."""
-        return {"duplicates": self.duplicates, "given_up": self.given_up,
-                "retired": [[a, s, g, lo] for (a, s), (g, lo) in self.retired.items()],
-                "streams": [{"agent": a, "boot": b, "sensor": s, **st.to_dict()}
-                            for (a, b, s), st in self.streams.items()]}
+        return {
+            "duplicates": self.duplicates,
+            "given_up": self.given_up,
+            "retired": [[a, s, g, lo] for (a, s), (g, lo) in self.retired.items()],
+            "streams": [
+                {"agent": a, "boot": b, "sensor": s, **st.to_dict()}
+                for (a, b, s), st in self.streams.items()
+            ],
+        }
 
     @staticmethod
     def from_state(d: dict[str, Any], lost_base: dict[str, int] | None = None) -> StreamTracker:

@@ -35,7 +35,11 @@ FileWrite = Callable[[int, bytes], int]  # os.write's shape
 
 
 def iso_utc(t_ns: int) -> str:
-    return datetime.fromtimestamp(t_ns / 1e9, tz=UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return (
+        datetime.fromtimestamp(t_ns / 1e9, tz=UTC)
+        .isoformat(timespec="milliseconds")
+        .replace("+00:00", "Z")
+    )
 
 
 def clean_name(name: str | None) -> str:
@@ -78,8 +82,13 @@ class SensorAppender:
     (which fsyncs first), so a run with many streams needs only a bounded number of descriptors.
     """
 
-    def __init__(self, path: Path, size: int | None = None, write: FileWrite = os.write,
-                 opener: Callable[[SensorAppender], int] | None = None) -> None:
+    def __init__(
+        self,
+        path: Path,
+        size: int | None = None,
+        write: FileWrite = os.write,
+        opener: Callable[[SensorAppender], int] | None = None,
+    ) -> None:
         self.path = path
         self._write = write  # os.write; tests inject a failing one (disk full)
         self._opener = opener  # the RunWriter's LRU bookkeeping; None = open directly
@@ -134,8 +143,12 @@ class SensorAppender:
                 try:  # roll back to the last whole line; the text is still in the buffer
                     os.ftruncate(fd, self.size)
                 except OSError as e:
-                    log.error("cannot cut %s back to %d bytes after a failed write: %s",  # noqa: TRY400
-                              self.path, self.size, e)
+                    log.error(  # noqa: TRY400 (the OSError text says it all; no traceback)
+                        "cannot cut %s back to %d bytes after a failed write: %s",
+                        self.path,
+                        self.size,
+                        e,
+                    )
             raise
         self.size += len(data)
         self._buf.clear()
@@ -193,7 +206,9 @@ def repair_file(path: Path, size: int | None) -> int:
     actual = path.stat().st_size
     keep = actual if size is None or size > actual else size
     if size is not None and size > actual:
-        log.error("%s is shorter (%d bytes) than its last recorded state (%d bytes)", path, actual, size)
+        log.error(
+            "%s is shorter (%d bytes) than its last recorded state (%d bytes)", path, actual, size
+        )
     with path.open("rb+") as f:
         if keep:
             # Back up to the last newline so a torn last line never survives.
@@ -227,9 +242,18 @@ class RunWriter:
     """An open run: its directory, one appender per (agent, sensor) stream, and what run.yaml
     will say about it. At most ``open_files`` files are open at once (an LRU)."""
 
-    def __init__(self, data_dir: Path, run_id: str, name: str, start_ns: int, meta: dict[str, Any],
-                 *, resume: dict[str, Any] | None = None, write: FileWrite = os.write,
-                 open_files: int = OPEN_FILES) -> None:
+    def __init__(
+        self,
+        data_dir: Path,
+        run_id: str,
+        name: str,
+        start_ns: int,
+        meta: dict[str, Any],
+        *,
+        resume: dict[str, Any] | None = None,
+        write: FileWrite = os.write,
+        open_files: int = OPEN_FILES,
+    ) -> None:
         self.run_id = run_id
         self._write = write
         self.name = name
@@ -248,7 +272,9 @@ class RunWriter:
             except FileExistsError:
                 raise CollectorError(f"run directory {self.dir} already exists") from None
             except OSError as e:
-                raise CollectorError(f"cannot create run directory {self.dir}: {e.strerror}") from None
+                raise CollectorError(
+                    f"cannot create run directory {self.dir}: {e.strerror}"
+                ) from None
             self.write_yaml(stop_ns=None, agents={}, extra={})
         else:
             self._resume(resume)
@@ -265,9 +291,13 @@ class RunWriter:
             key = (path.parent.name, path.stem)
             removed = repair_file(path, files.get(key, 0))
             if removed:
-                log.warning("run %s: cut %d bytes past the last recorded state from %s "
-                            "(kept in recovered/; agents re-send them)", self.run_id, removed,
-                            stream_name(key) + ".mbd")
+                log.warning(
+                    "run %s: cut %d bytes past the last recorded state from %s "
+                    "(kept in recovered/; agents re-send them)",
+                    self.run_id,
+                    removed,
+                    stream_name(key) + ".mbd",
+                )
         for name, st in state.get("sensors", {}).items():
             key = parse_stream_name(name)
             self.sensors[key] = SensorStats(int(st["readings"]), int(st["batches"]))
@@ -352,17 +382,28 @@ class RunWriter:
 
     def state(self, extra: dict[str, Any]) -> dict[str, Any]:
         """The crash-recovery record; call right after fsync() so the sizes are durable."""
-        return {"version": STATE_VERSION, "active": True, "run_id": self.run_id, "name": self.name,
-                "start_ns": self.start_ns, "meta": self.meta, "readings": self.readings,
-                "files": {stream_name(k): a.size for k, a in self.appenders.items()},
-                "sensors": {stream_name(k): {"readings": st.readings, "batches": st.batches}
-                            for k, st in self.sensors.items()},
-                **extra}
+        return {
+            "version": STATE_VERSION,
+            "active": True,
+            "run_id": self.run_id,
+            "name": self.name,
+            "start_ns": self.start_ns,
+            "meta": self.meta,
+            "readings": self.readings,
+            "files": {stream_name(k): a.size for k, a in self.appenders.items()},
+            "sensors": {
+                stream_name(k): {"readings": st.readings, "batches": st.batches}
+                for k, st in self.sensors.items()
+            },
+            **extra,
+        }
 
     def write_state(self, state: dict[str, Any]) -> None:
         write_json_atomic(self.dir / STATE_FILE, state)
 
-    def write_yaml(self, *, stop_ns: int | None, agents: dict[str, Any], extra: dict[str, Any]) -> None:
+    def write_yaml(
+        self, *, stop_ns: int | None, agents: dict[str, Any], extra: dict[str, Any]
+    ) -> None:
         doc: dict[str, Any] = {
             "id": self.run_id,
             "name": self.name,
@@ -416,9 +457,15 @@ def list_runs(data_dir: Path) -> list[dict[str, Any]]:
         if not isinstance(doc, dict):
             log.warning("skipping %s: not a mapping", p)
             continue
-        out.append({"run_id": doc.get("id", p.parent.name), "name": doc.get("name"),
-                    "start": doc.get("start"), "stop": doc.get("stop"),
-                    "readings": doc.get("readings")})
+        out.append(
+            {
+                "run_id": doc.get("id", p.parent.name),
+                "name": doc.get("name"),
+                "start": doc.get("start"),
+                "stop": doc.get("stop"),
+                "readings": doc.get("readings"),
+            }
+        )
     return out
 
 

@@ -27,7 +27,8 @@ from deploy.acl import build_acl
 from deploy.inventory import ADMIN_CNS, InventoryError, load_inventory
 
 app = typer.Typer(
-    help="Fleet deployment helpers (site PKI, Zenoh ACL, project wheel, wheelhouse).", no_args_is_help=True
+    help="Fleet deployment helpers (site PKI, Zenoh ACL, project wheel, wheelhouse).",
+    no_args_is_help=True,
 )
 err = Console(stderr=True)
 MANIFEST = "SHA256SUMS"  # in a wheelhouse: `sha256  file` per wheel

@@ -24,7 +24,8 @@ PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e '.[dev]'
-# Lint and type errors fail the run before any test starts (settings: [tool.ruff], [tool.mypy]).
+# Lint, formatting and type errors fail the run before any test starts (settings: [tool.ruff], [tool.mypy]).
 .venv/bin/python -m ruff check .
+.venv/bin/python -m ruff format --check .
 .venv/bin/python -m mypy
 exec .venv/bin/python -m pytest "$@"

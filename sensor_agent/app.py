@@ -61,9 +61,13 @@ def make_backend(cfg: AgentConfig, clocks: Clocks) -> ScannerBackend:
     if cfg.backend == "bleak":
         from sensor_agent.scanning.bleak_backend import BleakBackend
 
-        return BleakBackend(cfg.adapters, cfg.scan_mode, clocks,
-                            watchdog_silence_s=cfg.watchdog.silent_s,
-                            power_cycle_after=cfg.watchdog.power_cycle_after)
+        return BleakBackend(
+            cfg.adapters,
+            cfg.scan_mode,
+            clocks,
+            watchdog_silence_s=cfg.watchdog.silent_s,
+            power_cycle_after=cfg.watchdog.power_cycle_after,
+        )
     raise BackendError(f"unknown backend {cfg.backend!r}")
 
 
@@ -111,9 +115,15 @@ class RunResult:
 class Agent:
     """One running agent; ``run()`` returns when the source finishes or ``stop()`` is called."""
 
-    def __init__(self, cfg: AgentConfig, backend: ScannerBackend, clocks: Clocks | None = None,
-                 boot_id: str | None = None, notifier: Notifier | None = None,
-                 resend_s: float | None = None) -> None:
+    def __init__(
+        self,
+        cfg: AgentConfig,
+        backend: ScannerBackend,
+        clocks: Clocks | None = None,
+        boot_id: str | None = None,
+        notifier: Notifier | None = None,
+        resend_s: float | None = None,
+    ) -> None:
         self.cfg = cfg
         self.backend = backend
         self.clocks = clocks or Clocks()
@@ -160,33 +170,60 @@ class Agent:
         now = self.clocks.mono_ns()
         if st.bad_logged_ns is None or now - st.bad_logged_ns >= BAD_READING_LOG_S * 1e9:
             st.bad_logged_ns = now
-            log.warning("adapter %s: skipped an implausible reading of beacon %s (%s); %d "
-                        "skipped so far", adapter_mac, reading.beacon, why, st.bad_readings)
+            log.warning(
+                "adapter %s: skipped an implausible reading of beacon %s (%s); %d skipped so far",
+                adapter_mac,
+                reading.beacon,
+                why,
+                st.bad_readings,
+            )
 
     def status(self) -> dict[str, Any]:
         """The status queryable's reply (see the agent/collector contract)."""
         now_mono = self.clocks.mono_ns()
         adapters = tuple(
-            _adapter_status(info, self.stats.get(info.mac), now_mono,
-                            self.backend.restarts(info.mac), self.backend.power_cycles(info.mac))
-            for info in self.backend.adapters)
+            _adapter_status(
+                info,
+                self.stats.get(info.mac),
+                now_mono,
+                self.backend.restarts(info.mac),
+                self.backend.power_cycles(info.mac),
+            )
+            for info in self.backend.adapters
+        )
         pub = self._publisher
         return AgentStatus(
-            agent_id=self.cfg.agent_id, boot_id=self.boot_id, version=__version__,
-            backend=self.cfg.backend, hostname=socket.gethostname(), started_ns=self.started_ns,
-            now_ns=self.clocks.wall_ns(), adapters=adapters, spool=self.spool_status(),
-            resent=0 if pub is None else pub.resent, chrony=self._chrony,
-            bad_readings=self.bad_readings).to_dict()
+            agent_id=self.cfg.agent_id,
+            boot_id=self.boot_id,
+            version=__version__,
+            backend=self.cfg.backend,
+            hostname=socket.gethostname(),
+            started_ns=self.started_ns,
+            now_ns=self.clocks.wall_ns(),
+            adapters=adapters,
+            spool=self.spool_status(),
+            resent=0 if pub is None else pub.resent,
+            chrony=self._chrony,
+            bad_readings=self.bad_readings,
+        ).to_dict()
 
     def spool_status(self) -> dict[str, Any] | None:
         """The spool's counters for the status reply; None when running without a spool."""
         if self._spool is None:
             return None
         st = self._spool.stats()
-        return {"dir": st.directory, "bytes": st.bytes, "max_bytes": st.max_bytes,
-                "records": st.records, "streams": st.streams,
-                "dropped_oldest": st.dropped_oldest, "unspooled": st.unspooled,
-                "disk_full": st.disk_full, "writing": st.writing, "last_error": st.last_error}
+        return {
+            "dir": st.directory,
+            "bytes": st.bytes,
+            "max_bytes": st.max_bytes,
+            "records": st.records,
+            "streams": st.streams,
+            "dropped_oldest": st.dropped_oldest,
+            "unspooled": st.unspooled,
+            "disk_full": st.disk_full,
+            "writing": st.writing,
+            "last_error": st.last_error,
+        }
 
     # -- lifecycle --------------------------------------------------------------------------
 
@@ -196,27 +233,46 @@ class Agent:
         cfg = self.cfg
         await asyncio.to_thread(self.backend.check)  # bad input fails before connecting
         if cfg.tls is not None and self.cert_cn is not None and self.cert_cn != cfg.agent_id:
-            log.warning("agent id %r is not the CN %r of this agent's certificate (%s): the "
-                        "collector's ACL goes by the certificate's CN, so it will drop everything "
-                        "published as %r and nothing will be acknowledged; set agent_id: %s or "
-                        "install the certificate issued for %s", cfg.agent_id, self.cert_cn,
-                        cfg.tls.cert, cfg.agent_id, self.cert_cn, cfg.agent_id)
+            log.warning(
+                "agent id %r is not the CN %r of this agent's certificate (%s): the "
+                "collector's ACL goes by the certificate's CN, so it will drop everything "
+                "published as %r and nothing will be acknowledged; set agent_id: %s or "
+                "install the certificate issued for %s",
+                cfg.agent_id,
+                self.cert_cn,
+                cfg.tls.cert,
+                cfg.agent_id,
+                self.cert_cn,
+                cfg.agent_id,
+            )
         if cfg.spool.dir is not None:
             # fsync from the housekeeping timer (a worker thread), not inside append() on the loop
             self._spool = await asyncio.to_thread(
-                Spool, cfg.spool.dir, cfg.spool.max_mb * 1024 * 1024, fsync_interval_s=None)
+                Spool, cfg.spool.dir, cfg.spool.max_mb * 1024 * 1024, fsync_interval_s=None
+            )
         acknowledged = False
         tasks: list[asyncio.Task[Any]] = []
         try:
             self.started_ns = self.clocks.wall_ns()
             self._publisher = Publisher(
-                site=cfg.site, agent_id=cfg.agent_id, boot_id=self.boot_id,
-                wall_ns=self.clocks.wall_ns, mono_ns=self.clocks.mono_ns, spool=self._spool,
-                status=self.status, chrony=lambda: self._chrony,
-                resend_s=RESEND_S if self.resend_s is None else self.resend_s)
-            log.info("agent %s (boot %s) on %s, backend %s, spool %s", cfg.agent_id, self.boot_id,
-                     ", ".join(cfg.connect), cfg.backend,
-                     "off" if cfg.spool.dir is None else cfg.spool.dir)
+                site=cfg.site,
+                agent_id=cfg.agent_id,
+                boot_id=self.boot_id,
+                wall_ns=self.clocks.wall_ns,
+                mono_ns=self.clocks.mono_ns,
+                spool=self._spool,
+                status=self.status,
+                chrony=lambda: self._chrony,
+                resend_s=RESEND_S if self.resend_s is None else self.resend_s,
+            )
+            log.info(
+                "agent %s (boot %s) on %s, backend %s, spool %s",
+                cfg.agent_id,
+                self.boot_id,
+                ", ".join(cfg.connect),
+                cfg.backend,
+                "off" if cfg.spool.dir is None else cfg.spool.dir,
+            )
             if not await self._try_open(first=True):
                 tasks.append(asyncio.create_task(self._connect_loop(), name="zenoh-connect"))
             tasks += self._housekeeping_tasks()
@@ -261,11 +317,17 @@ class Agent:
             reason = zenoh_reason(e)
             if "Unable to connect" in reason or "Timeout" in reason:
                 if first:
-                    log.warning("cannot reach the Zenoh router at %s yet (%s); recording "
-                                "and retrying in the background", ", ".join(cfg.connect), reason)
+                    log.warning(
+                        "cannot reach the Zenoh router at %s yet (%s); recording "
+                        "and retrying in the background",
+                        ", ".join(cfg.connect),
+                        reason,
+                    )
                 return False
-            raise AgentError(f"cannot open a Zenoh session to {', '.join(cfg.connect)}: "
-                             f"{reason or 'connection failed'}") from None
+            raise AgentError(
+                f"cannot open a Zenoh session to {', '.join(cfg.connect)}: "
+                f"{reason or 'connection failed'}"
+            ) from None
         self._session = session
         self._publisher.attach(session)
         if not first:
@@ -288,8 +350,9 @@ class Agent:
             try:
                 await asyncio.to_thread(work)
             except Exception:  # noqa: BLE001 - one failed round must not end re-sending for good
-                log.exception("%s failed; trying again in %.1f s", getattr(work, "__name__", work),
-                              period_s)
+                log.exception(
+                    "%s failed; trying again in %.1f s", getattr(work, "__name__", work), period_s
+                )
             await self.clocks.sleep(period_s)
 
     async def _systemd(self) -> None:
@@ -311,11 +374,15 @@ class Agent:
     def _no_ack_cause(self) -> str:
         cfg = self.cfg
         if cfg.tls is not None and self.cert_cn is not None and self.cert_cn != cfg.agent_id:
-            return (f"agent id {cfg.agent_id!r} differs from the certificate's CN {self.cert_cn!r}, "
-                    "and the collector's ACL drops what this certificate publishes under another id")
+            return (
+                f"agent id {cfg.agent_id!r} differs from the certificate's CN {self.cert_cn!r}, "
+                "and the collector's ACL drops what this certificate publishes under another id"
+            )
         if cfg.tls is not None:
-            return (f"the collector's ACL may not list agent {cfg.agent_id!r} (certificate CN "
-                    f"{self.cert_cn!r}), or the collector cannot write (see `collector status`)")
+            return (
+                f"the collector's ACL may not list agent {cfg.agent_id!r} (certificate CN "
+                f"{self.cert_cn!r}), or the collector cannot write (see `collector status`)"
+            )
         return f"is agent id {cfg.agent_id!r} published on the collector's site {cfg.site!r}?"
 
     def _watch_acks(self) -> None:
@@ -334,37 +401,51 @@ class Agent:
         if self._ack_warned is not None and now - self._ack_warned < NO_ACK_REPEAT_S * 1e9:
             return
         self._ack_warned = now
-        log.warning("connected to %s, but no acknowledgement from the collector for %.0f s "
-                    "(%d stream(s) waiting): its puts are being dropped; likely cause: %s",
-                    ", ".join(self.cfg.connect), waited / 1e9, len(pub.outstanding()),
-                    self._no_ack_cause())
+        log.warning(
+            "connected to %s, but no acknowledgement from the collector for %.0f s "
+            "(%d stream(s) waiting): its puts are being dropped; likely cause: %s",
+            ", ".join(self.cfg.connect),
+            waited / 1e9,
+            len(pub.outstanding()),
+            self._no_ack_cause(),
+        )
 
     def _refresh_chrony(self) -> None:
         self._chrony = read_chrony()
 
     def _housekeeping_tasks(self) -> list[asyncio.Task[Any]]:
         """Spool fsync, re-sends, chrony and systemd pings, each on its own period."""
-        tasks = [asyncio.create_task(self._every(HOUSEKEEPING_S, self._publisher.resend_due),
-                                     name="resend"),
-                 asyncio.create_task(self._every(HOUSEKEEPING_S, self._watch_acks), name="ack-watch"),
-                 asyncio.create_task(self._every(CHRONY_REFRESH_S, self._refresh_chrony),
-                                     name="chrony")]
+        tasks = [
+            asyncio.create_task(
+                self._every(HOUSEKEEPING_S, self._publisher.resend_due), name="resend"
+            ),
+            asyncio.create_task(self._every(HOUSEKEEPING_S, self._watch_acks), name="ack-watch"),
+            asyncio.create_task(self._every(CHRONY_REFRESH_S, self._refresh_chrony), name="chrony"),
+        ]
         if self.notifier.enabled:
             tasks.append(asyncio.create_task(self._systemd(), name="systemd"))
         if self._spool is not None:
-            tasks.append(asyncio.create_task(self._every(HOUSEKEEPING_S, self._spool.sync),
-                                             name="spool-sync"))
+            tasks.append(
+                asyncio.create_task(
+                    self._every(HOUSEKEEPING_S, self._spool.sync), name="spool-sync"
+                )
+            )
         return tasks
 
     def _summary(self) -> str:
         """One line for systemd's STATUS=."""
         pub = self._publisher
-        parts = [f"{self.readings} readings", f"{len(self.backend.adapters)} adapter(s)",
-                 "connected" if pub is not None and pub.connected() else "not connected"]
+        parts = [
+            f"{self.readings} readings",
+            f"{len(self.backend.adapters)} adapter(s)",
+            "connected" if pub is not None and pub.connected() else "not connected",
+        ]
         sp = self.spool_status()
         if sp is not None:
-            parts.append(f"spool {sp['records']} unacked, {sp['bytes'] // 1024} KiB"
-                         + (", DISK FULL" if sp["disk_full"] else ""))
+            parts.append(
+                f"spool {sp['records']} unacked, {sp['bytes'] // 1024} KiB"
+                + (", DISK FULL" if sp["disk_full"] else "")
+            )
         return "; ".join(parts)
 
     async def _pump(self) -> bool:
@@ -376,8 +457,9 @@ class Agent:
         ticks = 0
         try:
             while True:
-                finished, _ = await asyncio.wait({done, stop}, timeout=period,
-                                                 return_when=asyncio.FIRST_COMPLETED)
+                finished, _ = await asyncio.wait(
+                    {done, stop}, timeout=period, return_when=asyncio.FIRST_COMPLETED
+                )
                 self._publisher.flush()
                 if done in finished:
                     done.result()  # re-raise what ended the source early
@@ -398,7 +480,9 @@ class Agent:
     def _log_status(self) -> None:
         now = self.clocks.mono_ns()
         for mac, st in self.stats.items():
-            log.info("adapter %s: %.1f adverts/s, %d readings", mac, st.rate(now), st.readings_total)
+            log.info(
+                "adapter %s: %.1f adverts/s, %d readings", mac, st.rate(now), st.readings_total
+            )
 
     async def _wait_acked(self, timeout_s: float) -> None:
         """Wait (bounded) until the collector acknowledged every published batch, else AckTimeout."""
@@ -413,12 +497,16 @@ class Agent:
                 acked_any = self._publisher.any_ack()
                 hint = ""
                 if not acked_any:
-                    hint = (f" (connected, but no acknowledgement at all: {self._no_ack_cause()})"
-                            if self._publisher.connected()
-                            else " (no acknowledgement at all: is a collector running?)")
+                    hint = (
+                        f" (connected, but no acknowledgement at all: {self._no_ack_cause()})"
+                        if self._publisher.connected()
+                        else " (no acknowledgement at all: is a collector running?)"
+                    )
                 log.warning("%d batch(es) of %d stream(s) not acknowledged", missing, len(pending))
-                raise AckTimeout(f"the collector did not acknowledge {missing} batch(es) of "
-                                 f"{len(pending)} stream(s) within {timeout_s:g} s{hint}")
+                raise AckTimeout(
+                    f"the collector did not acknowledge {missing} batch(es) of "
+                    f"{len(pending)} stream(s) within {timeout_s:g} s{hint}"
+                )
             await self.clocks.sleep(ACK_POLL_S)
 
 
@@ -435,21 +523,33 @@ def _cert_cn(cfg: AgentConfig) -> str | None:
         return None
 
 
-def _adapter_status(info: AdapterInfo, st: AdapterStats | None, now_mono: int,
-                    restarts: int, power_cycles: int) -> AdapterStatus:
+def _adapter_status(
+    info: AdapterInfo, st: AdapterStats | None, now_mono: int, restarts: int, power_cycles: int
+) -> AdapterStatus:
     last_age = None
     if st is not None and st.last_mono_ns is not None:
         last_age = round(max(0, now_mono - st.last_mono_ns) / 1e9, 3)
     return AdapterStatus(
-        name=info.name, mac=info.mac, backend=info.backend, mode=info.mode,
+        name=info.name,
+        mac=info.mac,
+        backend=info.backend,
+        mode=info.mode,
         adverts_per_s=0.0 if st is None else round(st.rate(now_mono), 2),
-        last_advert_age_s=last_age, restarts=restarts,
+        last_advert_age_s=last_age,
+        restarts=restarts,
         readings_total=0 if st is None else st.readings_total,
-        bad_readings=0 if st is None else st.bad_readings, power_cycles=power_cycles)
+        bad_readings=0 if st is None else st.bad_readings,
+        power_cycles=power_cycles,
+    )
 
 
-async def run_agent(cfg: AgentConfig, *, wait_ack: bool = True, clocks: Clocks | None = None,
-                    handle_signals: bool = False) -> RunResult:
+async def run_agent(
+    cfg: AgentConfig,
+    *,
+    wait_ack: bool = True,
+    clocks: Clocks | None = None,
+    handle_signals: bool = False,
+) -> RunResult:
     """Build the backend and run an agent until its source ends or SIGINT/SIGTERM."""
     clocks = clocks or Clocks()
     agent = Agent(cfg, make_backend(cfg, clocks), clocks)

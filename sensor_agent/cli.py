@@ -23,14 +23,22 @@ app = typer.Typer(
 err = Console(stderr=True)
 out = Console()
 
-ConfigOpt = Annotated[Path | None, typer.Option(
-    "--config", "-c", help="Agent YAML file (e.g. /etc/ble-groundtruth/agent.yaml); flags override it.",
-    dir_okay=False)]
+ConfigOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--config",
+        "-c",
+        help="Agent YAML file (e.g. /etc/ble-groundtruth/agent.yaml); flags override it.",
+        dir_okay=False,
+    ),
+]
 
 
 def _setup_logging(verbose: bool) -> None:
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
 
 
 def _fail(e: AgentError) -> typer.Exit:
@@ -41,27 +49,62 @@ def _fail(e: AgentError) -> typer.Exit:
 @app.command()
 def run(
     config: ConfigOpt = None,
-    agent_id: Annotated[str | None, typer.Option(
-        help="This agent's id ([A-Za-z0-9_.-], up to 64); default: config, else the host name.")] = None,
+    agent_id: Annotated[
+        str | None,
+        typer.Option(
+            help="This agent's id ([A-Za-z0-9_.-], up to 64); default: config, else the host name."
+        ),
+    ] = None,
     site: Annotated[str | None, typer.Option(help="Site name in every key expression.")] = None,
-    connect: Annotated[list[str] | None, typer.Option(
-        help="Zenoh endpoint of the collector's router, e.g. tcp/192.168.1.10:7447 (repeatable).")] = None,
-    backend: Annotated[str | None, typer.Option(
-        help="bleak (real adapters) | replay (.mbd files) | simulated (moving beacon).")] = None,
-    adapter: Annotated[list[str] | None, typer.Option(
-        help="Adapter name (hci0) or MAC to scan with (repeatable); default: every adapter.")] = None,
-    replay: Annotated[list[Path] | None, typer.Option(
-        help="An .mbd file to replay (repeatable); selects the replay backend.")] = None,
-    replay_speed: Annotated[float | None, typer.Option(
-        help="Replay pace relative to the recording; 0 = as fast as possible.")] = None,
-    replay_keep_time: Annotated[bool, typer.Option(
-        "--replay-keep-time", help="Keep the files' timestamps instead of shifting them to now.")] = False,
-    scan_mode: Annotated[str | None, typer.Option(
-        help="active | passive (passive needs BlueZ advertisement monitors).")] = None,
-    no_wait_ack: Annotated[bool, typer.Option(
-        "--no-wait-ack", help="At the end of a replay, exit without waiting for the collector's acks.")] = False,
-    ack_timeout: Annotated[float | None, typer.Option(
-        help="Seconds to wait for the collector's acks at the end of a replay (default 30).")] = None,
+    connect: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Zenoh endpoint of the collector's router, e.g. tcp/192.168.1.10:7447 (repeatable)."
+        ),
+    ] = None,
+    backend: Annotated[
+        str | None,
+        typer.Option(
+            help="bleak (real adapters) | replay (.mbd files) | simulated (moving beacon)."
+        ),
+    ] = None,
+    adapter: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Adapter name (hci0) or MAC to scan with (repeatable); default: every adapter."
+        ),
+    ] = None,
+    replay: Annotated[
+        list[Path] | None,
+        typer.Option(help="An .mbd file to replay (repeatable); selects the replay backend."),
+    ] = None,
+    replay_speed: Annotated[
+        float | None,
+        typer.Option(help="Replay pace relative to the recording; 0 = as fast as possible."),
+    ] = None,
+    replay_keep_time: Annotated[
+        bool,
+        typer.Option(
+            "--replay-keep-time", help="Keep the files' timestamps instead of shifting them to now."
+        ),
+    ] = False,
+    scan_mode: Annotated[
+        str | None,
+        typer.Option(help="active | passive (passive needs BlueZ advertisement monitors)."),
+    ] = None,
+    no_wait_ack: Annotated[
+        bool,
+        typer.Option(
+            "--no-wait-ack",
+            help="At the end of a replay, exit without waiting for the collector's acks.",
+        ),
+    ] = False,
+    ack_timeout: Annotated[
+        float | None,
+        typer.Option(
+            help="Seconds to wait for the collector's acks at the end of a replay (default 30)."
+        ),
+    ] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log debug messages.")] = False,
 ) -> None:
     """Run the agent until the source ends (replay) or SIGINT/SIGTERM (which flush and stop cleanly).
@@ -72,11 +115,19 @@ def run(
 
     _setup_logging(verbose)
     try:
-        cfg = with_overrides(load_config(config), agent_id=agent_id, site=site,
-                             connect=connect or (), backend=backend, adapters=adapter or (),
-                             replay=replay or (), replay_speed=replay_speed,
-                             replay_keep_time=True if replay_keep_time else None,
-                             scan_mode=scan_mode, ack_timeout_s=ack_timeout)
+        cfg = with_overrides(
+            load_config(config),
+            agent_id=agent_id,
+            site=site,
+            connect=connect or (),
+            backend=backend,
+            adapters=adapter or (),
+            replay=replay or (),
+            replay_speed=replay_speed,
+            replay_keep_time=True if replay_keep_time else None,
+            scan_mode=scan_mode,
+            ack_timeout_s=ack_timeout,
+        )
         result = asyncio.run(run_agent(cfg, wait_ack=not no_wait_ack, handle_signals=True))
     except AgentError as e:
         raise _fail(e) from None
@@ -102,8 +153,10 @@ def adapters() -> None:
 
     # Tab-separated so scripts (deploy/) can cut it: name, sensor id, BlueZ spelling, power, alias.
     for a in found:
-        typer.echo(f"{a.name}\t{a.address}\t{colon_mac(a.address)}\t"
-                   f"{'powered' if a.powered else 'off'}\t{a.alias}")
+        typer.echo(
+            f"{a.name}\t{a.address}\t{colon_mac(a.address)}\t"
+            f"{'powered' if a.powered else 'off'}\t{a.alias}"
+        )
 
 
 @app.command()

@@ -37,9 +37,15 @@ def parse_chronyc_tracking(text: str) -> dict[str, Any]:
         if sep:
             fields[key.strip().lower()] = value.strip()
     out: dict[str, Any] = {
-        "ref_id": None, "stratum": None, "system_time_offset_s": None, "last_offset_s": None,
-        "rms_offset_s": None, "frequency_ppm": None, "root_delay_s": None,
-        "root_dispersion_s": None, "leap_status": None,
+        "ref_id": None,
+        "stratum": None,
+        "system_time_offset_s": None,
+        "last_offset_s": None,
+        "rms_offset_s": None,
+        "frequency_ppm": None,
+        "root_delay_s": None,
+        "root_dispersion_s": None,
+        "leap_status": None,
     }
     if "reference id" in fields:
         out["ref_id"] = fields["reference id"]
@@ -48,9 +54,13 @@ def parse_chronyc_tracking(text: str) -> dict[str, Any]:
             out["stratum"] = int(fields["stratum"])
         except ValueError:
             pass
-    for name, key in (("system_time_offset_s", "system time"), ("last_offset_s", "last offset"),
-                      ("rms_offset_s", "rms offset"), ("root_delay_s", "root delay"),
-                      ("root_dispersion_s", "root dispersion")):
+    for name, key in (
+        ("system_time_offset_s", "system time"),
+        ("last_offset_s", "last offset"),
+        ("rms_offset_s", "rms offset"),
+        ("root_delay_s", "root delay"),
+        ("root_dispersion_s", "root dispersion"),
+    ):
         if key in fields:
             out[name] = _seconds(fields[key])
     if "frequency" in fields:
@@ -68,8 +78,13 @@ def read_chrony() -> dict[str, Any] | None:
     if exe is None:
         return None
     try:
-        r = subprocess.run([exe, "tracking"], capture_output=True, text=True,
-                           timeout=CHRONYC_TIMEOUT_S, check=False)
+        r = subprocess.run(
+            [exe, "tracking"],
+            capture_output=True,
+            text=True,
+            timeout=CHRONYC_TIMEOUT_S,
+            check=False,
+        )
     except (OSError, subprocess.TimeoutExpired) as e:
         log.debug("chronyc tracking failed: %s", e)
         return None

@@ -94,25 +94,48 @@ class AgentConfig:
         """The resolved configuration as plain YAML-able data (for `sensor-agent check`)."""
         sim = self.simulated
         return {
-            "agent_id": self.agent_id, "site": self.site, "connect": list(self.connect),
-            "backend": self.backend, "batch_ms": self.batch_ms, "adapters": list(self.adapters),
+            "agent_id": self.agent_id,
+            "site": self.site,
+            "connect": list(self.connect),
+            "backend": self.backend,
+            "batch_ms": self.batch_ms,
+            "adapters": list(self.adapters),
             "scan_mode": self.scan_mode,
-            "allow": {"macs": sorted(self.allow.macs),
-                      "ibeacon_uuids": sorted(self.allow.ibeacon_uuids)},
-            "replay": {"paths": [str(p) for p in self.replay.paths], "speed": self.replay.speed,
-                       "keep_time": self.replay.keep_time},
-            "simulated": {"seed": sim.seed, "sensors": list(sim.sensors), "site": sim.site,
-                          "beacons": list(sim.beacons), "path": sim.path.to_dict(), "t0": sim.t0,
-                          "events": [e.to_dict() for e in sim.events], "rate_hz": sim.rate_hz,
-                          "tx_1m": sim.tx_1m, "path_loss_exponent": sim.path_loss_exponent,
-                          "sigma_db": sim.sigma_db, "drop_prob": sim.drop_prob,
-                          "floor_dbm": sim.floor_dbm},
-            "spool": {"dir": None if self.spool.dir is None else str(self.spool.dir),
-                      "max_mb": self.spool.max_mb},
-            "watchdog": {"silent_s": self.watchdog.silent_s,
-                         "power_cycle_after": self.watchdog.power_cycle_after},
-            "tls": None if self.tls is None else {"root_ca": self.tls.root_ca,
-                                                  "cert": self.tls.cert, "key": self.tls.key},
+            "allow": {
+                "macs": sorted(self.allow.macs),
+                "ibeacon_uuids": sorted(self.allow.ibeacon_uuids),
+            },
+            "replay": {
+                "paths": [str(p) for p in self.replay.paths],
+                "speed": self.replay.speed,
+                "keep_time": self.replay.keep_time,
+            },
+            "simulated": {
+                "seed": sim.seed,
+                "sensors": list(sim.sensors),
+                "site": sim.site,
+                "beacons": list(sim.beacons),
+                "path": sim.path.to_dict(),
+                "t0": sim.t0,
+                "events": [e.to_dict() for e in sim.events],
+                "rate_hz": sim.rate_hz,
+                "tx_1m": sim.tx_1m,
+                "path_loss_exponent": sim.path_loss_exponent,
+                "sigma_db": sim.sigma_db,
+                "drop_prob": sim.drop_prob,
+                "floor_dbm": sim.floor_dbm,
+            },
+            "spool": {
+                "dir": None if self.spool.dir is None else str(self.spool.dir),
+                "max_mb": self.spool.max_mb,
+            },
+            "watchdog": {
+                "silent_s": self.watchdog.silent_s,
+                "power_cycle_after": self.watchdog.power_cycle_after,
+            },
+            "tls": None
+            if self.tls is None
+            else {"root_ca": self.tls.root_ca, "cert": self.tls.cert, "key": self.tls.key},
             "status_interval_s": self.status_interval_s,
             "ack_timeout_s": self.ack_timeout_s,
         }
@@ -144,8 +167,9 @@ class _Fields:
         for k in d:
             if k not in allowed:
                 where = f"{name}.{k}" if name else str(k)
-                raise ConfigError(f"{self.source}: unknown key {where!r} "
-                                  f"(expected one of: {', '.join(allowed)})")
+                raise ConfigError(
+                    f"{self.source}: unknown key {where!r} (expected one of: {', '.join(allowed)})"
+                )
         return d
 
     def pos_int(self, v: Any, name: str) -> int:
@@ -158,8 +182,14 @@ class _Fields:
             raise self.fail(name, "an integer", v)
         return v
 
-    def number(self, v: Any, name: str, lo: float | None = None, lo_open: bool = False,
-               hi: float | None = None) -> float:
+    def number(
+        self,
+        v: Any,
+        name: str,
+        lo: float | None = None,
+        lo_open: bool = False,
+        hi: float | None = None,
+    ) -> float:
         ok = not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
         if ok and lo is not None:
             ok = v > lo if lo_open else v >= lo
@@ -219,8 +249,9 @@ class _Fields:
 
 def check_endpoint(value: str, name: str = "connect", source: str = "command line") -> str:
     if not isinstance(value, str) or not _ENDPOINT_RE.match(value):
-        raise ConfigError(f"{source}: {name} must be a Zenoh endpoint like "
-                          f"'tcp/192.168.1.10:7447', got {value!r}")
+        raise ConfigError(
+            f"{source}: {name} must be a Zenoh endpoint like 'tcp/192.168.1.10:7447', got {value!r}"
+        )
     return value
 
 
@@ -231,13 +262,43 @@ def _adapter(f: _Fields, v: Any, name: str) -> str:
     return f.mac(s, name)
 
 
-_TOP_KEYS = ("agent_id", "site", "connect", "backend", "batch_ms", "adapters", "scan_mode",
-             "allow", "replay", "simulated", "spool", "watchdog", "tls", "status_interval_s", "ack_timeout_s")
-_SIM_KEYS = ("seed", "sensors", "site", "beacons", "path", "t0", "events", "rate_hz", "tx_1m",
-             "path_loss_exponent", "sigma_db", "drop_prob", "floor_dbm")
+_TOP_KEYS = (
+    "agent_id",
+    "site",
+    "connect",
+    "backend",
+    "batch_ms",
+    "adapters",
+    "scan_mode",
+    "allow",
+    "replay",
+    "simulated",
+    "spool",
+    "watchdog",
+    "tls",
+    "status_interval_s",
+    "ack_timeout_s",
+)
+_SIM_KEYS = (
+    "seed",
+    "sensors",
+    "site",
+    "beacons",
+    "path",
+    "t0",
+    "events",
+    "rate_hz",
+    "tx_1m",
+    "path_loss_exponent",
+    "sigma_db",
+    "drop_prob",
+    "floor_dbm",
+)
 
 
-def parse_config(data: Any, source: str = "agent.yaml", base_dir: Path | None = None) -> AgentConfig:
+def parse_config(
+    data: Any, source: str = "agent.yaml", base_dir: Path | None = None
+) -> AgentConfig:
     """Validate a parsed YAML document; ``base_dir`` anchors relative paths (default: cwd)."""
     f = _Fields(source, base_dir if base_dir is not None else Path.cwd())
     d = f.mapping(data, "", _TOP_KEYS)
@@ -247,7 +308,9 @@ def parse_config(data: Any, source: str = "agent.yaml", base_dir: Path | None = 
         out["site"] = f.ident(d["site"], "site")
     if "connect" in d:
         eps = f.str_list(d["connect"], "connect")
-        out["connect"] = tuple(check_endpoint(e, f"connect[{i}]", source) for i, e in enumerate(eps))
+        out["connect"] = tuple(
+            check_endpoint(e, f"connect[{i}]", source) for i, e in enumerate(eps)
+        )
     if "backend" in d:
         out["backend"] = f.choice(d["backend"], "backend", BACKENDS)
     if "batch_ms" in d:
@@ -270,8 +333,9 @@ def parse_config(data: Any, source: str = "agent.yaml", base_dir: Path | None = 
     if d.get("tls") is not None:
         out["tls"] = _tls(f, d["tls"])
     if "status_interval_s" in d:
-        out["status_interval_s"] = f.number(d["status_interval_s"], "status_interval_s",
-                                            lo=0.0, lo_open=True)
+        out["status_interval_s"] = f.number(
+            d["status_interval_s"], "status_interval_s", lo=0.0, lo_open=True
+        )
     if "ack_timeout_s" in d:
         out["ack_timeout_s"] = f.number(d["ack_timeout_s"], "ack_timeout_s", lo=0.0)
     return AgentConfig(**out)
@@ -287,24 +351,30 @@ def _allow(f: _Fields, raw: Any) -> AllowList:
         if not _UUID_RE.match(flat):
             raise f.fail(f"allow.ibeacon_uuids[{i}]", "a 128-bit UUID", u)
         norm_uuids.append(flat)
-    return AllowList(frozenset(f.mac(m, f"allow.macs[{i}]") for i, m in enumerate(macs)),
-                     frozenset(norm_uuids))
+    return AllowList(
+        frozenset(f.mac(m, f"allow.macs[{i}]") for i, m in enumerate(macs)), frozenset(norm_uuids)
+    )
 
 
 def _replay(f: _Fields, raw: Any) -> ReplayConfig:
     r = f.mapping(raw, "replay", ("paths", "speed", "keep_time"))
     return ReplayConfig(
-        tuple(f.path(p, f"replay.paths[{i}]")
-              for i, p in enumerate(f.str_list(r.get("paths"), "replay.paths"))),
+        tuple(
+            f.path(p, f"replay.paths[{i}]")
+            for i, p in enumerate(f.str_list(r.get("paths"), "replay.paths"))
+        ),
         f.number(r.get("speed", 1.0), "replay.speed", lo=0.0),
-        f.boolean(r.get("keep_time", False), "replay.keep_time"))
+        f.boolean(r.get("keep_time", False), "replay.keep_time"),
+    )
 
 
 def _spool(f: _Fields, raw: Any) -> SpoolConfig:
     s = f.mapping(raw, "spool", ("dir", "max_mb"))
     sdir = s.get("dir")
-    return SpoolConfig(None if sdir is None else f.path(sdir, "spool.dir"),
-                       f.pos_int(s.get("max_mb", 256), "spool.max_mb"))
+    return SpoolConfig(
+        None if sdir is None else f.path(sdir, "spool.dir"),
+        f.pos_int(s.get("max_mb", 256), "spool.max_mb"),
+    )
 
 
 def _watchdog(f: _Fields, raw: Any) -> WatchdogConfig:
@@ -313,7 +383,8 @@ def _watchdog(f: _Fields, raw: Any) -> WatchdogConfig:
     if isinstance(pca, bool) or not isinstance(pca, int) or pca < 0:
         raise f.fail("watchdog.power_cycle_after", "an integer >= 0", pca)
     return WatchdogConfig(
-        f.number(w.get("silent_s", 60.0), "watchdog.silent_s", lo=0.0, lo_open=True), pca)
+        f.number(w.get("silent_s", 60.0), "watchdog.silent_s", lo=0.0, lo_open=True), pca
+    )
 
 
 def _tls(f: _Fields, raw: Any) -> TlsFiles:
@@ -334,10 +405,14 @@ def _simulated(f: _Fields, raw: Any) -> SimulatedConfig:
     if "site" in s:
         site = f.string(s["site"], "simulated.site")
         # a bare name is a built-in site; anything path-like is relative to the config file
-        kw["site"] = str(f.path(site, "simulated.site")) if ("/" in site or site.endswith(".dev")) else site
+        kw["site"] = (
+            str(f.path(site, "simulated.site")) if ("/" in site or site.endswith(".dev")) else site
+        )
     if "beacons" in s:
-        kw["beacons"] = tuple(f.mac(m, f"simulated.beacons[{i}]") for i, m in
-                              enumerate(f.str_list(s["beacons"], "simulated.beacons")))
+        kw["beacons"] = tuple(
+            f.mac(m, f"simulated.beacons[{i}]")
+            for i, m in enumerate(f.str_list(s["beacons"], "simulated.beacons"))
+        )
     if s.get("path") is not None:
         kw["path"] = _sim_path(f, s["path"])
     if s.get("t0") is not None:
@@ -350,8 +425,9 @@ def _simulated(f: _Fields, raw: Any) -> SimulatedConfig:
         if k in s:
             kw[k] = f.number(s[k], f"simulated.{k}")
     if "path_loss_exponent" in s:
-        kw["path_loss_exponent"] = f.number(s["path_loss_exponent"],
-                                            "simulated.path_loss_exponent", lo=0.0, lo_open=True)
+        kw["path_loss_exponent"] = f.number(
+            s["path_loss_exponent"], "simulated.path_loss_exponent", lo=0.0, lo_open=True
+        )
     if "sigma_db" in s:
         kw["sigma_db"] = f.number(s["sigma_db"], "simulated.sigma_db", lo=0.0)
     if "drop_prob" in s:
@@ -396,11 +472,20 @@ def load_config(path: str | Path | None) -> AgentConfig:
     return parse_config({} if data is None else data, path.name, path.resolve().parent)
 
 
-def with_overrides(cfg: AgentConfig, *, agent_id: str | None = None, site: str | None = None,
-                   connect: Sequence[str] = (), backend: str | None = None,
-                   adapters: Sequence[str] = (), replay: Sequence[str | Path] = (),
-                   replay_speed: float | None = None, replay_keep_time: bool | None = None,
-                   scan_mode: str | None = None, ack_timeout_s: float | None = None) -> AgentConfig:
+def with_overrides(
+    cfg: AgentConfig,
+    *,
+    agent_id: str | None = None,
+    site: str | None = None,
+    connect: Sequence[str] = (),
+    backend: str | None = None,
+    adapters: Sequence[str] = (),
+    replay: Sequence[str | Path] = (),
+    replay_speed: float | None = None,
+    replay_keep_time: bool | None = None,
+    scan_mode: str | None = None,
+    ack_timeout_s: float | None = None,
+) -> AgentConfig:
     """Apply command-line flags on top of a loaded config; empty/None flags keep the file's value.
 
     Giving replay files without a backend selects the replay backend.

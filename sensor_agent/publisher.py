@@ -57,12 +57,21 @@ class _Stream:
 class Publisher:
     """Batches readings per sensor, spools and publishes them, re-sends what is unacknowledged."""
 
-    def __init__(self, session: Any = None, *, site: str, agent_id: str, boot_id: str,
-                 wall_ns: Callable[[], int], mono_ns: Callable[[], int] | None = None,
-                 spool: Any = None,
-                 status: Callable[[], dict[str, Any]] | None = None,
-                 chrony: Callable[[], dict[str, Any] | None] | None = None,
-                 max_batch: int = MAX_BATCH_READINGS, resend_s: float = RESEND_S) -> None:
+    def __init__(
+        self,
+        session: Any = None,
+        *,
+        site: str,
+        agent_id: str,
+        boot_id: str,
+        wall_ns: Callable[[], int],
+        mono_ns: Callable[[], int] | None = None,
+        spool: Any = None,
+        status: Callable[[], dict[str, Any]] | None = None,
+        chrony: Callable[[], dict[str, Any] | None] | None = None,
+        max_batch: int = MAX_BATCH_READINGS,
+        resend_s: float = RESEND_S,
+    ) -> None:
         import time
 
         self.site = site
@@ -77,11 +86,17 @@ class Publisher:
         self._chrony = chrony
         self._streams: dict[str, _Stream] = {}
         self._lock = threading.RLock()
-        self._acked: dict[str, int] = {}  # sensor -> highest seq with all earlier ones handled (this boot)
+        self._acked: dict[
+            str, int
+        ] = {}  # sensor -> highest seq with all earlier ones handled (this boot)
         self._published: dict[str, int] = {}  # sensor -> last seq built (this boot)
         self._sid_acked: dict[str, int] = {}  # stream id (any boot) -> acked seq
-        self._progress: dict[str, int] = {}  # stream id -> mono ns of the last ack advance / re-send
-        self._interval: dict[str, int] = {}  # stream id -> current re-send interval (ns), backed off
+        self._progress: dict[
+            str, int
+        ] = {}  # stream id -> mono ns of the last ack advance / re-send
+        self._interval: dict[
+            str, int
+        ] = {}  # stream id -> current re-send interval (ns), backed off
         self._old_boots: set[str] = set()
         self.resent = 0
         self.last_ack_ns: int | None = None  # monotonic time of the last ack for this agent
@@ -95,8 +110,11 @@ class Publisher:
                     self._old_boots.add(boot)
                 self._progress[sid] = 0  # re-send at once when connected
             if self._old_boots:
-                log.info("spool holds unacknowledged batches of %d earlier boot(s); they are "
-                         "re-sent once the collector is reachable", len(self._old_boots))
+                log.info(
+                    "spool holds unacknowledged batches of %d earlier boot(s); they are "
+                    "re-sent once the collector is reachable",
+                    len(self._old_boots),
+                )
         self.session: Any = None
         self._zpubs: dict[str, Any] = {}  # sensor -> AdvancedPublisher
         self._decls: list[Any] = []
@@ -113,10 +131,12 @@ class Publisher:
         self._decls.append(session.liveliness().declare_token(wire.agent_token_key(site, agent)))
         self._decls.append(session.declare_subscriber(wire.ack_key(site, agent), self._on_ack))
         if self._status is not None:
-            self._decls.append(session.declare_queryable(wire.agent_status_key(site, agent),
-                                                         self._on_status_query))
-        self._decls.append(session.declare_queryable(wire.agent_clock_key(site, agent),
-                                                     self._on_clock_query))
+            self._decls.append(
+                session.declare_queryable(wire.agent_status_key(site, agent), self._on_status_query)
+            )
+        self._decls.append(
+            session.declare_queryable(wire.agent_clock_key(site, agent), self._on_clock_query)
+        )
         with self._lock:
             self.session = session
             self._zenoh = zenoh
@@ -145,13 +165,15 @@ class Publisher:
 
             z = self._zenoh
             p = zenoh.ext.declare_advanced_publisher(
-                self.session, wire.data_key(self.site, self.agent_id, sensor),
+                self.session,
+                wire.data_key(self.site, self.agent_id, sensor),
                 encoding=z.Encoding.APPLICATION_OCTET_STREAM,
                 congestion_control=z.CongestionControl.BLOCK,
                 reliability=z.Reliability.RELIABLE,
                 cache=zenoh.ext.CacheConfig(CACHE_SAMPLES),
-                sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=HEARTBEAT_S,
-                                                                    sporadic_heartbeat=None),
+                sample_miss_detection=zenoh.ext.MissDetectionConfig(
+                    heartbeat=HEARTBEAT_S, sporadic_heartbeat=None
+                ),
                 publisher_detection=True,
             )
             self._zpubs[sensor] = p
@@ -205,8 +227,15 @@ class Publisher:
     def _flush_stream(self, s: _Stream) -> None:
         sid = stream_id(self.boot_id, s.sensor)
         seq = s.next_seq
-        batch = Batch(self.agent_id, self.boot_id, s.sensor, seq, tuple(s.pending),
-                      sent_ns=self.wall_ns(), floor=self._floor(s, sid))
+        batch = Batch(
+            self.agent_id,
+            self.boot_id,
+            s.sensor,
+            seq,
+            tuple(s.pending),
+            sent_ns=self.wall_ns(),
+            floor=self._floor(s, sid),
+        )
         payload = wire.to_wire(batch)
         spooled = self.spool is not None and self.spool.append(sid, seq, payload)
         with self._lock:
@@ -239,8 +268,11 @@ class Publisher:
     def _resend_pass(self) -> int:
         now = self.mono_ns()
         with self._lock:
-            due = {sid for sid, t in self._progress.items()
-                   if now - t >= self._interval.get(sid, self.resend_ns)}
+            due = {
+                sid
+                for sid, t in self._progress.items()
+                if now - t >= self._interval.get(sid, self.resend_ns)
+            }
         if not due:
             return 0
         sent = 0
@@ -271,8 +303,9 @@ class Publisher:
                 if self._still_pending(sid):
                     self._progress[sid] = done
                     # reset by the next ack that moves; doubled while passes bring nothing
-                    self._interval[sid] = min(int(RESEND_MAX_S * 1e9),
-                                              2 * self._interval.get(sid, self.resend_ns))
+                    self._interval[sid] = min(
+                        int(RESEND_MAX_S * 1e9), 2 * self._interval.get(sid, self.resend_ns)
+                    )
                 else:
                     self._progress.pop(sid, None)
                     self._interval.pop(sid, None)
@@ -323,8 +356,11 @@ class Publisher:
     def unacked(self) -> dict[str, tuple[int, int]]:
         """This boot's streams with batches not yet acknowledged: sensor -> (last built, last acked)."""
         with self._lock:
-            return {m: (p, self._acked.get(m, -1)) for m, p in self._published.items()
-                    if self._acked.get(m, -1) < p}
+            return {
+                m: (p, self._acked.get(m, -1))
+                for m, p in self._published.items()
+                if self._acked.get(m, -1) < p
+            }
 
     def outstanding(self) -> dict[str, int]:
         """Every stream (any boot) with something unacknowledged: stream id -> how many batches."""
@@ -347,8 +383,11 @@ class Publisher:
     def _on_status_query(self, query: Any) -> None:
         try:
             assert self._status is not None
-            query.reply(query.key_expr, wire.to_json(self._status()),
-                        encoding=self._zenoh.Encoding.APPLICATION_JSON)
+            query.reply(
+                query.key_expr,
+                wire.to_json(self._status()),
+                encoding=self._zenoh.Encoding.APPLICATION_JSON,
+            )
         except Exception:  # a bug here must not kill Zenoh's callback thread silently
             log.exception("status query failed")
 
@@ -364,8 +403,11 @@ class Publisher:
                 return
             chrony = self._chrony() if self._chrony is not None else None
             reply = ClockReply(req.t1, t2, self.wall_ns(), chrony)
-            query.reply(query.key_expr, wire.to_json(reply.to_dict()),
-                        encoding=self._zenoh.Encoding.APPLICATION_JSON)
+            query.reply(
+                query.key_expr,
+                wire.to_json(reply.to_dict()),
+                encoding=self._zenoh.Encoding.APPLICATION_JSON,
+            )
         except Exception:
             log.exception("clock query failed")
 

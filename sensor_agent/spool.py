@@ -199,14 +199,19 @@ class Spool:
     fsyncs, retries and warnings; ``wall_ns`` stamps records.
     """
 
-    def __init__(self, directory: Path | str, max_bytes: int, *,
-                 segment_bytes: int | None = None,
-                 fsync_interval_s: float | None = DEFAULT_FSYNC_INTERVAL_S,
-                 ack_interval_s: float = DEFAULT_ACK_INTERVAL_S,
-                 retry_interval_s: float = DEFAULT_RETRY_INTERVAL_S,
-                 clock: Callable[[], int] = time.monotonic_ns,
-                 wall_ns: Callable[[], int] = time.time_ns,
-                 files: FileOps | None = None) -> None:
+    def __init__(
+        self,
+        directory: Path | str,
+        max_bytes: int,
+        *,
+        segment_bytes: int | None = None,
+        fsync_interval_s: float | None = DEFAULT_FSYNC_INTERVAL_S,
+        ack_interval_s: float = DEFAULT_ACK_INTERVAL_S,
+        retry_interval_s: float = DEFAULT_RETRY_INTERVAL_S,
+        clock: Callable[[], int] = time.monotonic_ns,
+        wall_ns: Callable[[], int] = time.time_ns,
+        files: FileOps | None = None,
+    ) -> None:
         if not isinstance(max_bytes, int) or max_bytes < 4096:
             raise ValueError(f"spool max_bytes must be an integer >= 4096, got {max_bytes!r}")
         self.directory = Path(directory)
@@ -247,8 +252,9 @@ class Spool:
             self._delete_acked_segments()
         except OSError as e:
             os.close(self._lock_fd)
-            raise SpoolError(f"spool directory {self.directory} cannot be recovered: "
-                             f"{e.strerror or e}") from e
+            raise SpoolError(
+                f"spool directory {self.directory} cannot be recovered: {e.strerror or e}"
+            ) from e
         except BaseException:
             os.close(self._lock_fd)
             raise
@@ -265,8 +271,10 @@ class Spool:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             os.close(fd)
-            raise SpoolError(f"spool directory {self.directory} is in use by another agent "
-                             "process (each agent needs its own spool.dir)") from None
+            raise SpoolError(
+                f"spool directory {self.directory} is in use by another agent "
+                "process (each agent needs its own spool.dir)"
+            ) from None
         return fd
 
     def _load_acks(self) -> None:
@@ -278,8 +286,12 @@ class Spool:
             return
         except (OSError, ValueError) as e:
             # Losing acks only means re-sending batches the collector already has; it dedupes.
-            log.warning("spool %s: ignoring unreadable %s (%s); unacknowledged state resets",
-                        self.directory, ACK_FILE, e)
+            log.warning(
+                "spool %s: ignoring unreadable %s (%s); unacknowledged state resets",
+                self.directory,
+                ACK_FILE,
+                e,
+            )
             return
         acked = doc.get("acked") if isinstance(doc, dict) else None
         if not isinstance(acked, dict):
@@ -301,8 +313,12 @@ class Spool:
                 self._segments.append(seg)
                 self._bytes += seg.size
         if self._recovered:
-            log.warning("spool %s: skipped %d damaged bytes while opening (records before and "
-                        "after them are intact)", self.directory, self._recovered)
+            log.warning(
+                "spool %s: skipped %d damaged bytes while opening (records before and "
+                "after them are intact)",
+                self.directory,
+                self._recovered,
+            )
 
     def _recover_segment(self, number: int, path: Path) -> _Segment | None:
         """Index one segment; cut a torn tail back to the last whole record."""
@@ -320,8 +336,13 @@ class Spool:
             # Not ours to delete; set aside so it neither blocks nor counts against the budget.
             bad = path.with_name(path.name + ".bad")
             path.rename(bad)
-            log.warning("spool %s: %s is not a version-%d spool segment; moved to %s",
-                        self.directory, path.name, SEGMENT_VERSION, bad.name)
+            log.warning(
+                "spool %s: %s is not a version-%d spool segment; moved to %s",
+                self.directory,
+                path.name,
+                SEGMENT_VERSION,
+                bad.name,
+            )
             return None
         seg = _Segment(number, path, _SEG_HEAD.size)
         expect = _SEG_HEAD.size
@@ -334,8 +355,12 @@ class Spool:
             with open(path, "r+b") as f:  # truncate the torn tail so appends stay framed
                 f.truncate(seg.size)
                 os.fsync(f.fileno())
-            log.warning("spool %s: %s had a torn or corrupt tail of %d bytes; truncated",
-                        self.directory, path.name, len(data) - seg.size)
+            log.warning(
+                "spool %s: %s had a torn or corrupt tail of %d bytes; truncated",
+                self.directory,
+                path.name,
+                len(data) - seg.size,
+            )
         return seg
 
     # -- appending --------------------------------------------------------------------------
@@ -345,7 +370,9 @@ class Spool:
         not be spooled (disk full / write error / larger than the budget): publish it anyway."""
         sb = stream.encode() if isinstance(stream, str) else b""
         if not sb or len(sb) > MAX_STREAM_BYTES:
-            raise ValueError(f"spool stream must be 1-{MAX_STREAM_BYTES} UTF-8 bytes, got {stream!r}")
+            raise ValueError(
+                f"spool stream must be 1-{MAX_STREAM_BYTES} UTF-8 bytes, got {stream!r}"
+            )
         if not isinstance(seq, int) or isinstance(seq, bool) or not 0 <= seq < 2**63:
             raise ValueError(f"spool seq must be a non-negative 64-bit integer, got {seq!r}")
         with self._lock:
@@ -356,8 +383,11 @@ class Spool:
                 return False
             rec = encode_record(stream, seq, self._wall_ns(), bytes(payload))
             if len(rec) + _SEG_HEAD.size > self.max_bytes:
-                log.warning("spool %s: a %d-byte batch is larger than the whole spool; not spooled",
-                            self.directory, len(rec))
+                log.warning(
+                    "spool %s: a %d-byte batch is larger than the whole spool; not spooled",
+                    self.directory,
+                    len(rec),
+                )
                 self._unspooled += 1
                 return False
             self._make_room(len(rec), now)
@@ -415,8 +445,12 @@ class Spool:
             try:
                 self._files.ftruncate(seg.fd, start)
             except OSError:
-                log.exception("spool %s: cannot cut a partial record from %s; it will be "
-                              "trimmed when the spool is next opened", self.directory, seg.path.name)
+                log.exception(
+                    "spool %s: cannot cut a partial record from %s; it will be "
+                    "trimmed when the spool is next opened",
+                    self.directory,
+                    seg.path.name,
+                )
                 self._close_active(sync=False)
             raise
         seg.size += len(rec)
@@ -427,18 +461,29 @@ class Spool:
         self._last_error = f"{os.strerror(e.errno) if e.errno else e}"
         if self._paused_until is None:
             if full:
-                log.error("spool %s: disk full; batches are published but not spooled until "
-                          "space returns (retrying every %.0f s)", self.directory, self._retry_ns / 1e9)
+                log.error(
+                    "spool %s: disk full; batches are published but not spooled until "
+                    "space returns (retrying every %.0f s)",
+                    self.directory,
+                    self._retry_ns / 1e9,
+                )
             else:
-                log.error("spool %s: write failed (%s); batches are published but not spooled "
-                          "(retrying every %.0f s)", self.directory, self._last_error,
-                          self._retry_ns / 1e9)
+                log.error(
+                    "spool %s: write failed (%s); batches are published but not spooled "
+                    "(retrying every %.0f s)",
+                    self.directory,
+                    self._last_error,
+                    self._retry_ns / 1e9,
+                )
         self._disk_full = self._disk_full or full
         self._paused_until = now + self._retry_ns
 
     def _resumed(self) -> None:
-        log.warning("spool %s: writing again; %d batches were not spooled meanwhile",
-                    self.directory, self._unspooled_in_pause)
+        log.warning(
+            "spool %s: writing again; %d batches were not spooled meanwhile",
+            self.directory,
+            self._unspooled_in_pause,
+        )
         self._paused_until = None
         self._disk_full = False
         self._unspooled_in_pause = 0
@@ -456,9 +501,14 @@ class Spool:
             self._dropped += dropped
             self._dropped_since_warning += dropped
             if now >= self._next_drop_warning:
-                log.warning("spool %s: full at %d bytes; dropped the %d oldest unacknowledged "
-                            "batches (%d in total since start)", self.directory, self.max_bytes,
-                            self._dropped_since_warning, self._dropped)
+                log.warning(
+                    "spool %s: full at %d bytes; dropped the %d oldest unacknowledged "
+                    "batches (%d in total since start)",
+                    self.directory,
+                    self.max_bytes,
+                    self._dropped_since_warning,
+                    self._dropped,
+                )
                 self._dropped_since_warning = 0
                 self._next_drop_warning = now + int(DROP_WARNING_INTERVAL_S * 1e9)
 
@@ -540,16 +590,21 @@ class Spool:
         that still have records on disk."""
         live = set().union(*(s.runs for s in self._segments)) if self._segments else set()
         self._acked = {s: q for s, q in self._acked.items() if s in live}
-        data = json.dumps({"version": 1, "acked": self._acked}, separators=(",", ":"),
-                          sort_keys=True).encode()
+        data = json.dumps(
+            {"version": 1, "acked": self._acked}, separators=(",", ":"), sort_keys=True
+        ).encode()
         self._last_ack_write = now
         try:
             write_atomic(self.directory / ACK_FILE, data, files=self._files)
         except OSError as e:
             # The previous acks.json is intact; stale acks only cost re-sends.
             self._last_error = os.strerror(e.errno) if e.errno else str(e)
-            log.warning("spool %s: cannot save %s (%s); will retry", self.directory, ACK_FILE,
-                        self._last_error)
+            log.warning(
+                "spool %s: cannot save %s (%s); will retry",
+                self.directory,
+                ACK_FILE,
+                self._last_error,
+            )
             return
         self._acks_dirty = False
 
@@ -601,12 +656,19 @@ class Spool:
         with self._lock:
             unacked = {s for seg in self._segments for s in seg.unacked_streams(self._acked)}
             return SpoolStats(
-                directory=str(self.directory), bytes=self._bytes, segments=len(self._segments),
+                directory=str(self.directory),
+                bytes=self._bytes,
+                segments=len(self._segments),
                 records=sum(seg.unacked(self._acked) for seg in self._segments),
-                streams=len(unacked), dropped_oldest=self._dropped, unspooled=self._unspooled,
-                disk_full=self._disk_full, writing=self._paused_until is None,
-                last_error=self._last_error, recovered_bytes=self._recovered,
-                max_bytes=self.max_bytes)
+                streams=len(unacked),
+                dropped_oldest=self._dropped,
+                unspooled=self._unspooled,
+                disk_full=self._disk_full,
+                writing=self._paused_until is None,
+                last_error=self._last_error,
+                recovered_bytes=self._recovered,
+                max_bytes=self.max_bytes,
+            )
 
     def _check_open(self) -> None:
         if self._closed:

@@ -22,8 +22,16 @@ from bgt_core.safe_yaml import YamlError
 
 console = Console(stderr=True)
 # The errors that mean "bad input": each carries one line naming the file and the field or line.
-KNOWN_ERRORS = (AnnotatorError, MarkerMapError, MbdError, SiteConfigError, HstError, GridFormatError,
-                YamlError, FileNotFoundError)
+KNOWN_ERRORS = (
+    AnnotatorError,
+    MarkerMapError,
+    MbdError,
+    SiteConfigError,
+    HstError,
+    GridFormatError,
+    YamlError,
+    FileNotFoundError,
+)
 # A message is cut to this many characters: a bad value quoted in it must not flood the terminal.
 MAX_MESSAGE = 400
 
@@ -42,7 +50,9 @@ def one_line_errors() -> Iterator[None]:
     except KNOWN_ERRORS as e:
         # escape: messages quote formats like "[x, y]" that rich would eat as markup;
         # soft_wrap: one line however narrow the terminal.
-        console.print(f"[red]error:[/red] {escape(one_line(str(e)))}", highlight=False, soft_wrap=True)
+        console.print(
+            f"[red]error:[/red] {escape(one_line(str(e)))}", highlight=False, soft_wrap=True
+        )
         raise typer.Exit(1) from None
 
 

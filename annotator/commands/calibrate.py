@@ -72,12 +72,20 @@ def write_filestorage(path: Path, cal: Calibration) -> None:
 
 
 def calibrate(
-    inputs: Annotated[list[Path], typer.Argument(help="Images (.png, .jpg, ...) and/or videos of the board.")],
-    out: Annotated[Path, typer.Option("--out", help="Calibration YAML to write (OpenCV FileStorage).")],
+    inputs: Annotated[
+        list[Path], typer.Argument(help="Images (.png, .jpg, ...) and/or videos of the board.")
+    ],
+    out: Annotated[
+        Path, typer.Option("--out", help="Calibration YAML to write (OpenCV FileStorage).")
+    ],
     squares: Annotated[str, typer.Option(help="Board size in squares, COLUMNSxROWS.")] = "5x7",
     square_length: Annotated[float, typer.Option(help="Chessboard square side, metres.")] = 0.0598,
-    marker_length: Annotated[float, typer.Option(help="ArUco marker side inside a square, metres.")] = 0.0299,
-    dictionary: Annotated[str, typer.Option(help="ArUco dictionary of the board's markers.")] = "DICT_6X6_50",
+    marker_length: Annotated[
+        float, typer.Option(help="ArUco marker side inside a square, metres.")
+    ] = 0.0299,
+    dictionary: Annotated[
+        str, typer.Option(help="ArUco dictionary of the board's markers.")
+    ] = "DICT_6X6_50",
     every: Annotated[int, typer.Option(help="Use every N-th frame of a video.")] = 10,
 ) -> None:
     """Calibrate a camera from views of a ChArUco board; prints the RMS reprojection error and
@@ -93,9 +101,14 @@ def calibrate(
             cal = calibrate_charuco(iter_frames(inputs, every, bar), spec)
         write_filestorage(out, cal)
         k = cal.camera_matrix
-        console.print(f"RMS reprojection error {cal.rms:.3f} px over {cal.views_used} of {cal.views_total} "
-                      f"views; fx {k[0, 0]:.2f} fy {k[1, 1]:.2f} cx {k[0, 2]:.2f} cy {k[1, 2]:.2f}; "
-                      f"wrote {out}", highlight=False, soft_wrap=True, markup=False)
+        console.print(
+            f"RMS reprojection error {cal.rms:.3f} px over {cal.views_used} of {cal.views_total} "
+            f"views; fx {k[0, 0]:.2f} fy {k[1, 1]:.2f} cx {k[0, 2]:.2f} cy {k[1, 2]:.2f}; "
+            f"wrote {out}",
+            highlight=False,
+            soft_wrap=True,
+            markup=False,
+        )
 
 
 def register(app: typer.Typer) -> None:

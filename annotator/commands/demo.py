@@ -26,8 +26,12 @@ def _utc(t_ns: int | None) -> str:
 
 def capture_table(cap: Any) -> Table:
     table = Table(title=f"capture: {sum(f.rows for f in cap.files)} readings in {cap.run_dir}")
-    for col, right in (("file (rssi/)", False), ("rows", True), ("first (UTC)", False),
-                       ("last (UTC)", False)):
+    for col, right in (
+        ("file (rssi/)", False),
+        ("rows", True),
+        ("first (UTC)", False),
+        ("last (UTC)", False),
+    ):
         table.add_column(col, justify="right" if right else "left", overflow="fold")
     for f in cap.files:
         table.add_row(f.path.name, str(f.rows), _utc(f.first_ns), _utc(f.last_ns))
@@ -43,30 +47,59 @@ def result_table(summary: dict[str, Any]) -> Table:
     def cm(v: float | None) -> str:
         return "-" if v is None else f"{v:.2f} cm"
 
-    table.add_row("position error (labelled readings)",
-                  f"median {cm(e['median'])}, p95 {cm(e['p95'])}, max {cm(e['max'])} (n = {e['n']})")
-    table.add_row("labelled in the tracked span",
-                  f"{c['labelled_of_tracked_span']:.1%} ({c['labelled']} of {c['readings_of_beacon']} "
-                  "readings of the beacon)")
+    table.add_row(
+        "position error (labelled readings)",
+        f"median {cm(e['median'])}, p95 {cm(e['p95'])}, max {cm(e['max'])} (n = {e['n']})",
+    )
+    table.add_row(
+        "labelled in the tracked span",
+        f"{c['labelled_of_tracked_span']:.1%} ({c['labelled']} of {c['readings_of_beacon']} "
+        "readings of the beacon)",
+    )
     for name, s in summary["sync"].items():
         sigma = "" if s["sigma_ms"] is None else f" ± {s['sigma_ms']:.1f} ms"
         end = s.get("error_end_ms")
-        at_end = "" if end is None or abs(end - s["error_ms"]) < 0.05 else f", {end:+.1f} ms at the last frame"
-        table.add_row(f"{name} video start", f"found {s['found']:.4f}, true {s['true']:.4f}: error "
-                      f"{s['error_ms']:+.1f} ms{sigma}{at_end} ({s['method']})")
+        at_end = (
+            ""
+            if end is None or abs(end - s["error_ms"]) < 0.05
+            else f", {end:+.1f} ms at the last frame"
+        )
+        table.add_row(
+            f"{name} video start",
+            f"found {s['found']:.4f}, true {s['true']:.4f}: error "
+            f"{s['error_ms']:+.1f} ms{sigma}{at_end} ({s['method']})",
+        )
     return table
 
 
 def demo(
-    out: Annotated[Path, typer.Option("--out", help="Folder for everything the demo writes (created; "
-                                                    "must not hold an earlier demo).")] = Path("demo-output"),
-    duration: Annotated[float, typer.Option(
-        help="Seconds of video (the capture runs ~6 s longer). Render and tracking time grow with it.")] = 30.0,
-    end_cover: Annotated[bool, typer.Option(
-        "--end-cover/--no-end-cover", help="A second hands-cover event 3 s before the end (lets the "
-                                           "annotator fit clock drift when the two are >= 10 s apart).")] = True,
-    jobs: Annotated[int, typer.Option(help="Processes for rendering and tracking (one per camera).")] = 2,
-    seed: Annotated[int, typer.Option(help="Seed of the simulated radio and the render noise.")] = 0,
+    out: Annotated[
+        Path,
+        typer.Option(
+            "--out",
+            help="Folder for everything the demo writes (created; must not hold an earlier demo).",
+        ),
+    ] = Path("demo-output"),
+    duration: Annotated[
+        float,
+        typer.Option(
+            help="Seconds of video (the capture runs ~6 s longer). Render and tracking time grow with it."
+        ),
+    ] = 30.0,
+    end_cover: Annotated[
+        bool,
+        typer.Option(
+            "--end-cover/--no-end-cover",
+            help="A second hands-cover event 3 s before the end (lets the "
+            "annotator fit clock drift when the two are >= 10 s apart).",
+        ),
+    ] = True,
+    jobs: Annotated[
+        int, typer.Option(help="Processes for rendering and tracking (one per camera).")
+    ] = 2,
+    seed: Annotated[
+        int, typer.Option(help="Seed of the simulated radio and the render noise.")
+    ] = 0,
 ) -> None:
     """Run the whole pipeline on this machine with no hardware, then score it.
 
@@ -87,11 +120,16 @@ def demo(
         # SIGTERM (a closed terminal, `kill`) takes the same way out as Ctrl-C, so the
         # collector and agents are stopped too.
         signal.signal(signal.SIGTERM, signal.default_int_handler)
-        settings = DemoSettings(out=out.absolute(), duration_s=duration, end_cover=end_cover, jobs=jobs,
-                                seed=seed)
-        with Progress(TextColumn("{task.description:>12}"), BarColumn(),
-                      TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn(),
-                      console=console) as bar:
+        settings = DemoSettings(
+            out=out.absolute(), duration_s=duration, end_cover=end_cover, jobs=jobs, seed=seed
+        )
+        with Progress(
+            TextColumn("{task.description:>12}"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total}"),
+            TimeRemainingColumn(),
+            console=console,
+        ) as bar:
             tasks: dict[str, Any] = {}
 
             def progress(name: str, done: int, total: int) -> None:
@@ -112,12 +150,18 @@ def demo(
                 raise DemoError("interrupted; the collector and agents were stopped") from None
         s = result.summary
         out_console.print(result_table(s))
-        out_console.print(f"results:  {result.results}  (report.json, annotated/, annotated.parquet)",
-                          highlight=False, soft_wrap=True)
+        out_console.print(
+            f"results:  {result.results}  (report.json, annotated/, annotated.parquet)",
+            highlight=False,
+            soft_wrap=True,
+        )
         for p in s["plots"]:
             out_console.print(f"plot:     {p}", highlight=False, soft_wrap=True)
-        out_console.print(f"summary:  {result.summary_path}   (demo took {s['wall_time_s']:.0f} s)",
-                          highlight=False, soft_wrap=True)
+        out_console.print(
+            f"summary:  {result.summary_path}   (demo took {s['wall_time_s']:.0f} s)",
+            highlight=False,
+            soft_wrap=True,
+        )
 
 
 def register(app: typer.Typer) -> None:

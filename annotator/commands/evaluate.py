@@ -69,12 +69,20 @@ def _plot_path(png: Path, est, waypoints: np.ndarray, cmp) -> None:  # noqa: ANN
 
 def evaluate(
     trajectory: Annotated[Path, typer.Argument(help="trajectory.csv to evaluate.")],
-    truth: Annotated[Path | None, typer.Option(help="Reference trajectory (trajectory.csv format).")] = None,
-    path: Annotated[Path | None, typer.Option(help="Planned path YAML: waypoints: [[x, y], ...].")] = None,
-    report: Annotated[Path | None, typer.Option(
-        help="JSON report to write [default: evaluation.json next to TRAJECTORY].")] = None,
-    plot: Annotated[Path | None, typer.Option(
-        help="PNG plot to write [default: evaluation.png next to TRAJECTORY].")] = None,
+    truth: Annotated[
+        Path | None, typer.Option(help="Reference trajectory (trajectory.csv format).")
+    ] = None,
+    path: Annotated[
+        Path | None, typer.Option(help="Planned path YAML: waypoints: [[x, y], ...].")
+    ] = None,
+    report: Annotated[
+        Path | None,
+        typer.Option(help="JSON report to write [default: evaluation.json next to TRAJECTORY]."),
+    ] = None,
+    plot: Annotated[
+        Path | None,
+        typer.Option(help="PNG plot to write [default: evaluation.png next to TRAJECTORY]."),
+    ] = None,
 ) -> None:
     """Against --truth: position error (median, mean, 75th/95th percentile, max; no alignment,
     reference interpolated in time) and rotation error in degrees. Against --path: deviation
@@ -90,16 +98,27 @@ def evaluate(
         plot = plot or trajectory.with_name("evaluation.png")
         if truth is not None:
             ref = read_trajectory(truth)
-            cmp = compare_to_truth(est.t, est.position, est.rotation, ref.t, ref.position, ref.rotation)
-            body: dict[str, Any] = {"trajectory": str(trajectory), "truth": str(truth), **cmp.report()}
+            cmp = compare_to_truth(
+                est.t, est.position, est.rotation, ref.t, ref.position, ref.rotation
+            )
+            body: dict[str, Any] = {
+                "trajectory": str(trajectory),
+                "truth": str(truth),
+                **cmp.report(),
+            }
             if body["compared"] == 0:
                 raise ConfigError(f"{trajectory}: no pose falls inside the time range of {truth}")
             _plot_truth(plot, est, ref, cmp)
             p, r = body["position_error_m"], body["rotation_error_deg"]
-            console.print(f"position error: median {p['median'] * 100:.2f} cm, mean {p['mean'] * 100:.2f}, "
-                          f"p75 {p['p75'] * 100:.2f}, p95 {p['p95'] * 100:.2f}, max {p['max'] * 100:.2f} cm "
-                          f"over {body['compared']} poses; rotation error median {r['median']:.2f} deg, "
-                          f"p95 {r['p95']:.2f} deg", highlight=False, soft_wrap=True, markup=False)
+            console.print(
+                f"position error: median {p['median'] * 100:.2f} cm, mean {p['mean'] * 100:.2f}, "
+                f"p75 {p['p75'] * 100:.2f}, p95 {p['p95'] * 100:.2f}, max {p['max'] * 100:.2f} cm "
+                f"over {body['compared']} poses; rotation error median {r['median']:.2f} deg, "
+                f"p95 {r['p95']:.2f} deg",
+                highlight=False,
+                soft_wrap=True,
+                markup=False,
+            )
         else:
             assert path is not None  # exactly one of --truth and --path, checked above
             wp = load_waypoints(path)
@@ -110,9 +129,16 @@ def evaluate(
             _plot_path(plot, est, wp, path_cmp)
             d = body["deviation_m"]
             drags = ", ".join("-" if v is None else f"{v * 100:.1f}" for v in body["drag_m"])
-            console.print(f"deviation from the path: median {d['median'] * 100:.2f} cm, p95 {d['p95'] * 100:.2f}, "
-                          f"max {d['max'] * 100:.2f} cm; drag at segment ends (cm): {drags}", highlight=False, soft_wrap=True, markup=False)
-        report.write_text(json.dumps(_json_safe(body), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+            console.print(
+                f"deviation from the path: median {d['median'] * 100:.2f} cm, p95 {d['p95'] * 100:.2f}, "
+                f"max {d['max'] * 100:.2f} cm; drag at segment ends (cm): {drags}",
+                highlight=False,
+                soft_wrap=True,
+                markup=False,
+            )
+        report.write_text(
+            json.dumps(_json_safe(body), indent=2, allow_nan=False) + "\n", encoding="utf-8"
+        )
         console.print(f"wrote {report} and {plot}", highlight=False, soft_wrap=True, markup=False)
 
 

@@ -28,15 +28,24 @@ HELP = (
 
 
 def localize(
-    run: Annotated[Path, typer.Argument(help="Readings: run folder, track folder or .mbd file.",
-                                        show_default=False)],
+    run: Annotated[
+        Path,
+        typer.Argument(help="Readings: run folder, track folder or .mbd file.", show_default=False),
+    ],
     radiomap: Annotated[Path, typer.Option(help="Folder of .grd radio maps.", show_default=False)],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Estimates CSV to write.", show_default=False)],
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Estimates CSV to write.", show_default=False)
+    ],
     method: Annotated[str, typer.Option(help="knn or grid-hmm.")] = "grid-hmm",
-    beacon: Annotated[str | None, typer.Option(
-        help="Beacon MAC (default: the most heard beacon the map has).")] = None,
-    occupancy: Annotated[Path | None, typer.Option(
-        help="Occupancy grid (.occ): only its free cells (value 0) are candidate positions.")] = None,
+    beacon: Annotated[
+        str | None, typer.Option(help="Beacon MAC (default: the most heard beacon the map has).")
+    ] = None,
+    occupancy: Annotated[
+        Path | None,
+        typer.Option(
+            help="Occupancy grid (.occ): only its free cells (value 0) are candidate positions."
+        ),
+    ] = None,
     k: Annotated[int, typer.Option("--k", help="knn: cells averaged.")] = 4,
     window: Annotated[float, typer.Option(help="knn: seconds of readings per estimate.")] = 2.0,
     step: Annotated[float, typer.Option(help="Seconds between estimates.")] = 0.5,
@@ -53,12 +62,25 @@ def localize(
                 raise ConfigError(f"{name} must be positive, got {v}")
         if k < 1:
             raise ConfigError(f"--k must be at least 1, got {k}")
-        est, used = localize_run(run, radiomap, method, beacon=beacon, occupancy=occupancy, k=k,
-                                 window_s=window, step_s=step, speed_mps=speed)
+        est, used = localize_run(
+            run,
+            radiomap,
+            method,
+            beacon=beacon,
+            occupancy=occupancy,
+            k=k,
+            window_s=window,
+            step_s=step,
+            speed_mps=speed,
+        )
         write_estimates(out, est.t, est.xy)
         n = int(np.isfinite(est.xy).all(axis=1).sum())
-        console.print(f"wrote {n} {method} estimates of beacon {used} to {out}", highlight=False,
-                      soft_wrap=True, markup=False)
+        console.print(
+            f"wrote {n} {method} estimates of beacon {used} to {out}",
+            highlight=False,
+            soft_wrap=True,
+            markup=False,
+        )
 
 
 def register(app: typer.Typer) -> None:

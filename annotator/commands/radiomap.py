@@ -12,34 +12,56 @@ from annotator.commands._format_errors import format_errors
 from annotator.errors import ConfigError
 
 HELP = (
-    'Interpolate fingerprint histograms to every grid cell (a radio map per sensor).\n\n'
-    'For each cell centre and each sensor/beacon, the k nearest fingerprints (--neighbours) are'
-    ' combined with inverse-distance weights (1/d^power) by averaging their quantile functions '
-    '(1-D Wasserstein interpolation), so a peak moves between fingerprints instead of '
-    'splitting. A fingerprint exactly at a cell centre is used unchanged.\n\n'
-    'Writes <hst name>_<sensor>_<cell>.grd per sensor into --out, and a heat map of the mean '
-    'RSSI (.png, over the floor plan for the built-in tetam site). With --occupancy the grid is'
+    "Interpolate fingerprint histograms to every grid cell (a radio map per sensor).\n\n"
+    "For each cell centre and each sensor/beacon, the k nearest fingerprints (--neighbours) are"
+    " combined with inverse-distance weights (1/d^power) by averaging their quantile functions "
+    "(1-D Wasserstein interpolation), so a peak moves between fingerprints instead of "
+    "splitting. A fingerprint exactly at a cell centre is used unchanged.\n\n"
+    "Writes <hst name>_<sensor>_<cell>.grd per sensor into --out, and a heat map of the mean "
+    "RSSI (.png, over the floor plan for the built-in tetam site). With --occupancy the grid is"
     " the occupancy file's and only free cells are computed (value 0 in the published .occ "
-    'files, where 1 marks desks and other occupied cells; see --free-value).\n\n'
-    'Example:\n\n'
-    '  annotator radiomap tetam.hst --cell 0.5 --occupancy occ/tetam_0.5.occ --out radiomap/\n'
+    "files, where 1 marks desks and other occupied cells; see --free-value).\n\n"
+    "Example:\n\n"
+    "  annotator radiomap tetam.hst --cell 0.5 --occupancy occ/tetam_0.5.occ --out radiomap/\n"
 )
 
 
 def radiomap(
-    hst: Annotated[Path, typer.Argument(help="Fingerprint histograms (.hst).", metavar="HST", show_default=False)],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the .grd and .png files.",
-                                      show_default=False)],
-    cell: Annotated[float | None, typer.Option(
-        help="Cell size in metres (default: the occupancy grid's; required without one).")] = None,
-    occupancy: Annotated[Path | None, typer.Option(
-        help="Occupancy grid (.occ): its limits and cells are used; only free cells (see "
-             "--free-value) are computed.")] = None,
-    neighbours: Annotated[int, typer.Option(help="Fingerprints combined per cell (k nearest).")] = 4,
+    hst: Annotated[
+        Path,
+        typer.Argument(help="Fingerprint histograms (.hst).", metavar="HST", show_default=False),
+    ],
+    out: Annotated[
+        Path,
+        typer.Option("--out", "-o", help="Folder for the .grd and .png files.", show_default=False),
+    ],
+    cell: Annotated[
+        float | None,
+        typer.Option(
+            help="Cell size in metres (default: the occupancy grid's; required without one)."
+        ),
+    ] = None,
+    occupancy: Annotated[
+        Path | None,
+        typer.Option(
+            help="Occupancy grid (.occ): its limits and cells are used; only free cells (see "
+            "--free-value) are computed."
+        ),
+    ] = None,
+    neighbours: Annotated[
+        int, typer.Option(help="Fingerprints combined per cell (k nearest).")
+    ] = 4,
     power: Annotated[float, typer.Option(help="Inverse-distance weight exponent.")] = 2.0,
-    free_value: Annotated[int, typer.Option(
-        "--free-value", help="The .occ value of cells the beacon can be in (published files: 0).")] = 0,
-    plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write a heat-map PNG per sensor.")] = True,
+    free_value: Annotated[
+        int,
+        typer.Option(
+            "--free-value",
+            help="The .occ value of cells the beacon can be in (published files: 0).",
+        ),
+    ] = 0,
+    plots: Annotated[
+        bool, typer.Option("--plots/--no-plots", help="Write a heat-map PNG per sensor.")
+    ] = True,
 ) -> None:
     from annotator.io import radio_data
     from bgt_core.formats.hst import read_hst
@@ -63,13 +85,25 @@ def radiomap(
             def advance(n: int) -> None:
                 bar.advance(task, n)
 
-            maps = radio_data.radio_maps(h, grid, neighbours=neighbours, power=power,
-                                         progress=advance)
+            maps = radio_data.radio_maps(
+                h, grid, neighbours=neighbours, power=power, progress=advance
+            )
             task2 = bar.add_task("writing", total=len(maps))
-            written = radio_data.write_radio_maps(maps, h, grid, out, hst.stem, plots=plots,
-                                                  site=site, progress=lambda n: bar.advance(task2, n))
-        console.print(f"wrote {len(written)} files to {out} ({int(grid.mask.sum())} cells of "
-                      f"{grid.cell:g} m, {len(maps)} sensors)", highlight=False)
+            written = radio_data.write_radio_maps(
+                maps,
+                h,
+                grid,
+                out,
+                hst.stem,
+                plots=plots,
+                site=site,
+                progress=lambda n: bar.advance(task2, n),
+            )
+        console.print(
+            f"wrote {len(written)} files to {out} ({int(grid.mask.sum())} cells of "
+            f"{grid.cell:g} m, {len(maps)} sensors)",
+            highlight=False,
+        )
 
 
 def register(app: typer.Typer) -> None:

@@ -20,7 +20,9 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-def write_run_outputs(out_dir: str | Path, exp: Experiment, result: RunResult, *, plots: bool = True) -> dict[str, Any]:
+def write_run_outputs(
+    out_dir: str | Path, exp: Experiment, result: RunResult, *, plots: bool = True
+) -> dict[str, Any]:
     """What `annotator run` writes into ``out_dir``: trajectory.csv, annotated/, annotated.parquet,
     the plots, refined/ (after a self-calibration) and report.json. Returns the report as
     written: ``result.report`` plus the names of the plot and refined files."""
@@ -39,37 +41,71 @@ def write_run_outputs(out_dir: str | Path, exp: Experiment, result: RunResult, *
 
         valid_t = traj.t[traj.valid]
         written = write_run_plots(
-            out, trajectory=traj.position, t_s=table.t_seconds(), rssi=table.rssi, sensor=table.sensor,
-            labelled=labels.labelled, label_positions=labels.positions,
+            out,
+            trajectory=traj.position,
+            t_s=table.t_seconds(),
+            rssi=table.rssi,
+            sensor=table.sensor,
+            labelled=labels.labelled,
+            label_positions=labels.positions,
             events=[(e.cover, e.release) for e in result.sync.rssi_events],
             span=(float(valid_t[0]), float(valid_t[-1])) if valid_t.size else None,
-            markers=exp.markers.markers)
+            markers=exp.markers.markers,
+        )
         report["plots"] = {k: p.name for k, p in written.items()}
     if result.refinement is not None:
         from annotator.io.refined import write_refined
 
         files = write_refined(out / "refined", result.refinement)
-        report["refinement"] = {**result.refinement.report, "files": {k: f"refined/{v}" for k, v in files.items()}}
+        report["refinement"] = {
+            **result.refinement.report,
+            "files": {k: f"refined/{v}" for k, v in files.items()},
+        }
     write_report(out / "report.json", report)
     log.info("run: %d of %d readings labelled into %s", int(labels.labelled.sum()), len(table), out)
     return report
 
 
 def run(
-    experiment: Annotated[Path, typer.Argument(help="experiment.yaml (markers, rig, videos, rssi, sync).")],
+    experiment: Annotated[
+        Path, typer.Argument(help="experiment.yaml (markers, rig, videos, rssi, sync).")
+    ],
     out: Annotated[Path, typer.Option("--out", help="Folder for the results (created).")],
-    method: Annotated[str, typer.Option(help="Tracking method: 'rig' (joint multi-marker, smoothed) "
-                                             "or 'paper' (the published per-marker method).")] = "rig",
-    jobs: Annotated[int | None, typer.Option(
-        help="Worker processes for decoding, detection and the joint solves.", show_default="one per core")] = None,
-    max_gap: Annotated[float, typer.Option(
-        help="Leave a reading unlabelled when the poses around it are further apart than this, s.")] = 0.5,
-    beacon: Annotated[str | None, typer.Option(
-        help="MAC of the bundle's beacon (default: sync.beacon, else the most often heard one).")] = None,
+    method: Annotated[
+        str,
+        typer.Option(
+            help="Tracking method: 'rig' (joint multi-marker, smoothed) "
+            "or 'paper' (the published per-marker method)."
+        ),
+    ] = "rig",
+    jobs: Annotated[
+        int | None,
+        typer.Option(
+            help="Worker processes for decoding, detection and the joint solves.",
+            show_default="one per core",
+        ),
+    ] = None,
+    max_gap: Annotated[
+        float,
+        typer.Option(
+            help="Leave a reading unlabelled when the poses around it are further apart than this, s."
+        ),
+    ] = 0.5,
+    beacon: Annotated[
+        str | None,
+        typer.Option(
+            help="MAC of the bundle's beacon (default: sync.beacon, else the most often heard one)."
+        ),
+    ] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write the PNG plots.")] = True,
-    refine: Annotated[str | None, typer.Option(
-        help="none | map | all: self-calibration, as in `annotator track`; writes DIR/refined/ and "
-             "report.json's refinement section.", show_default="experiment.yaml's refine.mode, else all")] = None,
+    refine: Annotated[
+        str | None,
+        typer.Option(
+            help="none | map | all: self-calibration, as in `annotator track`; writes DIR/refined/ and "
+            "report.json's refinement section.",
+            show_default="experiment.yaml's refine.mode, else all",
+        ),
+    ] = None,
 ) -> None:
     """Write DIR/trajectory.csv, DIR/annotated/<sensor>.mbd + all_sensors.mbd (the dataset's trk
     rows), DIR/annotated.parquet (plus quality columns), DIR/report.json and plots.
@@ -96,14 +132,20 @@ def run(
             except ValueError:
                 raise ConfigError(f"--beacon {beacon!r} is not a MAC address") from None
         exp = load_experiment(experiment)
-        settings = RunSettings(track=TrackSettings(method=method, jobs=jobs,
-                                                         refine=refine or exp.priors.mode), max_gap=max_gap,
-                               beacon=mac)
+        settings = RunSettings(
+            track=TrackSettings(method=method, jobs=jobs, refine=refine or exp.priors.mode),
+            max_gap=max_gap,
+            beacon=mac,
+        )
         # Lazy: the bars appear with the first frame, so an error in the RSSI files (read
         # first) is printed alone.
-        with LazyProgress(TextColumn("{task.description:>12}"), BarColumn(),
-                          TextColumn("{task.completed}/{task.total}"), TimeRemainingColumn(),
-                          console=console) as bar:
+        with LazyProgress(
+            TextColumn("{task.description:>12}"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total}"),
+            TimeRemainingColumn(),
+            console=console,
+        ) as bar:
             tasks: dict[str, TaskID] = {}
 
             def progress(name: str, done: int, total: int) -> None:
@@ -116,12 +158,16 @@ def run(
         for name, cam in rep["sync"]["cameras"].items():
             sig = cam["video_start_sigma_s"]
             sig_text = f" ± {sig * 1000:.1f} ms" if sig is not None and math.isfinite(sig) else ""
-            console.print(f"{name}: video_start {cam['video_start']:.4f}{sig_text} ({cam['method']})",
-                          highlight=False)
+            console.print(
+                f"{name}: video_start {cam['video_start']:.4f}{sig_text} ({cam['method']})",
+                highlight=False,
+            )
         c = rep["counts"]
-        console.print(f"labelled {c['labelled']} of {c['readings_of_beacon']} readings of {rep['beacon']} "
-                      f"({rep['coverage']['labelled_of_tracked_span']:.1%} of the tracked span) -> {out}",
-                      highlight=False)
+        console.print(
+            f"labelled {c['labelled']} of {c['readings_of_beacon']} readings of {rep['beacon']} "
+            f"({rep['coverage']['labelled_of_tracked_span']:.1%} of the tracked span) -> {out}",
+            highlight=False,
+        )
 
 
 def register(app: typer.Typer) -> None:

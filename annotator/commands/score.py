@@ -25,17 +25,35 @@ HELP = (
 
 
 def score(
-    estimates: Annotated[Path, typer.Argument(help="Estimates CSV: t,x,y[,z].", show_default=False)],
-    truth: Annotated[Path, typer.Option(
-        help="Annotated run directory (trajectory.csv), trajectory.csv, or a track .mbd / folder.",
-        show_default=False)],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for score.json and the plots.",
-                                      show_default=False)],
-    max_gap: Annotated[float, typer.Option(
-        help="Truth samples further apart than this (s) are a gap: nothing in it is scored.")] = 1.0,
-    latency: Annotated[float, typer.Option(
-        help="Also estimate the latency: the time shift within +-this many seconds (0.05 s steps) "
-             "that minimises the median 2-D error; 0 = off.")] = 0.0,
+    estimates: Annotated[
+        Path, typer.Argument(help="Estimates CSV: t,x,y[,z].", show_default=False)
+    ],
+    truth: Annotated[
+        Path,
+        typer.Option(
+            help="Annotated run directory (trajectory.csv), trajectory.csv, or a track .mbd / folder.",
+            show_default=False,
+        ),
+    ],
+    out: Annotated[
+        Path,
+        typer.Option(
+            "--out", "-o", help="Folder for score.json and the plots.", show_default=False
+        ),
+    ],
+    max_gap: Annotated[
+        float,
+        typer.Option(
+            help="Truth samples further apart than this (s) are a gap: nothing in it is scored."
+        ),
+    ] = 1.0,
+    latency: Annotated[
+        float,
+        typer.Option(
+            help="Also estimate the latency: the time shift within +-this many seconds (0.05 s steps) "
+            "that minimises the median 2-D error; 0 = off."
+        ),
+    ] = 0.0,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write the PNG plots.")] = True,
 ) -> None:
     with one_line_errors():
@@ -48,8 +66,9 @@ def score(
             raise ConfigError(f"--latency must be 0 (off) or positive, got {latency}")
         est = read_estimates(estimates)
         ref = read_truth(truth)
-        s = score_estimates(est.t, est.position, ref, max_gap_s=max_gap,
-                            latency_max_s=latency or None)
+        s = score_estimates(
+            est.t, est.position, ref, max_gap_s=max_gap, latency_max_s=latency or None
+        )
         if s.coverage["scored"] == 0:
             raise NoDataError(f"{estimates}: no estimate falls inside the time span of {truth}")
         path = write_score(out, s, estimates=str(estimates), truth=str(truth), has_z=est.has_z)
@@ -58,9 +77,11 @@ def score(
 
             write_score_plots(out, s, est.position, ref)
         e = s.summary_2d
-        msg = (f"2-D error: CE50 {e.ce50:.3f} m, CE75 {e.ce75:.3f}, CE95 {e.ce95:.3f}, mean "
-               f"{e.mean:.3f}, rmse {e.rmse:.3f}, max {e.max:.3f} m over {e.n} of "
-               f"{s.coverage['estimates']} estimates")
+        msg = (
+            f"2-D error: CE50 {e.ce50:.3f} m, CE75 {e.ce75:.3f}, CE95 {e.ce95:.3f}, mean "
+            f"{e.mean:.3f}, rmse {e.rmse:.3f}, max {e.max:.3f} m over {e.n} of "
+            f"{s.coverage['estimates']} estimates"
+        )
         if est.has_z:
             msg += f"; 3-D CE50 {s.summary_3d.ce50:.3f} m"
         if s.latency is not None:

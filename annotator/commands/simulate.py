@@ -31,9 +31,19 @@ def parse_cover(text: str) -> tuple[float, float]:
 # rolling-shutter readout (written as 0, as users rarely know it), 8 ms exposure and lamp flicker.
 ERROR_PRESETS: dict[str, dict[str, float | str]] = {
     "none": {},
-    "field": {"survey_m": 0.015, "survey_deg": 1.0, "rig_m": 0.003, "rig_deg": 1.0, "focal_rel": 0.004,
-              "principal_px": 1.0, "distortion": 0.0, "lens": "wide", "readout": 0.015, "exposure": 0.008,
-              "flicker": 0.1},
+    "field": {
+        "survey_m": 0.015,
+        "survey_deg": 1.0,
+        "rig_m": 0.003,
+        "rig_deg": 1.0,
+        "focal_rel": 0.004,
+        "principal_px": 1.0,
+        "distortion": 0.0,
+        "lens": "wide",
+        "readout": 0.015,
+        "exposure": 0.008,
+        "flicker": 0.1,
+    },
 }
 
 
@@ -41,16 +51,27 @@ def resolve_errors(preset: str, **given: float | str | None) -> dict[str, float 
     """The preset's values with every option the user gave (not None) on top; unset -> 0/defaults."""
     if preset not in ERROR_PRESETS:
         raise ConfigError(f"--errors {preset!r}: expected one of {', '.join(ERROR_PRESETS)}")
-    defaults: dict[str, float | str] = {"survey_m": 0.0, "survey_deg": 0.0, "rig_m": 0.0, "rig_deg": 0.0,
-                                   "focal_rel": 0.0, "principal_px": 0.0, "distortion": 0.0, "lens": "mild",
-                                   "readout": 0.0, "exposure": 1 / 120, "flicker": 0.0}
+    defaults: dict[str, float | str] = {
+        "survey_m": 0.0,
+        "survey_deg": 0.0,
+        "rig_m": 0.0,
+        "rig_deg": 0.0,
+        "focal_rel": 0.0,
+        "principal_px": 0.0,
+        "distortion": 0.0,
+        "lens": "mild",
+        "readout": 0.0,
+        "exposure": 1 / 120,
+        "flicker": 0.0,
+    }
     out = {**defaults, **ERROR_PRESETS[preset]}
     out.update({k: v for k, v in given.items() if v is not None})
     return out
 
 
-def path_trajectory(path: str, t0: float, speed: float, dwell: float,
-                    turn: bool) -> LoopTrajectory | PolylineTrajectory:
+def path_trajectory(
+    path: str, t0: float, speed: float, dwell: float, turn: bool
+) -> LoopTrajectory | PolylineTrajectory:
     """--path value -> the trajectory to render: `loop`, a preset polyline or a waypoints YAML."""
     from annotator.commands.evaluate import load_waypoints
     from annotator.render.trajectory import PRESET_PATHS, LoopTrajectory, PolylineTrajectory
@@ -62,86 +83,199 @@ def path_trajectory(path: str, t0: float, speed: float, dwell: float,
     elif path.endswith((".yaml", ".yml")):
         waypoints = tuple((float(x), float(y)) for x, y in load_waypoints(Path(path)))
     else:
-        raise ConfigError(f"--path {path!r}: expected loop, {', '.join(PRESET_PATHS)} or a FILE.yaml with "
-                          "'waypoints: [[x, y], ...]'")
+        raise ConfigError(
+            f"--path {path!r}: expected loop, {', '.join(PRESET_PATHS)} or a FILE.yaml with "
+            "'waypoints: [[x, y], ...]'"
+        )
     return PolylineTrajectory(waypoints, t0=t0, speed=speed, dwell=dwell, turn=turn)
 
 
 def simulate(
-    out: Annotated[Path, typer.Option("--out", help="Folder to write the experiment into (created).")],
+    out: Annotated[
+        Path, typer.Option("--out", help="Folder to write the experiment into (created).")
+    ],
     duration: Annotated[float, typer.Option(help="Length of the front video, seconds.")] = 20.0,
-    path: Annotated[str, typer.Option(
-        help="loop (rounded rectangle), rectangle or zigzag (the paper's kind of planned path, "
-             "walked with a stop at each corner), or FILE.yaml with 'waypoints: \\[\\[x, y], ...]' in "
-             "room metres. Polyline paths also write path.yaml for `annotator evaluate --path`.")] = "loop",
+    path: Annotated[
+        str,
+        typer.Option(
+            help="loop (rounded rectangle), rectangle or zigzag (the paper's kind of planned path, "
+            "walked with a stop at each corner), or FILE.yaml with 'waypoints: \\[\\[x, y], ...]' in "
+            "room metres. Polyline paths also write path.yaml for `annotator evaluate --path`."
+        ),
+    ] = "loop",
     speed: Annotated[float, typer.Option(help="Bundle walking speed along the path, m/s.")] = 0.4,
-    dwell: Annotated[float, typer.Option(
-        help="Polyline paths: seconds standing at each corner, turning to the new heading.")] = 2.0,
-    turn: Annotated[bool, typer.Option(
-        help="Polyline paths: face along each segment; --no-turn keeps the first heading throughout.")] = True,
+    dwell: Annotated[
+        float,
+        typer.Option(
+            help="Polyline paths: seconds standing at each corner, turning to the new heading."
+        ),
+    ] = 2.0,
+    turn: Annotated[
+        bool,
+        typer.Option(
+            help="Polyline paths: face along each segment; --no-turn keeps the first heading throughout."
+        ),
+    ] = True,
     width: Annotated[int, typer.Option(help="Frame width, px.")] = 960,
     height: Annotated[int, typer.Option(help="Frame height, px.")] = 540,
     fps: Annotated[float, typer.Option(help="Frames per second of both videos.")] = 30.0,
     seed: Annotated[int, typer.Option(help="Seed of the noise and textures.")] = 0,
-    start_offset: Annotated[float, typer.Option(
-        help="The back camera starts this many seconds after the front one.")] = 0.41,
-    cover: Annotated[list[str] | None, typer.Option(
-        help="Hands over both lenses at START_S:DURATION_S after the start (repeatable).")] = None,
-    t0: Annotated[float, typer.Option(help="Wall-clock Unix time of the first front frame.")] = 1_700_000_000.0,
-    noise: Annotated[float, typer.Option(help="Sensor noise standard deviation, gray levels.")] = 2.0,
-    exposure: Annotated[float | None, typer.Option(
-        help="Exposure time, s: the image integrates the motion over it (motion blur); 0 = none. "
-             "Default 1/120 (0.008 with --errors field).", show_default=False)] = None,
+    start_offset: Annotated[
+        float, typer.Option(help="The back camera starts this many seconds after the front one.")
+    ] = 0.41,
+    cover: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Hands over both lenses at START_S:DURATION_S after the start (repeatable)."
+        ),
+    ] = None,
+    t0: Annotated[
+        float, typer.Option(help="Wall-clock Unix time of the first front frame.")
+    ] = 1_700_000_000.0,
+    noise: Annotated[
+        float, typer.Option(help="Sensor noise standard deviation, gray levels.")
+    ] = 2.0,
+    exposure: Annotated[
+        float | None,
+        typer.Option(
+            help="Exposure time, s: the image integrates the motion over it (motion blur); 0 = none. "
+            "Default 1/120 (0.008 with --errors field).",
+            show_default=False,
+        ),
+    ] = None,
     jobs: Annotated[int, typer.Option(help="Render the two cameras in this many processes.")] = 1,
-    errors: Annotated[str, typer.Option(
-        "--errors", help="Preset of real-world errors: none, or field (survey 1.5 cm / 1 deg, rig 3 mm / "
-                         "1 deg, focal 0.4 %, principal point 1 px, wide k1=-0.28 lens, 15 ms readout, "
-                         "8 ms exposure, 10 % flicker). The options below override single values.",
-        rich_help_panel="Real-world errors")] = "none",
-    survey_m: Annotated[float | None, typer.Option(
-        "--survey-m", help="Marker map written with this 1-sigma position error per axis, m.",
-        rich_help_panel="Real-world errors", show_default=False)] = None,
-    survey_deg: Annotated[float | None, typer.Option(
-        "--survey-deg", help="Marker map written with this 1-sigma orientation error per axis, deg.",
-        rich_help_panel="Real-world errors", show_default=False)] = None,
-    rig_m: Annotated[float | None, typer.Option(
-        "--rig-m", help="rig.yaml: each camera's position in the bundle off by this 1-sigma per axis, m.",
-        rich_help_panel="Real-world errors", show_default=False)] = None,
-    rig_deg: Annotated[float | None, typer.Option(
-        "--rig-deg", help="rig.yaml: each camera's orientation in the bundle off by this 1-sigma per axis, deg.",
-        rich_help_panel="Real-world errors", show_default=False)] = None,
-    focal_error: Annotated[float | None, typer.Option(
-        "--focal-error", help="Calibrations: fx and fy off by this relative 1-sigma (one factor for both), "
-                              "e.g. 0.004.", rich_help_panel="Real-world errors", show_default=False)] = None,
-    principal_error: Annotated[float | None, typer.Option(
-        "--principal-error", help="Calibrations: cx and cy each off by this 1-sigma, px.",
-        rich_help_panel="Real-world errors", show_default=False)] = None,
-    distortion_error: Annotated[float | None, typer.Option(
-        "--distortion-error", help="Calibrations: k1 and k2 each off by this 1-sigma.",
-        rich_help_panel="Real-world errors", show_default=False)] = None,
-    lens: Annotated[str | None, typer.Option(
-        help="Lens rendered (and written): mild (k1 ~ -0.08), wide (radial-tangential, k1 = -0.28) or "
-             "fisheye (OpenCV's fisheye model). Default mild (wide with --errors field).",
-        rich_help_panel="Real-world errors", show_default=False)] = None,
-    k1: Annotated[float | None, typer.Option(
-        help="Replace the lens' first radial coefficient.", rich_help_panel="Real-world errors",
-        show_default=False)] = None,
-    readout: Annotated[float | None, typer.Option(
-        help="Rolling-shutter readout, s: row v of a frame stamped t is seen at t + readout*v/height; "
-             "0 = global shutter (default; 0.015 with --errors field).",
-        rich_help_panel="Real-world errors", show_default=False)] = None,
-    write_readout: Annotated[bool, typer.Option(
-        help="Write the true readout into the calibrations (by default they say 0, as users rarely know it).",
-        rich_help_panel="Real-world errors")] = False,
-    flicker: Annotated[float | None, typer.Option(
-        help="Brightness flicker seen in the picture, relative amplitude (0.1 = +-10 %); 0 = none "
-             "(default; 0.1 with --errors field).", rich_help_panel="Real-world errors", show_default=False)] = None,
-    surveyed: Annotated[int | None, typer.Option(
-        help="Write only this many markers (a random choice by --seed) into the marker map, as if the "
-             "surveyor skipped the rest; default all.", rich_help_panel="Real-world errors",
-        show_default=False)] = None,
-    flicker_hz: Annotated[float, typer.Option(
-        help="Flicker frequency, Hz (lamps on 50 Hz mains: 100).", rich_help_panel="Real-world errors")] = 100.0,
+    errors: Annotated[
+        str,
+        typer.Option(
+            "--errors",
+            help="Preset of real-world errors: none, or field (survey 1.5 cm / 1 deg, rig 3 mm / "
+            "1 deg, focal 0.4 %, principal point 1 px, wide k1=-0.28 lens, 15 ms readout, "
+            "8 ms exposure, 10 % flicker). The options below override single values.",
+            rich_help_panel="Real-world errors",
+        ),
+    ] = "none",
+    survey_m: Annotated[
+        float | None,
+        typer.Option(
+            "--survey-m",
+            help="Marker map written with this 1-sigma position error per axis, m.",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    survey_deg: Annotated[
+        float | None,
+        typer.Option(
+            "--survey-deg",
+            help="Marker map written with this 1-sigma orientation error per axis, deg.",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    rig_m: Annotated[
+        float | None,
+        typer.Option(
+            "--rig-m",
+            help="rig.yaml: each camera's position in the bundle off by this 1-sigma per axis, m.",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    rig_deg: Annotated[
+        float | None,
+        typer.Option(
+            "--rig-deg",
+            help="rig.yaml: each camera's orientation in the bundle off by this 1-sigma per axis, deg.",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    focal_error: Annotated[
+        float | None,
+        typer.Option(
+            "--focal-error",
+            help="Calibrations: fx and fy off by this relative 1-sigma (one factor for both), "
+            "e.g. 0.004.",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    principal_error: Annotated[
+        float | None,
+        typer.Option(
+            "--principal-error",
+            help="Calibrations: cx and cy each off by this 1-sigma, px.",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    distortion_error: Annotated[
+        float | None,
+        typer.Option(
+            "--distortion-error",
+            help="Calibrations: k1 and k2 each off by this 1-sigma.",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    lens: Annotated[
+        str | None,
+        typer.Option(
+            help="Lens rendered (and written): mild (k1 ~ -0.08), wide (radial-tangential, k1 = -0.28) or "
+            "fisheye (OpenCV's fisheye model). Default mild (wide with --errors field).",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    k1: Annotated[
+        float | None,
+        typer.Option(
+            help="Replace the lens' first radial coefficient.",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    readout: Annotated[
+        float | None,
+        typer.Option(
+            help="Rolling-shutter readout, s: row v of a frame stamped t is seen at t + readout*v/height; "
+            "0 = global shutter (default; 0.015 with --errors field).",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    write_readout: Annotated[
+        bool,
+        typer.Option(
+            help="Write the true readout into the calibrations (by default they say 0, as users rarely know it).",
+            rich_help_panel="Real-world errors",
+        ),
+    ] = False,
+    flicker: Annotated[
+        float | None,
+        typer.Option(
+            help="Brightness flicker seen in the picture, relative amplitude (0.1 = +-10 %); 0 = none "
+            "(default; 0.1 with --errors field).",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    surveyed: Annotated[
+        int | None,
+        typer.Option(
+            help="Write only this many markers (a random choice by --seed) into the marker map, as if the "
+            "surveyor skipped the rest; default all.",
+            rich_help_panel="Real-world errors",
+            show_default=False,
+        ),
+    ] = None,
+    flicker_hz: Annotated[
+        float,
+        typer.Option(
+            help="Flicker frequency, Hz (lamps on 50 Hz mains: 100).",
+            rich_help_panel="Real-world errors",
+        ),
+    ] = 100.0,
 ) -> None:
     """Render the tetam marker room along a path into front.mp4/back.mp4 plus experiment.yaml,
     rig.yaml, front.yaml/back.yaml (calibrations), marker_positions.dat, truth.csv and, for
@@ -156,16 +290,42 @@ def simulate(
         from annotator.render.errors import FileErrors
 
         covers = [parse_cover(c) for c in cover or []]
-        e = resolve_errors(errors, survey_m=survey_m, survey_deg=survey_deg, rig_m=rig_m, rig_deg=rig_deg,
-                           focal_rel=focal_error, principal_px=principal_error, distortion=distortion_error,
-                           lens=lens, readout=readout, exposure=exposure, flicker=flicker)
-        exposure_s, readout_s, flicker_a = float(e["exposure"]), float(e["readout"]), float(e["flicker"])
-        if duration <= start_offset or fps <= 0 or width < 64 or height < 64 or speed < 0 or dwell < 0 \
-                or not 0 <= exposure_s < 1 / fps:
-            raise ConfigError("need duration > start-offset, fps > 0, speed >= 0, dwell >= 0, "
-                              "0 <= exposure < 1/fps and a frame of at least 64x64")
+        e = resolve_errors(
+            errors,
+            survey_m=survey_m,
+            survey_deg=survey_deg,
+            rig_m=rig_m,
+            rig_deg=rig_deg,
+            focal_rel=focal_error,
+            principal_px=principal_error,
+            distortion=distortion_error,
+            lens=lens,
+            readout=readout,
+            exposure=exposure,
+            flicker=flicker,
+        )
+        exposure_s, readout_s, flicker_a = (
+            float(e["exposure"]),
+            float(e["readout"]),
+            float(e["flicker"]),
+        )
+        if (
+            duration <= start_offset
+            or fps <= 0
+            or width < 64
+            or height < 64
+            or speed < 0
+            or dwell < 0
+            or not 0 <= exposure_s < 1 / fps
+        ):
+            raise ConfigError(
+                "need duration > start-offset, fps > 0, speed >= 0, dwell >= 0, "
+                "0 <= exposure < 1/fps and a frame of at least 64x64"
+            )
         if not 0 <= readout_s < 1 / fps:
-            raise ConfigError(f"--readout {readout_s}: must be >= 0 and shorter than a frame (1/fps)")
+            raise ConfigError(
+                f"--readout {readout_s}: must be >= 0 and shorter than a frame (1/fps)"
+            )
         if not 0 <= flicker_a < 1 or flicker_hz <= 0:
             raise ConfigError("--flicker must be in [0, 1) and --flicker-hz > 0")
         from annotator.render.camera import LENSES
@@ -173,14 +333,28 @@ def simulate(
         if e["lens"] not in LENSES:
             raise ConfigError(f"--lens {e['lens']!r}: expected one of {', '.join(LENSES)}")
         try:
-            file_errors = FileErrors(float(e["survey_m"]), float(e["survey_deg"]), float(e["rig_m"]),
-                                     float(e["rig_deg"]), float(e["focal_rel"]), float(e["principal_px"]),
-                                     float(e["distortion"]), write_readout, surveyed, seed)
+            file_errors = FileErrors(
+                float(e["survey_m"]),
+                float(e["survey_deg"]),
+                float(e["rig_m"]),
+                float(e["rig_deg"]),
+                float(e["focal_rel"]),
+                float(e["principal_px"]),
+                float(e["distortion"]),
+                write_readout,
+                surveyed,
+                seed,
+            )
         except ValueError as err:
             raise ConfigError(f"error magnitudes: {err}") from None
         trajectory = path_trajectory(path, t0, speed, dwell, turn)
-        with Progress(TextColumn("{task.description:>6}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                      TimeRemainingColumn(), console=console) as bar:
+        with Progress(
+            TextColumn("{task.description:>6}"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total}"),
+            TimeRemainingColumn(),
+            console=console,
+        ) as bar:
             tasks: dict[str, TaskID] = {}
 
             def progress(name: str, done: int, total: int) -> None:
@@ -188,16 +362,35 @@ def simulate(
                     tasks[name] = bar.add_task(name, total=total)
                 bar.update(tasks[name], completed=done)
 
-            result = render_experiment(out, trajectory, (t0, t0 + duration),
-                                       width=width, height=height, fps=fps, start_offset=start_offset,
-                                       covers=covers, seed=seed, noise_sigma=noise, exposure=exposure_s,
-                                       jobs=jobs, lens=str(e["lens"]), k1=k1, readout=readout_s,
-                                       flicker=flicker_a, flicker_hz=flicker_hz, errors=file_errors,
-                                       progress=progress)
+            result = render_experiment(
+                out,
+                trajectory,
+                (t0, t0 + duration),
+                width=width,
+                height=height,
+                fps=fps,
+                start_offset=start_offset,
+                covers=covers,
+                seed=seed,
+                noise_sigma=noise,
+                exposure=exposure_s,
+                jobs=jobs,
+                lens=str(e["lens"]),
+                k1=k1,
+                readout=readout_s,
+                flicker=flicker_a,
+                flicker_hz=flicker_hz,
+                errors=file_errors,
+                progress=progress,
+            )
         frames = ", ".join(f"{k} {v} frames" for k, v in result.frames.items())
         extra = " and path.yaml" if (result.out_dir / "path.yaml").exists() else ""
-        console.print(f"wrote {result.experiment} ({frames}), {result.truth.name}{extra}", highlight=False,
-                      soft_wrap=True, markup=False)
+        console.print(
+            f"wrote {result.experiment} ({frames}), {result.truth.name}{extra}",
+            highlight=False,
+            soft_wrap=True,
+            markup=False,
+        )
 
 
 def register(app: typer.Typer) -> None:

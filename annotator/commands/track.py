@@ -27,10 +27,12 @@ class Refine(StrEnum):
     all = "all"
 
 
-REFINE_HELP = ("rig: self-calibration from the video after a first pass (bundle adjustment over keyframes, "
-               "priors from experiment.yaml's refine: section). map: the marker map (and markers the survey "
-               "skipped); all: also the rig, the intrinsics and distortion, the rolling-shutter readout. "
-               "none: the files as given.")
+REFINE_HELP = (
+    "rig: self-calibration from the video after a first pass (bundle adjustment over keyframes, "
+    "priors from experiment.yaml's refine: section). map: the marker map (and markers the survey "
+    "skipped); all: also the rig, the intrinsics and distortion, the rolling-shutter readout. "
+    "none: the files as given."
+)
 
 
 class CornerRefine(StrEnum):
@@ -41,37 +43,76 @@ class CornerRefine(StrEnum):
 
 
 def track(
-    experiment: Annotated[Path, typer.Argument(help="experiment.yaml (markers, rig, videos, sync).")],
+    experiment: Annotated[
+        Path, typer.Argument(help="experiment.yaml (markers, rig, videos, sync).")
+    ],
     out: Annotated[Path, typer.Option("--out", help="Folder for trajectory.csv (created).")],
-    method: Annotated[Method, typer.Option(
-        help="rig: joint multi-marker PnP over both cameras + RTS/SO(3) smoother (accurate). "
-             "paper: the per-marker averaging + Kalman filter of Daniş et al. 2022, for comparison.")] = Method.rig,
-    jobs: Annotated[int | None, typer.Option(
-        help="Worker processes: the videos are decoded and detected in parallel, then the joint "
-             "solves share them.", show_default="one per core")] = None,
-    downscale: Annotated[float | None, typer.Option(
-        help="Detect markers on frames scaled by this factor, then refine the corners at full "
-             "resolution. 1 = detect at full resolution.",
-        show_default="halve while wider than 1280 px, so 0.5 for 1080p")] = None,
-    corner_refine: Annotated[CornerRefine, typer.Option(help="ArUco corner refinement.")] = CornerRefine.subpix,
-    board_refine: Annotated[bool, typer.Option(
-        help="Recover missed markers by projecting the known room (refineDetectedMarkers).")] = True,
-    thorough_detect: Annotated[bool, typer.Option(
-        help="Threshold every frame at three window sizes (OpenCV's default) instead of one. By "
-             "default only frames where one window finds fewer than two markers get the three; "
-             "this is ~2x slower detection for ~1-2 % more markers.")] = False,
-    joint: Annotated[bool, typer.Option(
-        help="rig: solve near-simultaneous frames of all cameras jointly (motion-compensated).")] = True,
-    refine: Annotated[Refine | None, typer.Option(help=REFINE_HELP, show_default="experiment.yaml's refine.mode, "
-                                                  "else all")] = None,
-    max_frames: Annotated[int | None, typer.Option(help="Stop each video after this many frames.")] = None,
-    batch_frames: Annotated[int, typer.Option(
-        help="paper: F, frames per batch, counted over all cameras in time order "
-             "(15 at two 30 fps cameras = 0.25 s).")] = 15,
+    method: Annotated[
+        Method,
+        typer.Option(
+            help="rig: joint multi-marker PnP over both cameras + RTS/SO(3) smoother (accurate). "
+            "paper: the per-marker averaging + Kalman filter of Daniş et al. 2022, for comparison."
+        ),
+    ] = Method.rig,
+    jobs: Annotated[
+        int | None,
+        typer.Option(
+            help="Worker processes: the videos are decoded and detected in parallel, then the joint "
+            "solves share them.",
+            show_default="one per core",
+        ),
+    ] = None,
+    downscale: Annotated[
+        float | None,
+        typer.Option(
+            help="Detect markers on frames scaled by this factor, then refine the corners at full "
+            "resolution. 1 = detect at full resolution.",
+            show_default="halve while wider than 1280 px, so 0.5 for 1080p",
+        ),
+    ] = None,
+    corner_refine: Annotated[
+        CornerRefine, typer.Option(help="ArUco corner refinement.")
+    ] = CornerRefine.subpix,
+    board_refine: Annotated[
+        bool,
+        typer.Option(
+            help="Recover missed markers by projecting the known room (refineDetectedMarkers)."
+        ),
+    ] = True,
+    thorough_detect: Annotated[
+        bool,
+        typer.Option(
+            help="Threshold every frame at three window sizes (OpenCV's default) instead of one. By "
+            "default only frames where one window finds fewer than two markers get the three; "
+            "this is ~2x slower detection for ~1-2 % more markers."
+        ),
+    ] = False,
+    joint: Annotated[
+        bool,
+        typer.Option(
+            help="rig: solve near-simultaneous frames of all cameras jointly (motion-compensated)."
+        ),
+    ] = True,
+    refine: Annotated[
+        Refine | None,
+        typer.Option(help=REFINE_HELP, show_default="experiment.yaml's refine.mode, else all"),
+    ] = None,
+    max_frames: Annotated[
+        int | None, typer.Option(help="Stop each video after this many frames.")
+    ] = None,
+    batch_frames: Annotated[
+        int,
+        typer.Option(
+            help="paper: F, frames per batch, counted over all cameras in time order "
+            "(15 at two 30 fps cameras = 0.25 s)."
+        ),
+    ] = 15,
     close: Annotated[int, typer.Option(help="paper: C, poses kept from the closest markers.")] = 20,
     keep: Annotated[int, typer.Option(help="paper: U, poses left after outlier elimination.")] = 10,
     q: Annotated[float, typer.Option(help="paper: Kalman measurement noise (q I).")] = 0.15,
-    process_noise: Annotated[float, typer.Option(help="paper: Kalman process noise (random walk).")] = 0.01,
+    process_noise: Annotated[
+        float, typer.Option(help="paper: Kalman process noise (random walk).")
+    ] = 0.01,
 ) -> None:
     """Track the camera-beacon bundle through the marker room; writes DIR/trajectory.csv.
 
@@ -92,20 +133,39 @@ def track(
             raise ConfigError("--jobs must be at least 1")
         if downscale is not None and not 0 < downscale <= 1:
             raise ConfigError("--downscale must be in (0, 1]")
-        if not (batch_frames >= 1 and close >= 1 and 1 <= keep <= close and q > 0 and process_noise >= 0):
-            raise ConfigError("paper parameters: need --batch-frames >= 1, 1 <= --keep <= --close, --q > 0 "
-                              "and --process-noise >= 0")
+        if not (
+            batch_frames >= 1 and close >= 1 and 1 <= keep <= close and q > 0 and process_noise >= 0
+        ):
+            raise ConfigError(
+                "paper parameters: need --batch-frames >= 1, 1 <= --keep <= --close, --q > 0 "
+                "and --process-noise >= 0"
+            )
         exp = load_experiment(experiment)
         settings = TrackSettings(
-            method=method.value, jobs=jobs, joint=joint, max_frames=max_frames,
+            method=method.value,
+            jobs=jobs,
+            joint=joint,
+            max_frames=max_frames,
             refine=refine.value if refine is not None else exp.priors.mode,
-            detector=DetectorSettings(dictionary=exp.markers.dictionary, corner_refine=corner_refine.value,
-                                      downscale=downscale, board_refine=board_refine,
-                                      threshold_windows=(3, 23, 10) if thorough_detect else (7, 7, 10)),
-            paper=PaperSettings(frames=batch_frames, close=close, keep=keep, q=q, process=process_noise))
+            detector=DetectorSettings(
+                dictionary=exp.markers.dictionary,
+                corner_refine=corner_refine.value,
+                downscale=downscale,
+                board_refine=board_refine,
+                threshold_windows=(3, 23, 10) if thorough_detect else (7, 7, 10),
+            ),
+            paper=PaperSettings(
+                frames=batch_frames, close=close, keep=keep, q=q, process=process_noise
+            ),
+        )
         # Lazy: no bars until a video reports its first frames.
-        with LazyProgress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn(),
-                          TimeRemainingColumn(), console=console) as bar:
+        with LazyProgress(
+            TextColumn("{task.description:>8}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeRemainingColumn(),
+            console=console,
+        ) as bar:
             tasks: dict[str, TaskID] = {}
 
             def report(name: str, done: int, total: int) -> None:
@@ -121,8 +181,11 @@ def track(
         if result.refinement is not None:
             _report_refinement(out, result.refinement, console)
         n_ok = int(traj.valid.sum())
-        console.print(f"wrote {path}: {len(traj)} rows, {n_ok} with a pose "
-                      f"({100 * n_ok / max(len(traj), 1):.0f} %), method {method.value}", highlight=False)
+        console.print(
+            f"wrote {path}: {len(traj)} rows, {n_ok} with a pose "
+            f"({100 * n_ok / max(len(traj), 1):.0f} %), method {method.value}",
+            highlight=False,
+        )
 
 
 def _report_refinement(out: Path, refinement: Refinement, console: Console) -> None:
@@ -136,14 +199,22 @@ def _report_refinement(out: Path, refinement: Refinement, console: Console) -> N
     rep = refinement.report
     (out / "refined" / "refinement.json").write_text(json.dumps(rep, indent=1), encoding="utf-8")
     for name, cam in rep["cameras"].items():
-        console.print(f"refine {name}: reprojection {cam['rms_px_before']:.2f} -> {cam['rms_px_after']:.2f} px, "
-                      f"focal {100 * cam['focal_change_rel'][0]:+.2f} %, readout {1000 * cam['readout_s']:.1f} ms",
-                      highlight=False)
+        console.print(
+            f"refine {name}: reprojection {cam['rms_px_before']:.2f} -> {cam['rms_px_after']:.2f} px, "
+            f"focal {100 * cam['focal_change_rel'][0]:+.2f} %, readout {1000 * cam['readout_s']:.1f} ms",
+            highlight=False,
+        )
     if rep["markers_mapped"]:
-        console.print(f"refine: mapped markers {rep['markers_mapped']} from the video", highlight=False)
+        console.print(
+            f"refine: mapped markers {rep['markers_mapped']} from the video", highlight=False
+        )
     for m in rep["markers_moved"]:
-        console.print(f"refine: marker {m['id']} is {100 * math.hypot(*m['offset_m']):.1f} cm from its "
-                      f"survey: moved since the survey?", style="yellow", highlight=False)
+        console.print(
+            f"refine: marker {m['id']} is {100 * math.hypot(*m['offset_m']):.1f} cm from its "
+            f"survey: moved since the survey?",
+            style="yellow",
+            highlight=False,
+        )
 
 
 def register(app: typer.Typer) -> None:

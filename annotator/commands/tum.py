@@ -26,14 +26,22 @@ HELP = (
 
 
 def tum(
-    source: Annotated[Path, typer.Argument(metavar="INPUT", help="Trajectory, run dir, track or estimates.",
-                                           show_default=False)],
-    out: Annotated[Path, typer.Option("--out", "-o", help="TUM file to write.", show_default=False)],
-    at: Annotated[Path | None, typer.Option(
-        help="Estimates CSV: write INPUT interpolated at its timestamps.")] = None,
+    source: Annotated[
+        Path,
+        typer.Argument(
+            metavar="INPUT", help="Trajectory, run dir, track or estimates.", show_default=False
+        ),
+    ],
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="TUM file to write.", show_default=False)
+    ],
+    at: Annotated[
+        Path | None, typer.Option(help="Estimates CSV: write INPUT interpolated at its timestamps.")
+    ] = None,
     flat: Annotated[bool, typer.Option(help="Write z = 0 (2-D comparisons).")] = False,
-    max_gap: Annotated[float, typer.Option(
-        help="With --at: INPUT samples further apart than this (s) are a gap.")] = 1.0,
+    max_gap: Annotated[
+        float, typer.Option(help="With --at: INPUT samples further apart than this (s) are a gap.")
+    ] = 1.0,
 ) -> None:
     with one_line_errors():
         from annotator.io.scoring import read_estimates

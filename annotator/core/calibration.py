@@ -32,8 +32,12 @@ class CharucoSpec:
             raise ConfigError("marker length must be positive and smaller than the square length")
         if min(self.squares) < 2:
             raise ConfigError(f"a ChArUco board needs at least 2x2 squares, not {self.squares}")
-        return cv2.aruco.CharucoBoard(self.squares, self.square_length, self.marker_length,
-                                      cv2.aruco.getPredefinedDictionary(code))
+        return cv2.aruco.CharucoBoard(
+            self.squares,
+            self.square_length,
+            self.marker_length,
+            cv2.aruco.getPredefinedDictionary(code),
+        )
 
 
 @dataclass(frozen=True)
@@ -55,8 +59,12 @@ def parse_squares(text: str) -> tuple[int, int]:
     return cols, rows
 
 
-def detect_board(image: np.ndarray, detector: cv2.aruco.CharucoDetector,
-                 board: cv2.aruco.CharucoBoard, min_corners: int = 6) -> tuple[np.ndarray, np.ndarray] | None:
+def detect_board(
+    image: np.ndarray,
+    detector: cv2.aruco.CharucoDetector,
+    board: cv2.aruco.CharucoBoard,
+    min_corners: int = 6,
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Object and image points of the ChArUco corners in one image, or None if too few."""
     gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     corners, ids, _, _ = detector.detectBoard(gray)
@@ -69,7 +77,9 @@ def detect_board(image: np.ndarray, detector: cv2.aruco.CharucoDetector,
     return obj.reshape(-1, 3).astype(np.float32), img.reshape(-1, 2).astype(np.float32)
 
 
-def calibrate_charuco(images: Iterable[np.ndarray], spec: CharucoSpec, min_corners: int = 6) -> Calibration:
+def calibrate_charuco(
+    images: Iterable[np.ndarray], spec: CharucoSpec, min_corners: int = 6
+) -> Calibration:
     """Calibrate from views of the board; NoDataError if fewer than 3 views show enough corners."""
     board = spec.board()
     detector = cv2.aruco.CharucoDetector(board)
@@ -87,7 +97,9 @@ def calibrate_charuco(images: Iterable[np.ndarray], spec: CharucoSpec, min_corne
             img_pts.append(found[1])
     log.info("board found in %d of %d views", len(obj_pts), total)
     if len(obj_pts) < 3 or size is None:
-        raise NoDataError(f"the ChArUco board was found in {len(obj_pts)} of {total} views; need at least 3 "
-                          "(check --squares, --dictionary and the lengths)")
+        raise NoDataError(
+            f"the ChArUco board was found in {len(obj_pts)} of {total} views; need at least 3 "
+            "(check --squares, --dictionary and the lengths)"
+        )
     rms, k, d, _, _ = cv2.calibrateCamera(obj_pts, img_pts, size, None, None)
     return Calibration(k, d.ravel()[:5], float(rms), size, len(obj_pts), total)

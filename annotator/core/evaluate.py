@@ -31,7 +31,9 @@ def error_stats(errors: np.ndarray) -> ErrorStats:
     if not len(e):
         return ErrorStats(0, *(5 * [float("nan")]))
     p50, p75, p95 = np.percentile(e, [50, 75, 95])
-    return ErrorStats(int(len(e)), float(p50), float(e.mean()), float(p75), float(p95), float(e.max()))
+    return ErrorStats(
+        int(len(e)), float(p50), float(e.mean()), float(p75), float(p95), float(e.max())
+    )
 
 
 def rotation_angles_deg(rot_a: np.ndarray, rot_b: np.ndarray) -> np.ndarray:
@@ -63,8 +65,14 @@ class TruthComparison:
         }
 
 
-def compare_to_truth(t: np.ndarray, pos: np.ndarray, rot: np.ndarray, ref_t: np.ndarray,
-                     ref_pos: np.ndarray, ref_rot: np.ndarray) -> TruthComparison:
+def compare_to_truth(
+    t: np.ndarray,
+    pos: np.ndarray,
+    rot: np.ndarray,
+    ref_t: np.ndarray,
+    ref_pos: np.ndarray,
+    ref_rot: np.ndarray,
+) -> TruthComparison:
     """Per-row errors of an estimate against a reference interpolated to its times; no alignment."""
     has_pose = np.isfinite(pos).all(1) & np.isfinite(rot).all((1, 2))
     ref_p, ref_r, ok = Trajectory(np.asarray(ref_t, float), ref_pos, ref_rot).interpolate(t)
@@ -73,7 +81,9 @@ def compare_to_truth(t: np.ndarray, pos: np.ndarray, rot: np.ndarray, ref_t: np.
     perr[use] = np.linalg.norm(pos[use] - ref_p[use], axis=1)
     rerr = np.full(len(t), np.nan)
     rerr[use] = rotation_angles_deg(ref_r[use], rot[use])
-    return TruthComparison(np.asarray(t, float), perr, rerr, int((~has_pose).sum()), int((has_pose & ~ok).sum()))
+    return TruthComparison(
+        np.asarray(t, float), perr, rerr, int((~has_pose).sum()), int((has_pose & ~ok).sum())
+    )
 
 
 def _segments(waypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -83,7 +93,9 @@ def _segments(waypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return a, d, length
 
 
-def nearest_segment(xy: np.ndarray, waypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def nearest_segment(
+    xy: np.ndarray, waypoints: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For each point: distance to the polyline, index of the nearest segment, and the
     along-track coordinate on that segment's line (metres from its start, not clipped)."""
     a, d, length = _segments(waypoints)
@@ -101,7 +113,9 @@ def nearest_segment(xy: np.ndarray, waypoints: np.ndarray) -> tuple[np.ndarray, 
 class PathComparison:
     deviation: np.ndarray  # (N,) horizontal distance to the planned polyline, metres; NaN gaps
     segment: np.ndarray  # (N,) nearest segment index, -1 for gaps
-    drag: np.ndarray  # (S,) per segment end: planned end minus furthest progress along it; NaN if never on it
+    drag: (
+        np.ndarray
+    )  # (S,) per segment end: planned end minus furthest progress along it; NaN if never on it
 
     def report(self) -> dict[str, object]:
         finite = self.drag[np.isfinite(self.drag)]

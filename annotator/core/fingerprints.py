@@ -13,8 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-_NAME = re.compile(r"^(?P<alias>.+?)_(?P<x>-?\d+(?:\.\d+)?)_(?P<y>-?\d+(?:\.\d+)?)"
-                   r"_(?P<z>-?\d+(?:\.\d+)?)\.mbd$")
+_NAME = re.compile(
+    r"^(?P<alias>.+?)_(?P<x>-?\d+(?:\.\d+)?)_(?P<y>-?\d+(?:\.\d+)?)"
+    r"_(?P<z>-?\d+(?:\.\d+)?)\.mbd$"
+)
 
 
 def rssi_edges(lo: int = -100, hi: int = -20) -> np.ndarray:
@@ -30,7 +32,9 @@ def parse_range(text: str) -> tuple[int, int]:
     try:
         a, b = int(lo), int(hi if sep else "")
     except ValueError:
-        raise ValueError(f"bins must be 'LO:HI' in integer dBm, e.g. -100:-20, got {text!r}") from None
+        raise ValueError(
+            f"bins must be 'LO:HI' in integer dBm, e.g. -100:-20, got {text!r}"
+        ) from None
     if b <= a:
         raise ValueError(f"bins {text!r}: HI must be greater than LO")
     return a, b
@@ -94,7 +98,9 @@ def bin_to_cells(xy: np.ndarray, cell: float, origin: tuple[float, float] = (0.0
     return CellBins(idx, keys, inverse)
 
 
-def cell_counts(rssi: np.ndarray, group: np.ndarray, n_groups: int, edges: np.ndarray) -> np.ndarray:
+def cell_counts(
+    rssi: np.ndarray, group: np.ndarray, n_groups: int, edges: np.ndarray
+) -> np.ndarray:
     """Counts per group and bin, ``(n_groups, len(edges) - 1)``; readings with group -1 or outside
     the bin range are ignored. Same bin rule as :func:`counts`."""
     rssi = np.asarray(rssi, dtype=float)

@@ -38,8 +38,9 @@ class FloorGrid:
         centres = np.column_stack([gx.ravel(), gy.ravel()])
         free = mask.ravel()
         occupied = centres[~free]
-        return cls(centres, free, float(occ.cell), mask.shape,
-                   cKDTree(occupied) if len(occupied) else None)
+        return cls(
+            centres, free, float(occ.cell), mask.shape, cKDTree(occupied) if len(occupied) else None
+        )
 
     def clearance(self, points: np.ndarray) -> np.ndarray:
         """Distance (m) from each point to the nearest occupied cell square (0 inside one)."""
@@ -101,12 +102,20 @@ def _graph(lat: Lattice, clear: np.ndarray, usable: np.ndarray, keep_off: float)
         cols += [b[ok], a[ok]]
         w += [cost, cost]
     n = ny * nx
-    return coo_matrix((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(n, n)).tocsr()
+    return coo_matrix(
+        (np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    ).tocsr()
 
 
-def plan_route(g: FloorGrid, via: list[tuple[float, float]], *, closed: bool = True,
-               margin: float = 0.3, keep_off: float = 1.0, step: float = 0.1) -> np.ndarray:
+def plan_route(
+    g: FloorGrid,
+    via: list[tuple[float, float]],
+    *,
+    closed: bool = True,
+    margin: float = 0.3,
+    keep_off: float = 1.0,
+    step: float = 0.1,
+) -> np.ndarray:
     """Waypoints (N, 2) of a route through ``via`` in order (back to the first if ``closed``),
     planned on nodes every ``step`` m that are at least ``margin`` m from occupied cells, then
     shortened by straight lines that keep that margin. Raises PlanError if there is none."""
@@ -125,7 +134,9 @@ def plan_route(g: FloorGrid, via: list[tuple[float, float]], *, closed: bool = T
     for a, b in zip(stops, stops[1:], strict=False):
         _, pred = dijkstra(graph, indices=a, return_predecessors=True)
         if b != a and pred[b] < 0:
-            raise PlanError(f"no free route from {lat.points[a].round(2)} to {lat.points[b].round(2)}")
+            raise PlanError(
+                f"no free route from {lat.points[a].round(2)} to {lat.points[b].round(2)}"
+            )
         leg = [b]
         while leg[-1] != a:
             leg.append(int(pred[leg[-1]]))

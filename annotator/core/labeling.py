@@ -19,9 +19,13 @@ log = logging.getLogger(__name__)
 
 # Why a reading got no pose.
 LABELLED, BEFORE_SPAN, AFTER_SPAN, IN_GAP, COVERED = 0, 1, 2, 3, 4
-REASONS = {LABELLED: "labelled", BEFORE_SPAN: "before the tracked span",
-           AFTER_SPAN: "after the tracked span", IN_GAP: "inside a tracking gap",
-           COVERED: "during a cover event"}
+REASONS = {
+    LABELLED: "labelled",
+    BEFORE_SPAN: "before the tracked span",
+    AFTER_SPAN: "after the tracked span",
+    IN_GAP: "inside a tracking gap",
+    COVERED: "during a cover event",
+}
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,9 +45,14 @@ class Labels:
         return self.reason == LABELLED
 
 
-def label_readings(poses: Trajectory, t_ns: np.ndarray, *, max_gap: float = 0.5,
-                   exclude: Sequence[tuple[float, float]] = (),
-                   time_sigma: float | np.ndarray | None = None) -> Labels:
+def label_readings(
+    poses: Trajectory,
+    t_ns: np.ndarray,
+    *,
+    max_gap: float = 0.5,
+    exclude: Sequence[tuple[float, float]] = (),
+    time_sigma: float | np.ndarray | None = None,
+) -> Labels:
     """Pose of the bundle at each reading time ``t_ns`` (int64 Unix ns).
 
     ``poses``' rows without a pose are gaps; its optional quality arrays ``sigma_m`` (position
@@ -101,17 +110,27 @@ def label_readings(poses: Trajectory, t_ns: np.ndarray, *, max_gap: float = 0.5,
         S = np.asarray(sigma, dtype=float)
         out_sig[good] = S[g_lo] + (S[g_hi] - S[g_lo]) * w
         if time_sigma is not None:
-            ts = np.broadcast_to(np.nan_to_num(np.asarray(time_sigma, dtype=float), nan=0.0), (m,))[good]
-            speed = np.divide(np.linalg.norm(P[g_hi] - P[g_lo], axis=1), span, out=np.zeros_like(span),
-                              where=span > 0)
+            ts = np.broadcast_to(np.nan_to_num(np.asarray(time_sigma, dtype=float), nan=0.0), (m,))[
+                good
+            ]
+            speed = np.divide(
+                np.linalg.norm(P[g_hi] - P[g_lo], axis=1),
+                span,
+                out=np.zeros_like(span),
+                where=span > 0,
+            )
             out_sig[good] = np.hypot(out_sig[good], speed * ts)
     if markers is not None:
         M = np.asarray(markers)
         nearest = np.where(w <= 0.5, g_lo, g_hi)
         out_mk[good] = np.nan_to_num(M[nearest].astype(float), nan=-1).astype(np.int64)
     labels = Labels(out_pos, out_rot, out_sig, out_mk, gap_s, reason, _count(reason))
-    log.info("labelled %d of %d readings (%s)", labels.counts["labelled"], m,
-             ", ".join(f"{k}: {v}" for k, v in labels.counts.items() if k != "labelled"))
+    log.info(
+        "labelled %d of %d readings (%s)",
+        labels.counts["labelled"],
+        m,
+        ", ".join(f"{k}: {v}" for k, v in labels.counts.items() if k != "labelled"),
+    )
     return labels
 
 

@@ -61,8 +61,9 @@ def _steps(t: np.ndarray, step_s: float) -> np.ndarray:
     return t[0] + step_s * np.arange(1, n + 1)
 
 
-def knn(m: RadioMapArrays, r: Readings, *, k: int = 4, window_s: float = 2.0,
-        step_s: float = 0.5) -> Estimates2D:
+def knn(
+    m: RadioMapArrays, r: Readings, *, k: int = 4, window_s: float = 2.0, step_s: float = 0.5
+) -> Estimates2D:
     """Weighted k-nearest cells on mean RSSI; see the module docstring."""
     ends = _steps(r.t, step_s)
     mean_map = m.mean_rssi  # (C, S)
@@ -109,8 +110,14 @@ def reading_likelihoods(m: RadioMapArrays, floor: float = 0.05) -> np.ndarray:
     return (1.0 - floor) * h + floor / k
 
 
-def grid_hmm(m: RadioMapArrays, r: Readings, *, step_s: float = 0.5, speed_mps: float = 1.0,
-             floor: float = 0.05) -> Estimates2D:
+def grid_hmm(
+    m: RadioMapArrays,
+    r: Readings,
+    *,
+    step_s: float = 0.5,
+    speed_mps: float = 1.0,
+    floor: float = 0.05,
+) -> Estimates2D:
     """Forward filter on the radio-map grid; see the module docstring."""
     ends = _steps(r.t, step_s)
     c = len(m.centres)

@@ -75,12 +75,24 @@ def parse_priors(obj: Any, source: str) -> Priors:
     if not isinstance(obj, dict):
         raise ConfigError(f"{where}: must be a mapping")
     d = Priors()
-    known_keys = {"mode", "survey_sigma_m", "survey_sigma_deg", "markers", "rig_sigma_m", "rig_sigma_deg",
-                  "focal_sigma_rel", "principal_sigma_px", "distortion_sigma", "readout_sigma_s",
-                  "aspect_sigma_rel"}
+    known_keys = {
+        "mode",
+        "survey_sigma_m",
+        "survey_sigma_deg",
+        "markers",
+        "rig_sigma_m",
+        "rig_sigma_deg",
+        "focal_sigma_rel",
+        "principal_sigma_px",
+        "distortion_sigma",
+        "readout_sigma_s",
+        "aspect_sigma_rel",
+    }
     unknown = sorted(set(map(str, obj)) - known_keys)
     if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known_keys))})")
+        raise ConfigError(
+            f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known_keys))})"
+        )
     mode = str(obj.get("mode", d.mode))
     if mode not in REFINE_MODES:
         raise ConfigError(f"{where}.mode: must be one of {', '.join(REFINE_MODES)}, not {mode!r}")
@@ -89,7 +101,9 @@ def parse_priors(obj: Any, source: str) -> Priors:
     markers: dict[int, MarkerPrior] = {}
     raw = obj.get("markers") or {}
     if not isinstance(raw, dict):
-        raise ConfigError(f"{where}.markers: must map marker ids to {{sigma_m, sigma_deg}} or 'unknown'")
+        raise ConfigError(
+            f"{where}.markers: must map marker ids to {{sigma_m, sigma_deg}} or 'unknown'"
+        )
     for key, spec in raw.items():
         try:
             mid = int(key)
@@ -99,11 +113,18 @@ def parse_priors(obj: Any, source: str) -> Priors:
             markers[mid] = MarkerPrior(math.inf, math.inf, known=False)
             continue
         if not isinstance(spec, dict) or set(map(str, spec)) - {"sigma_m", "sigma_deg"}:
-            raise ConfigError(f"{where}.markers.{mid}: expected {{sigma_m: M, sigma_deg: D}} or 'unknown'")
-        markers[mid] = MarkerPrior(_positive(spec, "sigma_m", survey_m, f"{where}.markers.{mid}"),
-                                   _positive(spec, "sigma_deg", survey_deg, f"{where}.markers.{mid}"))
+            raise ConfigError(
+                f"{where}.markers.{mid}: expected {{sigma_m: M, sigma_deg: D}} or 'unknown'"
+            )
+        markers[mid] = MarkerPrior(
+            _positive(spec, "sigma_m", survey_m, f"{where}.markers.{mid}"),
+            _positive(spec, "sigma_deg", survey_deg, f"{where}.markers.{mid}"),
+        )
     return Priors(
-        mode=mode, survey_sigma_m=survey_m, survey_sigma_deg=survey_deg, markers=markers,
+        mode=mode,
+        survey_sigma_m=survey_m,
+        survey_sigma_deg=survey_deg,
+        markers=markers,
         rig_sigma_m=_positive(obj, "rig_sigma_m", d.rig_sigma_m, where),
         rig_sigma_deg=_positive(obj, "rig_sigma_deg", d.rig_sigma_deg, where),
         focal_sigma_rel=_positive(obj, "focal_sigma_rel", d.focal_sigma_rel, where),
@@ -127,12 +148,15 @@ class ParameterCovariance:
     readout: dict[str, np.ndarray] = field(default_factory=dict)
 
     @classmethod
-    def from_priors(cls, priors: Priors, marker_ids: list[int], cameras: dict[str, np.ndarray]) -> ParameterCovariance:
+    def from_priors(
+        cls, priors: Priors, marker_ids: list[int], cameras: dict[str, np.ndarray]
+    ) -> ParameterCovariance:
         """Block-diagonal covariances straight from the priors (what is known without refinement).
 
         ``cameras`` maps each camera name to its 3x3 camera matrix (the focal prior is relative).
         Markers whose prior is unknown get no entry: they cannot be used without refinement.
         """
+
         def block(sig_deg: float, sig_m: float) -> np.ndarray:
             r = math.radians(sig_deg)
             return np.diag([r * r] * 3 + [sig_m * sig_m] * 3)
@@ -146,6 +170,12 @@ class ParameterCovariance:
         intr = {}
         for name, K in cameras.items():
             f = priors.focal_sigma_rel
-            intr[name] = np.diag([(f * K[0, 0]) ** 2, (f * K[1, 1]) ** 2,
-                                  priors.principal_sigma_px ** 2, priors.principal_sigma_px ** 2])
+            intr[name] = np.diag(
+                [
+                    (f * K[0, 0]) ** 2,
+                    (f * K[1, 1]) ** 2,
+                    priors.principal_sigma_px**2,
+                    priors.principal_sigma_px**2,
+                ]
+            )
         return cls(markers, rig, intr)

@@ -77,8 +77,15 @@ def idw_weights(distances: np.ndarray, power: float = 2.0) -> np.ndarray:
     return w / w.sum()
 
 
-def interpolate(fp_xy: np.ndarray, fp_hists: np.ndarray, targets: np.ndarray, edges: np.ndarray,
-                *, neighbours: int = 4, power: float = 2.0) -> np.ndarray:
+def interpolate(
+    fp_xy: np.ndarray,
+    fp_hists: np.ndarray,
+    targets: np.ndarray,
+    edges: np.ndarray,
+    *,
+    neighbours: int = 4,
+    power: float = 2.0,
+) -> np.ndarray:
     """Histograms at ``targets`` (M, 2) from fingerprints at ``fp_xy`` (N, 2) with histograms
     ``fp_hists`` (N, K); rows of ``fp_hists`` containing NaN are missing fingerprints and are
     skipped. Returns (M, K); all-NaN rows if no fingerprint is usable. See the module docstring
@@ -98,8 +105,11 @@ def interpolate(fp_xy: np.ndarray, fp_hists: np.ndarray, targets: np.ndarray, ed
     xy, hists = fp_xy[usable], fp_hists[usable]
     k = min(neighbours, len(xy))
     d = cdist(targets, xy)
-    nearest = np.argpartition(d, k - 1, axis=1)[:, :k] if k < len(xy) else np.tile(
-        np.arange(len(xy)), (len(targets), 1))
+    nearest = (
+        np.argpartition(d, k - 1, axis=1)[:, :k]
+        if k < len(xy)
+        else np.tile(np.arange(len(xy)), (len(targets), 1))
+    )
     for m in range(len(targets)):
         idx = nearest[m]
         dd = d[m, idx]

@@ -58,7 +58,15 @@ RIG, INTR, DIST, READOUT, BIAS = "rig", "intr", "dist", "readout", "bias"
 # corner along the square's diagonal (threshold, blur, print bleed), the same way for every marker.
 # Unmodelled, it makes each small marker look a few per cent too small, i.e. too far away.
 CORNER_BIAS_SIGMA_PX = 1.0
-_FD_STEP = {"pose": 1e-6, "marker": 1e-6, RIG: 1e-6, INTR: 1e-3, DIST: 1e-6, READOUT: 1e-6, BIAS: 1e-3}
+_FD_STEP = {
+    "pose": 1e-6,
+    "marker": 1e-6,
+    RIG: 1e-6,
+    INTR: 1e-3,
+    DIST: 1e-6,
+    READOUT: 1e-6,
+    BIAS: 1e-3,
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,7 +78,9 @@ class RefineSettings:
     min_markers: int = 2  # markers a keyframe must show (over all its cameras)
     iterations: int = 25
     huber_px: float = 1.5
-    min_sigma_px: float = 0.5  # floor on the corner noise: corner errors are correlated (blur, print)
+    min_sigma_px: float = (
+        0.5  # floor on the corner noise: corner errors are correlated (blur, print)
+    )
     moved_sigma: float = 6.0  # a surveyed marker this many sigma from the data loses its prior
     flag_sigma: float = 3.0  # ... and one that moved more than this is reported
     # Corrections of a static block smaller than this many of its posterior sigma are not applied:
@@ -110,7 +120,9 @@ class CameraParams:
     model: str
     readout_s: float
     height: int
-    corner_bias_px: float = 0.0  # detected corners sit this far outward (+) / inward (-) along the diagonal
+    corner_bias_px: float = (
+        0.0  # detected corners sit this far outward (+) / inward (-) along the diagonal
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -163,6 +175,7 @@ class Solution:
 
 # --- projection -------------------------------------------------------------------------------
 
+
 def _mv(R: np.ndarray, v: np.ndarray) -> np.ndarray:
     """R[n] @ v[n] for stacks of 3x3 matrices and 3-vectors."""
     return (R @ v[:, :, None])[:, :, 0]
@@ -184,7 +197,9 @@ def distort_normalised(xy: np.ndarray, dist: np.ndarray, model: str) -> np.ndarr
         r = np.sqrt(x * x + y * y)
         th = np.arctan(r)
         th2 = th * th
-        thd = th * (1 + th2 * (dist[:, 0] + th2 * (dist[:, 1] + th2 * (dist[:, 2] + th2 * dist[:, 3]))))
+        thd = th * (
+            1 + th2 * (dist[:, 0] + th2 * (dist[:, 1] + th2 * (dist[:, 2] + th2 * dist[:, 3])))
+        )
         s = np.where(r > 1e-12, thd / np.maximum(r, 1e-12), 1.0)
         return xy * s[:, None]
     k1, k2, p1, p2 = dist[:, 0], dist[:, 1], dist[:, 2], dist[:, 3]
@@ -202,6 +217,7 @@ def supported_lens(model: str, dist: np.ndarray) -> bool:
 
 
 # --- parameter layout -------------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class _Layout:
@@ -243,8 +259,14 @@ class _Model:
         self.R_bc0 = np.array([c.R_bc for c in cams])
         self.t_bc0 = np.array([c.t_bc for c in cams])
         self.K0 = np.array([[c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]] for c in cams])
-        self.d0 = np.array([np.resize(np.asarray(c.dist, float), layout.nd) if len(c.dist) else np.zeros(layout.nd)
-                            for c in cams])
+        self.d0 = np.array(
+            [
+                np.resize(np.asarray(c.dist, float), layout.nd)
+                if len(c.dist)
+                else np.zeros(layout.nd)
+                for c in cams
+            ]
+        )
         self.r0 = np.array([c.readout_s for c in cams])
         self.b0 = np.array([c.corner_bias_px for c in cams])
         # Each marker's four corners are consecutive rows: the unit vector from the measured
@@ -259,10 +281,10 @@ class _Model:
 
     def unpack(self, x: np.ndarray) -> dict[str, np.ndarray]:
         L = self.L
-        out = {"pose": x[:L.n_pose].reshape(L.K, 6)}
-        s = x[L.n_pose:]
+        out = {"pose": x[: L.n_pose].reshape(L.K, 6)}
+        s = x[L.n_pose :]
         for name, (off, n, size) in L.static_slices().items():
-            out[name] = s[off:off + n * size].reshape(n, size)
+            out[name] = s[off : off + n * size].reshape(n, size)
         return out
 
     def static_values(self, x: np.ndarray) -> dict[str, np.ndarray]:
@@ -271,12 +293,16 @@ class _Model:
         C = self.L.C
         d_rig = u.get(RIG, np.zeros((C, 6)))
         return {
-            "R_m": _rot(u["marker"][:, :3]) @ self.p.R_m, "t_m": self.p.t_m + u["marker"][:, 3:],
-            "R_bc": _rot(d_rig[:, :3]) @ self.R_bc0, "t_bc": self.t_bc0 + d_rig[:, 3:],
-            "K": self.K0 + u.get(INTR, np.zeros((C, 4))), "dist": self.d0 + u.get(DIST, np.zeros((C, self.L.nd))),
+            "R_m": _rot(u["marker"][:, :3]) @ self.p.R_m,
+            "t_m": self.p.t_m + u["marker"][:, 3:],
+            "R_bc": _rot(d_rig[:, :3]) @ self.R_bc0,
+            "t_bc": self.t_bc0 + d_rig[:, 3:],
+            "K": self.K0 + u.get(INTR, np.zeros((C, 4))),
+            "dist": self.d0 + u.get(DIST, np.zeros((C, self.L.nd))),
             "readout": self.r0 + u.get(READOUT, np.zeros((C, 1)))[:, 0],
             "bias": self.b0 + u.get(BIAS, np.zeros((C, 1)))[:, 0],
-            "R_k": _rot(u["pose"][:, :3]) @ self.p.R_k, "p_k": self.p.p_k + u["pose"][:, 3:],
+            "R_k": _rot(u["pose"][:, :3]) @ self.p.R_k,
+            "p_k": self.p.p_k + u["pose"][:, 3:],
         }
 
     def _stage(self, name: str, key: np.ndarray, compute: Callable[[], Any]) -> Any:
@@ -294,9 +320,16 @@ class _Model:
         """(N, 2) pixels and (N,) depth."""
         v = self.static_values(x)
         o = self.p.obs
-        Yk = self._stage("Yk", np.concatenate([v["R_m"].ravel(), v["t_m"].ravel(), v["R_k"].ravel(), v["p_k"].ravel()]),
-                         lambda: _mtv(v["R_k"][o.keyframe], _mv(v["R_m"][o.marker], self.local) + v["t_m"][o.marker]
-                                      - v["p_k"][o.keyframe]))  # R_k^T (X - p_k)
+        Yk = self._stage(
+            "Yk",
+            np.concatenate(
+                [v["R_m"].ravel(), v["t_m"].ravel(), v["R_k"].ravel(), v["p_k"].ravel()]
+            ),
+            lambda: _mtv(
+                v["R_k"][o.keyframe],
+                _mv(v["R_m"][o.marker], self.local) + v["t_m"][o.marker] - v["p_k"][o.keyframe],
+            ),
+        )  # R_k^T (X - p_k)
 
         def motion() -> tuple[np.ndarray, np.ndarray]:
             tau = v["readout"][o.camera] * self.row
@@ -321,8 +354,10 @@ class _Model:
 
 # --- the solver -------------------------------------------------------------------------------
 
-def _prior_precision(prob: Problem, layout: _Layout, model: _Model, skip_marker_prior: np.ndarray) -> tuple[
-        np.ndarray, np.ndarray]:
+
+def _prior_precision(
+    prob: Problem, layout: _Layout, model: _Model, skip_marker_prior: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Diagonal precision of the static priors and the rows A of the coupled priors (cost |A x|^2 / 2):
     each camera's aspect ratio, the rig's gauge."""
     pr = prob.priors
@@ -332,10 +367,10 @@ def _prior_precision(prob: Problem, layout: _Layout, model: _Model, skip_marker_
     for m in range(layout.M):
         sr, sm = prob.marker_sigma[m]
         if skip_marker_prior[m] or not np.isfinite(sr):
-            prec[off + 6 * m: off + 6 * m + 6] = 1e-6  # keeps a marker no keyframe sees well-posed
+            prec[off + 6 * m : off + 6 * m + 6] = 1e-6  # keeps a marker no keyframe sees well-posed
             continue
-        prec[off + 6 * m: off + 6 * m + 3] = 1 / sr ** 2
-        prec[off + 6 * m + 3: off + 6 * m + 6] = 1 / sm ** 2
+        prec[off + 6 * m : off + 6 * m + 3] = 1 / sr**2
+        prec[off + 6 * m + 3 : off + 6 * m + 6] = 1 / sm**2
     aspect_rows = []
     for name, (o, n, size) in sl.items():
         if name == "marker":
@@ -343,21 +378,25 @@ def _prior_precision(prob: Problem, layout: _Layout, model: _Model, skip_marker_
         for c in range(n):
             b = o + c * size
             if name == RIG:
-                prec[b:b + 3] = 1 / math.radians(pr.rig_sigma_deg) ** 2
-                prec[b + 3:b + 6] = 1 / pr.rig_sigma_m ** 2
+                prec[b : b + 3] = 1 / math.radians(pr.rig_sigma_deg) ** 2
+                prec[b + 3 : b + 6] = 1 / pr.rig_sigma_m**2
             elif name == INTR:
                 fx, fy = model.K0[c, 0], model.K0[c, 1]
-                prec[b:b + 4] = [1 / (pr.focal_sigma_rel * fx) ** 2, 1 / (pr.focal_sigma_rel * fy) ** 2,
-                                 1 / pr.principal_sigma_px ** 2, 1 / pr.principal_sigma_px ** 2]
+                prec[b : b + 4] = [
+                    1 / (pr.focal_sigma_rel * fx) ** 2,
+                    1 / (pr.focal_sigma_rel * fy) ** 2,
+                    1 / pr.principal_sigma_px**2,
+                    1 / pr.principal_sigma_px**2,
+                ]
                 a = np.zeros(layout.n_static)
                 a[b], a[b + 1] = 1 / fx, -1 / fy
                 aspect_rows.append(a / pr.aspect_sigma_rel)
             elif name == DIST:
-                prec[b:b + size] = 1 / pr.distortion_sigma ** 2
+                prec[b : b + size] = 1 / pr.distortion_sigma**2
             elif name == READOUT:
-                prec[b] = 1 / pr.readout_sigma_s ** 2
+                prec[b] = 1 / pr.readout_sigma_s**2
             elif name == BIAS:
-                prec[b] = 1 / CORNER_BIAS_SIGMA_PX ** 2
+                prec[b] = 1 / CORNER_BIAS_SIGMA_PX**2
     if RIG in sl:
         # The gauge: a motion common to every camera of the rig (with the opposite motion of the
         # bundle) moves no camera, so the data cannot tell it - but the frame-time offsets between
@@ -366,7 +405,7 @@ def _prior_precision(prob: Problem, layout: _Layout, model: _Model, skip_marker_
         o, n, _ = sl[RIG]
         for i in range(6):
             a = np.zeros(layout.n_static)
-            a[o + i: o + 6 * n: 6] = 1.0 / n
+            a[o + i : o + 6 * n : 6] = 1.0 / n
             aspect_rows.append(a * 1e5)
     A = np.array(aspect_rows) if aspect_rows else np.zeros((0, layout.n_static))
     return prec, A
@@ -380,25 +419,34 @@ def _jacobian(model: _Model, x: np.ndarray, uv0: np.ndarray) -> tuple[np.ndarray
     Jp = np.zeros((N, 2, 6))
     for i in range(6):
         xp = x.copy()
-        xp[i:L.n_pose:6] += _FD_STEP["pose"]
+        xp[i : L.n_pose : 6] += _FD_STEP["pose"]
         Jp[:, :, i] = (model.predict(xp)[0] - uv0) / _FD_STEP["pose"]
     rows, cols, vals = [], [], []
     row_idx = np.arange(2 * N).reshape(N, 2)
-    inst = {"marker": o.marker, RIG: o.camera, INTR: o.camera, DIST: o.camera, READOUT: o.camera, BIAS: o.camera}
+    inst = {
+        "marker": o.marker,
+        RIG: o.camera,
+        INTR: o.camera,
+        DIST: o.camera,
+        READOUT: o.camera,
+        BIAS: o.camera,
+    }
     for name, (off, n, size) in L.static_slices().items():
         h = _FD_STEP[name]
         which = inst[name]
         free = L.free_markers[which] if name == "marker" else np.ones(N, bool)
         for i in range(size):
             xp = x.copy()
-            xp[L.n_pose + off + i: L.n_pose + off + n * size: size] += h
+            xp[L.n_pose + off + i : L.n_pose + off + n * size : size] += h
             d = (model.predict(xp)[0] - uv0) / h  # (N, 2)
             col = off + which * size + i
             rows.append(row_idx[free].ravel())
             cols.append(np.repeat(col[free], 2))
             vals.append(d[free].ravel())
-    Js = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                       shape=(2 * N, L.n_static))
+    Js = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(2 * N, L.n_static),
+    )
     return Jp, Js
 
 
@@ -428,8 +476,10 @@ class _LM:
         uv, z = self.model.predict(x)
         r = (uv - self.prob.obs.uv) / self.sigma_px
         data = float(np.sum(self.prob.obs.weight * _huber_cost(r, self.s.huber_px / self.sigma_px)))
-        xs = x[self.L.n_pose:]
-        prior = 0.5 * float(np.sum(self.prec * xs * xs)) + 0.5 * self.aspect_prec * float(np.sum((self.A @ xs) ** 2))
+        xs = x[self.L.n_pose :]
+        prior = 0.5 * float(np.sum(self.prec * xs * xs)) + 0.5 * self.aspect_prec * float(
+            np.sum((self.A @ xs) ** 2)
+        )
         bad = np.count_nonzero(z <= 0)
         return data + prior + 1e6 * bad, uv
 
@@ -437,8 +487,8 @@ class _LM:
         L, o = self.L, self.prob.obs
         Jp, Js = _jacobian(self.model, x, uv)
         r = (uv - o.uv) / self.sigma_px
-        w = o.weight * _robust_weights(r, self.s.huber_px / self.sigma_px) / self.sigma_px ** 2
-        rr = (uv - o.uv)  # pixels; w carries 1/sigma^2
+        w = o.weight * _robust_weights(r, self.s.huber_px / self.sigma_px) / self.sigma_px**2
+        rr = uv - o.uv  # pixels; w carries 1/sigma^2
         # Pose blocks.
         Hpp = np.zeros((L.K, 6, 6))
         np.add.at(Hpp, o.keyframe, np.einsum("nai,naj,n->nij", Jp, Jp, w))
@@ -447,19 +497,33 @@ class _LM:
         # Pose-static and static-static.
         N = len(o.keyframe)
         wr = np.repeat(w, 2)
-        Jp_sp = sp.csr_matrix((Jp.reshape(-1), (np.repeat(np.arange(2 * N), 6),
-                                                (6 * o.keyframe[:, None, None] + np.arange(6)).repeat(2, 1).reshape(
-                                                    -1))), shape=(2 * N, L.n_pose))
+        Jp_sp = sp.csr_matrix(
+            (
+                Jp.reshape(-1),
+                (
+                    np.repeat(np.arange(2 * N), 6),
+                    (6 * o.keyframe[:, None, None] + np.arange(6)).repeat(2, 1).reshape(-1),
+                ),
+            ),
+            shape=(2 * N, L.n_pose),
+        )
         WJs = sp.diags(wr) @ Js
         Hps = (Jp_sp.T @ WJs).toarray()  # (6K, S)
         Hss = (Js.T @ WJs).toarray()
-        xs = x[L.n_pose:]
+        xs = x[L.n_pose :]
         Hss += np.diag(self.prec) + self.aspect_prec * self.A.T @ self.A
         gs = Js.T @ (wr * rr.ravel()) + self.prec * xs + self.aspect_prec * self.A.T @ (self.A @ xs)
         return Hpp, gp, Hps, Hss, gs
 
-    def step(self, Hpp: np.ndarray, gp: np.ndarray, Hps: np.ndarray, Hss: np.ndarray, gs: np.ndarray,
-             lam: float) -> np.ndarray | None:
+    def step(
+        self,
+        Hpp: np.ndarray,
+        gp: np.ndarray,
+        Hps: np.ndarray,
+        Hss: np.ndarray,
+        gs: np.ndarray,
+        lam: float,
+    ) -> np.ndarray | None:
         L = self.L
         D = np.einsum("kii->ki", Hpp)
         Hd = Hpp + lam * np.einsum("ki,ij->kij", np.maximum(D, 1e-9), np.eye(6))
@@ -516,19 +580,25 @@ class _LM:
 
 # --- entry point on a built problem -------------------------------------------------------------
 
-def _rms_per_camera(uv: np.ndarray, obs: Observations, cameras: list[CameraParams], k: float) -> dict[str, float]:
+
+def _rms_per_camera(
+    uv: np.ndarray, obs: Observations, cameras: list[CameraParams], k: float
+) -> dict[str, float]:
     out = {}
     n = np.linalg.norm(uv - obs.uv, axis=1)
     for i, c in enumerate(cameras):
         sel = obs.camera == i
         # RMS of the inliers (a few gross outliers would hide the calibration's effect).
         v = n[sel & (n < 10 * k)]
-        out[c.name] = float(np.sqrt(np.mean(v ** 2))) if len(v) else float("nan")
+        out[c.name] = float(np.sqrt(np.mean(v**2))) if len(v) else float("nan")
     return out
 
 
-def solve(prob: Problem, settings: RefineSettings | None = None,
-          starts: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> Solution:
+def solve(
+    prob: Problem,
+    settings: RefineSettings | None = None,
+    starts: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+) -> Solution:
     """`_solve` on one BLAS thread: its dense systems are a few hundred wide, where OpenBLAS's
     threads gain little alone and, on a busy machine, spin against each other and other work
     (2.6x slower solves measured with two threads on two loaded cores; bench/refine_timing.py)."""
@@ -538,8 +608,11 @@ def solve(prob: Problem, settings: RefineSettings | None = None,
         return _solve(prob, settings, starts)
 
 
-def _solve(prob: Problem, settings: RefineSettings | None = None,
-           starts: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> Solution:
+def _solve(
+    prob: Problem,
+    settings: RefineSettings | None = None,
+    starts: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+) -> Solution:
     """Refine the problem's parameters; the marker, rig and lens values in the result are final.
 
     ``starts``: start poses of markers that differ from their prior mean (see build_problem).
@@ -565,8 +638,8 @@ def _solve(prob: Problem, settings: RefineSettings | None = None,
     for mid, (R, centre) in (starts or {}).items():
         m = prob.markers.index(mid)
         b = layout.n_pose + layout.static_slices()["marker"][0] + 6 * m
-        x[b:b + 3] = Rotation.from_matrix(R @ prob.R_m[m].T).as_rotvec()
-        x[b + 3:b + 6] = centre - prob.t_m[m]
+        x[b : b + 3] = Rotation.from_matrix(R @ prob.R_m[m].T).as_rotvec()
+        x[b + 3 : b + 6] = centre - prob.t_m[m]
     rms_before = _rms_per_camera(uv_before, prob.obs, prob.cameras, s.huber_px)
     # 1: a first solve with a conservative noise level; 2: markers whose survey the data contradict
     # lose their prior ("moved since the survey?"), the noise is re-estimated, solve again.
@@ -577,9 +650,17 @@ def _solve(prob: Problem, settings: RefineSettings | None = None,
     lm.sigma_px = max(s.min_sigma_px, 1.4826 * float(np.median(res)) / math.sqrt(2 * math.log(2)))
     u = lm.model.unpack(x)
     floor = marker_floors(prob, s)
-    rot_dev = np.linalg.norm(u["marker"][:, :3], axis=1) / np.where(np.isfinite(sig_m[:, 0]), sig_m[:, 0], np.inf)
-    pos_dev = np.array([_mahalanobis(u["marker"][m, 3:], sig_m[m, 1] ** 2 * np.eye(3) + floor[m, 3:, 3:])
-                        if np.isfinite(sig_m[m, 1]) else 0.0 for m in range(layout.M)])
+    rot_dev = np.linalg.norm(u["marker"][:, :3], axis=1) / np.where(
+        np.isfinite(sig_m[:, 0]), sig_m[:, 0], np.inf
+    )
+    pos_dev = np.array(
+        [
+            _mahalanobis(u["marker"][m, 3:], sig_m[m, 1] ** 2 * np.eye(3) + floor[m, 3:, 3:])
+            if np.isfinite(sig_m[m, 1])
+            else 0.0
+            for m in range(layout.M)
+        ]
+    )
     dev = np.maximum(rot_dev / math.sqrt(3), pos_dev)  # per-axis sigmas over 3 axes
     lm.skip = seen & (dev > s.moved_sigma)
     lm._priors()
@@ -618,9 +699,11 @@ def _solve(prob: Problem, settings: RefineSettings | None = None,
         # the video's (the normal matrix with the robust weights) and the errors common to every
         # frame of the marker that no number of frames averages away (the floors).
         b = mo + 6 * m - layout.n_pose
-        video = cov[b:b + 6, b:b + 6] + floor[m]
-        d = max(_mahalanobis(u["marker"][m, 3:], sig_m[m, 1] ** 2 * np.eye(3) + video[3:, 3:]),
-                _mahalanobis(u["marker"][m, :3], sig_m[m, 0] ** 2 * np.eye(3) + video[:3, :3]))
+        video = cov[b : b + 6, b : b + 6] + floor[m]
+        d = max(
+            _mahalanobis(u["marker"][m, 3:], sig_m[m, 1] ** 2 * np.eye(3) + video[3:, 3:]),
+            _mahalanobis(u["marker"][m, :3], sig_m[m, 0] ** 2 * np.eye(3) + video[:3, :3]),
+        )
         log.debug("refine: marker %d discrepancy %.2f sigma", prob.markers[m], d)
         if d > s.flag_sigma and (lm.skip[m] or d > s.moved_sigma / 2):
             moved.append(prob.markers[m])
@@ -629,19 +712,43 @@ def _solve(prob: Problem, settings: RefineSettings | None = None,
         K = cam.K.copy()
         K[0, 0], K[1, 1], K[0, 2], K[1, 2] = v["K"][c]
         dist = np.asarray(cam.dist, float).copy()
-        dist[:min(len(dist), nd)] = v["dist"][c][:min(len(dist), nd)]
-        cams.append(CameraParams(cam.name, v["R_bc"][c], v["t_bc"][c], K, dist, cam.model,
-                                 float(max(v["readout"][c], 0.0)), cam.height, float(v["bias"][c])))
+        dist[: min(len(dist), nd)] = v["dist"][c][: min(len(dist), nd)]
+        cams.append(
+            CameraParams(
+                cam.name,
+                v["R_bc"][c],
+                v["t_bc"][c],
+                K,
+                dist,
+                cam.model,
+                float(max(v["readout"][c], 0.0)),
+                cam.height,
+                float(v["bias"][c]),
+            )
+        )
     # A marker's stated uncertainty includes what its frames cannot average away (the floors): the
     # normal matrix alone, frames taken as independent, claims ~0.7 cm for far markers whose depth
     # is off by 5-9 cm on the field renders.
     mb = layout.static_slices()["marker"][0]
     for m in np.flatnonzero(seen):
-        cov[mb + 6 * m:mb + 6 * m + 6, mb + 6 * m:mb + 6 * m + 6] += floor[m]
+        cov[mb + 6 * m : mb + 6 * m + 6, mb + 6 * m : mb + 6 * m + 6] += floor[m]
     covariance, marker_sigma = _covariance(cov, layout, prob, lm)
-    return Solution(v["R_m"], v["t_m"], marker_sigma, moved, cams, v["R_k"], v["p_k"], covariance, rms_before,
-                    _rms_per_camera(uv, prob.obs, prob.cameras, s.huber_px), lm.sigma_px, it1 + it2,
-                    time.perf_counter() - t0, rejected)
+    return Solution(
+        v["R_m"],
+        v["t_m"],
+        marker_sigma,
+        moved,
+        cams,
+        v["R_k"],
+        v["p_k"],
+        covariance,
+        rms_before,
+        _rms_per_camera(uv, prob.obs, prob.cameras, s.huber_px),
+        lm.sigma_px,
+        it1 + it2,
+        time.perf_counter() - t0,
+        rejected,
+    )
 
 
 def _mahalanobis(d: np.ndarray, cov: np.ndarray) -> float:
@@ -663,7 +770,7 @@ def marker_floors(prob: Problem, s: RefineSettings) -> np.ndarray:
     o = prob.obs
     out = np.zeros((len(prob.markers), 6, 6))
     out[:, :3, :3] = math.radians(s.marker_floor_deg) ** 2 * np.eye(3)
-    out[:, 3:, 3:] = s.marker_floor_m ** 2 * np.eye(3)
+    out[:, 3:, 3:] = s.marker_floor_m**2 * np.eye(3)
     if s.marker_size_floor_px <= 0 or not len(o.marker):
         return out
     quad = o.uv.reshape(-1, 4, 2)
@@ -675,12 +782,16 @@ def marker_floors(prob: Problem, s: RefineSettings) -> np.ndarray:
         depth = np.linalg.norm(ray, axis=1)
         los = np.mean(ray / np.maximum(depth, 1e-9)[:, None], axis=0)
         los /= max(float(np.linalg.norm(los)), 1e-9)
-        sd = float(np.median(depth) * s.marker_size_floor_px / max(float(np.median(side[sel])), 1.0))
+        sd = float(
+            np.median(depth) * s.marker_size_floor_px / max(float(np.median(side[sel])), 1.0)
+        )
         out[m, 3:, 3:] += sd * sd * np.outer(los, los)
     return out
 
 
-def _gate(x: np.ndarray, cov: np.ndarray, layout: _Layout, s: RefineSettings, has_prior: np.ndarray) -> list[int]:
+def _gate(
+    x: np.ndarray, cov: np.ndarray, layout: _Layout, s: RefineSettings, has_prior: np.ndarray
+) -> list[int]:
     """Static indices of the blocks whose correction is within noise of their prior.
 
     Per-camera blocks: no component beyond ``gate_sigma`` posterior sigmas. The rig as a whole
@@ -692,34 +803,46 @@ def _gate(x: np.ndarray, cov: np.ndarray, layout: _Layout, s: RefineSettings, ha
     if s.gate_sigma <= 0:
         return out
     sd = np.sqrt(np.maximum(np.diag(cov), 1e-30))
-    xs = x[layout.n_pose:]
+    xs = x[layout.n_pose :]
     for name, (off, n, size) in layout.static_slices().items():
         if name == "marker":
             for m in range(n):
                 i = off + 6 * m
                 if not (layout.free_markers[m] and has_prior[m]):
                     continue
-                d = xs[i:i + 6]
-                floor = np.diag([math.radians(s.marker_floor_deg) ** 2] * 3 + [s.marker_floor_m ** 2] * 3)
-                if _mahalanobis(d, cov[i:i + 6, i:i + 6] + floor) < s.marker_gate_sigma:
+                d = xs[i : i + 6]
+                floor = np.diag(
+                    [math.radians(s.marker_floor_deg) ** 2] * 3 + [s.marker_floor_m**2] * 3
+                )
+                if _mahalanobis(d, cov[i : i + 6, i : i + 6] + floor) < s.marker_gate_sigma:
                     out.extend(range(i, i + 6))
             continue
         if name == RIG:
-            z = np.abs(xs[off:off + n * size]) / sd[off:off + n * size]
+            z = np.abs(xs[off : off + n * size]) / sd[off : off + n * size]
             if z.max() < s.gate_sigma:
-                log.info("refine: rig change not significant (max %.1f sigma); the measured rig kept", z.max())
+                log.info(
+                    "refine: rig change not significant (max %.1f sigma); the measured rig kept",
+                    z.max(),
+                )
                 out.extend(range(off, off + n * size))
             continue
         for c in range(n):
             i = off + c * size
-            z = np.abs(xs[i:i + size]) / sd[i:i + size]
+            z = np.abs(xs[i : i + size]) / sd[i : i + size]
             if z.max() < s.gate_sigma:
-                log.info("refine: %s of camera %d not significant (max %.1f sigma); prior kept", name, c, z.max())
+                log.info(
+                    "refine: %s of camera %d not significant (max %.1f sigma); prior kept",
+                    name,
+                    c,
+                    z.max(),
+                )
                 out.extend(range(i, i + size))
     return out
 
 
-def _covariance(cov: np.ndarray, layout: _Layout, prob: Problem, lm: _LM) -> tuple[ParameterCovariance, np.ndarray]:
+def _covariance(
+    cov: np.ndarray, layout: _Layout, prob: Problem, lm: _LM
+) -> tuple[ParameterCovariance, np.ndarray]:
     sl = layout.static_slices()
     off = sl["marker"][0]
     markers, msig = {}, np.full(layout.M, np.nan)
@@ -731,7 +854,7 @@ def _covariance(cov: np.ndarray, layout: _Layout, prob: Problem, lm: _LM) -> tup
                 msig[m] = sm
             continue
         b = off + 6 * m
-        markers[mid] = cov[b:b + 6, b:b + 6].copy()
+        markers[mid] = cov[b : b + 6, b : b + 6].copy()
         msig[m] = math.sqrt(np.trace(markers[mid][3:, 3:]) / 3)
     rig: dict[str, np.ndarray] = {}
     intr: dict[str, np.ndarray] = {}
@@ -743,18 +866,27 @@ def _covariance(cov: np.ndarray, layout: _Layout, prob: Problem, lm: _LM) -> tup
                 continue
             o, _, size = sl[name]
             b = o + c * size
-            target[cam.name] = cov[b:b + size, b:b + size].copy()
+            target[cam.name] = cov[b : b + size, b : b + size].copy()
         if RIG not in sl:
             pr = prob.priors
-            rig[cam.name] = np.diag([math.radians(pr.rig_sigma_deg) ** 2] * 3 + [pr.rig_sigma_m ** 2] * 3)
+            rig[cam.name] = np.diag(
+                [math.radians(pr.rig_sigma_deg) ** 2] * 3 + [pr.rig_sigma_m**2] * 3
+            )
         if INTR not in sl:
             f = prob.priors.focal_sigma_rel
-            intr[cam.name] = np.diag([(f * cam.K[0, 0]) ** 2, (f * cam.K[1, 1]) ** 2,
-                                      prob.priors.principal_sigma_px ** 2, prob.priors.principal_sigma_px ** 2])
+            intr[cam.name] = np.diag(
+                [
+                    (f * cam.K[0, 0]) ** 2,
+                    (f * cam.K[1, 1]) ** 2,
+                    prob.priors.principal_sigma_px**2,
+                    prob.priors.principal_sigma_px**2,
+                ]
+            )
     return ParameterCovariance(markers, rig, intr, distortion=dist, readout=readout), msig
 
 
 # --- building a problem from detections -------------------------------------------------------
+
 
 @dataclass(frozen=True, eq=False)
 class FrameView:
@@ -763,7 +895,9 @@ class FrameView:
     camera: int
     ids: np.ndarray  # (n,)
     corners: np.ndarray  # (n, 4, 2) distorted pixels
-    R_D: np.ndarray = field(default_factory=lambda: np.eye(3))  # bundle at this frame, from the keyframe's
+    R_D: np.ndarray = field(
+        default_factory=lambda: np.eye(3)
+    )  # bundle at this frame, from the keyframe's
     t_D: np.ndarray = field(default_factory=lambda: np.zeros(3))
     omega: np.ndarray = field(default_factory=lambda: np.zeros(3))  # keyframe-bundle frame, rad/s
     vel: np.ndarray = field(default_factory=lambda: np.zeros(3))  # keyframe-bundle frame, m/s
@@ -780,7 +914,9 @@ class Keyframe:
 def _calibration(cam: CameraParams) -> CameraCalibration:
     from annotator.core.experiment import CameraCalibration
 
-    return CameraCalibration(cam.K, np.asarray(cam.dist, float), 0, cam.height, "", cam.model, cam.readout_s)
+    return CameraCalibration(
+        cam.K, np.asarray(cam.dist, float), 0, cam.height, "", cam.model, cam.readout_s
+    )
 
 
 def _medoid_rotation(Rs: list[np.ndarray]) -> np.ndarray:
@@ -794,8 +930,9 @@ def _medoid_rotation(Rs: list[np.ndarray]) -> np.ndarray:
     return near.mean().as_matrix()
 
 
-def marker_views(keyframes: list[Keyframe], cameras: list[CameraParams],
-                 length: float) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
+def marker_views(
+    keyframes: list[Keyframe], cameras: list[CameraParams], length: float
+) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
     """Each marker's world pose (R, centre) as each keyframe view sees it (IPPE of its square)."""
     from annotator.vision.geometry import ippe_square
     from annotator.vision.lens import undistort_points
@@ -821,10 +958,15 @@ def marker_views(keyframes: list[Keyframe], cameras: list[CameraParams],
     return out
 
 
-def build_problem(survey: dict[int, tuple[np.ndarray, np.ndarray]], length: float, cameras: list[CameraParams],
-                  keyframes: list[Keyframe], priors: Priors, moved_m: float = 0.05,
-                  initial: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
-                  ) -> tuple[Problem, dict[int, tuple[np.ndarray, np.ndarray]]]:
+def build_problem(
+    survey: dict[int, tuple[np.ndarray, np.ndarray]],
+    length: float,
+    cameras: list[CameraParams],
+    keyframes: list[Keyframe],
+    priors: Priors,
+    moved_m: float = 0.05,
+    initial: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+) -> tuple[Problem, dict[int, tuple[np.ndarray, np.ndarray]]]:
     """The problem over every marker seen in the keyframes (surveyed or not) and the start values.
 
     ``survey`` maps marker id -> (R_world_marker, centre). Markers not in it, or marked unknown in
@@ -869,8 +1011,9 @@ def build_problem(survey: dict[int, tuple[np.ndarray, np.ndarray]], length: floa
             sig.append((math.inf, math.inf))
     ids = kept
     index = {mid: i for i, mid in enumerate(ids)}
-    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("kf", "cam", "mk", "corner", "uv", "R_D", "t_D", "om",
-                                                          "vel", "w")}
+    cols: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("kf", "cam", "mk", "corner", "uv", "R_D", "t_D", "om", "vel", "w")
+    }
     for k, kf in enumerate(keyframes):
         for v in kf.views:
             keep = np.array([int(i) in index for i in v.ids], bool)
@@ -891,18 +1034,39 @@ def build_problem(survey: dict[int, tuple[np.ndarray, np.ndarray]], length: floa
     if not cols["kf"]:
         raise ValueError("no marker corners in the keyframes")
     cat = {k: np.concatenate(v) for k, v in cols.items()}
-    obs = Observations(cat["kf"], cat["cam"], cat["mk"], cat["corner"], cat["uv"], cat["R_D"], cat["t_D"],
-                       cat["om"], cat["vel"], cat["w"])
-    prob = Problem(ids, np.array(R_m), np.array(t_m), np.array(sig, float).reshape(-1, 2), length, cameras,
-                   np.array([kf.R_wb for kf in keyframes]), np.array([kf.t_wb for kf in keyframes], float),
-                   obs, priors)
+    obs = Observations(
+        cat["kf"],
+        cat["cam"],
+        cat["mk"],
+        cat["corner"],
+        cat["uv"],
+        cat["R_D"],
+        cat["t_D"],
+        cat["om"],
+        cat["vel"],
+        cat["w"],
+    )
+    prob = Problem(
+        ids,
+        np.array(R_m),
+        np.array(t_m),
+        np.array(sig, float).reshape(-1, 2),
+        length,
+        cameras,
+        np.array([kf.R_wb for kf in keyframes]),
+        np.array([kf.t_wb for kf in keyframes], float),
+        obs,
+        priors,
+    )
     return prob, start_moved
 
 
 # --- a capture: keyframes from the first tracking pass, the refined experiment ---------------------
 
-def motion_at(times: np.ndarray, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
-              dt: float = 1 / 60) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+
+def motion_at(
+    times: np.ndarray, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray, dt: float = 1 / 60
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Bundle pose and velocity at ``times`` from a trajectory: (R, p, omega_world, v_world, ok)."""
     from annotator.core.trajectory import Trajectory
 
@@ -916,13 +1080,24 @@ def motion_at(times: np.ndarray, t_grid: np.ndarray, pos: np.ndarray, R: np.ndar
     vel = np.zeros((len(times), 3))
     if ok.any():
         # R(t + dt) = exp(w dt) R(t): world-frame angular velocity.
-        omega[ok] = Rotation.from_matrix(Rb[ok] @ np.transpose(Ra[ok], (0, 2, 1))).as_rotvec() / (2 * dt)
+        omega[ok] = Rotation.from_matrix(Rb[ok] @ np.transpose(Ra[ok], (0, 2, 1))).as_rotvec() / (
+            2 * dt
+        )
         vel[ok] = (pb[ok] - pa[ok]) / (2 * dt)
     return R0, p0, omega, vel, ok
 
 
-def predicted_smear_px(world: np.ndarray, R_wb: np.ndarray, p_wb: np.ndarray, omega: np.ndarray, vel: np.ndarray,
-                       R_bc: np.ndarray, t_bc: np.ndarray, focal: float, exposure_s: float) -> float:
+def predicted_smear_px(
+    world: np.ndarray,
+    R_wb: np.ndarray,
+    p_wb: np.ndarray,
+    omega: np.ndarray,
+    vel: np.ndarray,
+    R_bc: np.ndarray,
+    t_bc: np.ndarray,
+    focal: float,
+    exposure_s: float,
+) -> float:
     """How far (px) the fastest of these world points smears across the image during one exposure.
 
     The motion-blur measure: the bundle moving at (omega, vel) for ``exposure_s`` moves each point's
@@ -949,20 +1124,37 @@ def blur_weight(smear_px: float, scale_px: float = 2.0) -> float:
 
 def camera_params(rig_cam: RigCamera) -> CameraParams:
     cal = rig_cam.calibration
-    return CameraParams(rig_cam.name, rig_cam.R_bundle_camera, rig_cam.t_bundle_camera, cal.camera_matrix,
-                        np.asarray(cal.dist_coeffs, float), cal.model, cal.readout_s, cal.height,
-                        cal.corner_bias_px)
+    return CameraParams(
+        rig_cam.name,
+        rig_cam.R_bundle_camera,
+        rig_cam.t_bundle_camera,
+        cal.camera_matrix,
+        np.asarray(cal.dist_coeffs, float),
+        cal.model,
+        cal.readout_s,
+        cal.height,
+        cal.corner_bias_px,
+    )
 
 
-def select_keyframes(frames: Sequence[VideoFrames], exp: Experiment, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
-                     settings: RefineSettings) -> list[Keyframe]:
+def select_keyframes(
+    frames: Sequence[VideoFrames],
+    exp: Experiment,
+    t_grid: np.ndarray,
+    pos: np.ndarray,
+    R: np.ndarray,
+    settings: RefineSettings,
+) -> list[Keyframe]:
     """Keyframes over the capture: frames of the first camera with the other cameras' nearest
     frames, where the first pass has a pose, enough markers are seen and blur is small."""
     base = frames[0]
     if not len(base.t):
         return []
     cams = [exp.rig.cameras[cf.camera] for cf in frames]
-    focal = [float(np.sqrt(c.calibration.camera_matrix[0, 0] * c.calibration.camera_matrix[1, 1])) for c in cams]
+    focal = [
+        float(np.sqrt(c.calibration.camera_matrix[0, 0] * c.calibration.camera_matrix[1, 1]))
+        for c in cams
+    ]
     Rk, pk, om, vel, ok = motion_at(base.t, t_grid, pos, R)
     counts = np.array([len(d.ids) for d in base.detections])
     partner: list[list[tuple[int, int]]] = [[(0, k)] for k in range(len(base.t))]
@@ -984,22 +1176,37 @@ def select_keyframes(frames: Sequence[VideoFrames], exp: Experiment, t_grid: np.
     # The keyframes are spread over the whole capture: scoring the blur of an evenly spread subset
     # of 8 candidates per keyframe keeps a long capture's cost flat and still leaves sharp ones.
     if len(cand) > 8 * settings.max_keyframes:
-        cand = cand[np.unique(np.linspace(0, len(cand) - 1, 8 * settings.max_keyframes).round().astype(int))]
+        cand = cand[
+            np.unique(np.linspace(0, len(cand) - 1, 8 * settings.max_keyframes).round().astype(int))
+        ]
     # Prefer sharp frames: drop the candidates whose predicted smear is too large.
     room_centres = {int(m): np.asarray(p.position, float) for m, p in exp.markers.markers.items()}
     sharp = []
     for k in cand.tolist():
         det = base.detections[k]
-        pts = np.array([room_centres[int(i)] for i in det.ids if int(i) in room_centres]).reshape(-1, 3)
-        smear = predicted_smear_px(pts, Rk[k], pk[k], om[k], vel[k], cams[0].R_bundle_camera,
-                                   cams[0].t_bundle_camera, focal[0], settings.exposure_s)
+        pts = np.array([room_centres[int(i)] for i in det.ids if int(i) in room_centres]).reshape(
+            -1, 3
+        )
+        smear = predicted_smear_px(
+            pts,
+            Rk[k],
+            pk[k],
+            om[k],
+            vel[k],
+            cams[0].R_bundle_camera,
+            cams[0].t_bundle_camera,
+            focal[0],
+            settings.exposure_s,
+        )
         if smear <= settings.max_smear_px:
             sharp.append((k, smear))
     if len(sharp) < max(10, len(cand) // 5):  # a fast walk throughout: take the sharpest fifth
         sharp = []
         for k in cand.tolist():
             sharp.append((k, 0.0))
-    pick = np.linspace(0, len(sharp) - 1, min(settings.max_keyframes, len(sharp))).round().astype(int)
+    pick = (
+        np.linspace(0, len(sharp) - 1, min(settings.max_keyframes, len(sharp))).round().astype(int)
+    )
     chosen = [sharp[i] for i in np.unique(pick)]
     times = np.array([frames[ci].t[j] for k, _ in chosen for ci, j in partner[k]])
     Rj, pj, omj, velj, okj = motion_at(times, t_grid, pos, R)
@@ -1012,8 +1219,18 @@ def select_keyframes(frames: Sequence[VideoFrames], exp: Experiment, t_grid: np.
             if not okj[i]:
                 continue
             det = frames[ci].detections[j]
-            kf_views.append(FrameView(ci, det.ids, det.corners, R0.T @ Rj[i], R0.T @ (pj[i] - p0), R0.T @ omj[i],
-                                      R0.T @ velj[i], blur_weight(smear)))
+            kf_views.append(
+                FrameView(
+                    ci,
+                    det.ids,
+                    det.corners,
+                    R0.T @ Rj[i],
+                    R0.T @ (pj[i] - p0),
+                    R0.T @ omj[i],
+                    R0.T @ velj[i],
+                    blur_weight(smear),
+                )
+            )
         out.append(Keyframe(R0, p0, kf_views))
     return out
 
@@ -1029,9 +1246,15 @@ class Refinement:
     mapped: list[int]  # markers the survey did not give, now mapped from the video
 
 
-def refine_capture(frames: Sequence[VideoFrames], exp: Experiment, t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
-                   settings: RefineSettings | None = None,
-                   initial: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> Refinement | None:
+def refine_capture(
+    frames: Sequence[VideoFrames],
+    exp: Experiment,
+    t_grid: np.ndarray,
+    pos: np.ndarray,
+    R: np.ndarray,
+    settings: RefineSettings | None = None,
+    initial: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+) -> Refinement | None:
     """Refine the experiment's map (mode map) and rig, lenses, readouts (mode all) from a first pass.
 
     ``initial``: start poses (R_world_marker, centre) of markers the survey lacks, from an
@@ -1046,12 +1269,19 @@ def refine_capture(frames: Sequence[VideoFrames], exp: Experiment, t_grid: np.nd
     t0 = time.perf_counter()
     keyframes = select_keyframes(frames, exp, t_grid, pos, R, s)
     if len(keyframes) < 5:
-        log.warning("refine: only %d usable keyframes; the given map, rig and lenses are kept", len(keyframes))
+        log.warning(
+            "refine: only %d usable keyframes; the given map, rig and lenses are kept",
+            len(keyframes),
+        )
         return None
     cams = [camera_params(exp.rig.cameras[cf.camera]) for cf in frames]
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
-    survey = {int(m): (room.R_world_marker[i], room.t_world_marker[i]) for i, m in enumerate(room.ids)}
-    prob, starts = build_problem(survey, exp.markers.length, cams, keyframes, exp.priors, initial=initial)
+    survey = {
+        int(m): (room.R_world_marker[i], room.t_world_marker[i]) for i, m in enumerate(room.ids)
+    }
+    prob, starts = build_problem(
+        survey, exp.markers.length, cams, keyframes, exp.priors, initial=initial
+    )
     sol = solve(prob, s, starts)
     euler = Rotation.from_matrix(sol.R_m).as_euler("xyz")
     markers = dict(exp.markers.markers)
@@ -1067,29 +1297,57 @@ def refine_capture(frames: Sequence[VideoFrames], exp: Experiment, t_grid: np.nd
         # adjustment) and reported, but not applied to the final pass: its frames see several
         # markers each, where a constant correction of a bias that varies with a marker's size
         # in the image removes no more error than it adds (measured on the renders).
-        cal = replace(rc.calibration, camera_matrix=new.K, dist_coeffs=new.dist, readout_s=new.readout_s)
-        rig[cf.camera] = replace(rc, calibration=cal, R_bundle_camera=new.R_bc, t_bundle_camera=new.t_bc)
-    refined = replace(exp, markers=MarkerSetup(markers, exp.markers.dictionary, exp.markers.length),
-                      rig=Rig(rig, exp.rig.source))
-    report = refinement_report(prob, sol, cams, exp, s, len(keyframes), mapped, time.perf_counter() - t0)
+        cal = replace(
+            rc.calibration, camera_matrix=new.K, dist_coeffs=new.dist, readout_s=new.readout_s
+        )
+        rig[cf.camera] = replace(
+            rc, calibration=cal, R_bundle_camera=new.R_bc, t_bundle_camera=new.t_bc
+        )
+    refined = replace(
+        exp,
+        markers=MarkerSetup(markers, exp.markers.dictionary, exp.markers.length),
+        rig=Rig(rig, exp.rig.source),
+    )
+    report = refinement_report(
+        prob, sol, cams, exp, s, len(keyframes), mapped, time.perf_counter() - t0
+    )
     return Refinement(refined, sol, sol.covariance, report, mapped)
 
 
-def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], exp: Experiment, s: RefineSettings,
-                      n_keyframes: int, mapped: list[int], seconds: float) -> dict[str, Any]:
+def refinement_report(
+    prob: Problem,
+    sol: Solution,
+    cams: list[CameraParams],
+    exp: Experiment,
+    s: RefineSettings,
+    n_keyframes: int,
+    mapped: list[int],
+    seconds: float,
+) -> dict[str, Any]:
     """report.json's ``refinement`` section."""
     cameras = {}
     for a, b in zip(cams, sol.cameras, strict=True):
         cov = sol.covariance
         ro = cov.readout.get(a.name)
         cameras[a.name] = {
-            "rms_px_before": round(sol.rms_before[a.name], 3), "rms_px_after": round(sol.rms_after[a.name], 3),
-            "rig_rotation_change_deg": [round(float(v), 4) for v in
-                                        np.degrees(Rotation.from_matrix(b.R_bc @ a.R_bc.T).as_rotvec())],
+            "rms_px_before": round(sol.rms_before[a.name], 3),
+            "rms_px_after": round(sol.rms_after[a.name], 3),
+            "rig_rotation_change_deg": [
+                round(float(v), 4)
+                for v in np.degrees(Rotation.from_matrix(b.R_bc @ a.R_bc.T).as_rotvec())
+            ],
             "rig_position_change_m": [round(float(v), 5) for v in b.t_bc - a.t_bc],
-            "focal_change_rel": [round(float(b.K[0, 0] / a.K[0, 0] - 1), 6), round(float(b.K[1, 1] / a.K[1, 1] - 1), 6)],
-            "principal_change_px": [round(float(b.K[0, 2] - a.K[0, 2]), 3), round(float(b.K[1, 2] - a.K[1, 2]), 3)],
-            "distortion_change": [round(float(v), 6) for v in np.asarray(b.dist) - np.asarray(a.dist)],
+            "focal_change_rel": [
+                round(float(b.K[0, 0] / a.K[0, 0] - 1), 6),
+                round(float(b.K[1, 1] / a.K[1, 1] - 1), 6),
+            ],
+            "principal_change_px": [
+                round(float(b.K[0, 2] - a.K[0, 2]), 3),
+                round(float(b.K[1, 2] - a.K[1, 2]), 3),
+            ],
+            "distortion_change": [
+                round(float(v), 6) for v in np.asarray(b.dist) - np.asarray(a.dist)
+            ],
             "readout_s": round(b.readout_s, 5),
             "corner_bias_px": round(b.corner_bias_px, 3),
             "readout_sigma_s": None if ro is None else round(float(np.sqrt(ro[0, 0])), 5),
@@ -1097,10 +1355,24 @@ def refinement_report(prob: Problem, sol: Solution, cams: list[CameraParams], ex
     moved = []
     for mid in sol.moved:
         m = prob.markers.index(mid)
-        moved.append({"id": int(mid), "offset_m": [round(float(v), 4) for v in sol.t_m[m] - prob.t_m[m]],
-                      "survey_sigma_m": float(prob.marker_sigma[m, 1]), "note": "moved since the survey?"})
+        moved.append(
+            {
+                "id": int(mid),
+                "offset_m": [round(float(v), 4) for v in sol.t_m[m] - prob.t_m[m]],
+                "survey_sigma_m": float(prob.marker_sigma[m, 1]),
+                "note": "moved since the survey?",
+            }
+        )
     seen = sorted(int(prob.markers[m]) for m in np.unique(prob.obs.marker))
-    return {"mode": s.mode, "keyframes": n_keyframes, "corners": int(len(prob.obs.uv)), "markers_seen": seen,
-            "iterations": sol.iterations, "seconds": round(seconds, 2), "corner_sigma_px": round(sol.sigma_px, 3),
-            "cameras": cameras, "markers_mapped": [int(m) for m in mapped],
-            "markers_moved": moved}
+    return {
+        "mode": s.mode,
+        "keyframes": n_keyframes,
+        "corners": int(len(prob.obs.uv)),
+        "markers_seen": seen,
+        "iterations": sol.iterations,
+        "seconds": round(seconds, 2),
+        "corner_sigma_px": round(sol.sigma_px, 3),
+        "cameras": cameras,
+        "markers_mapped": [int(m) for m in mapped],
+        "markers_moved": moved,
+    }

@@ -38,8 +38,9 @@ class Truth:
     source: str = ""
 
     @classmethod
-    def from_samples(cls, t: np.ndarray, position: np.ndarray, sigma: np.ndarray | None = None,
-                     source: str = "") -> Truth:
+    def from_samples(
+        cls, t: np.ndarray, position: np.ndarray, sigma: np.ndarray | None = None, source: str = ""
+    ) -> Truth:
         """Sorted by time; of several samples with the same timestamp the first is kept (track
         files repeat one pose on every sensor's row)."""
         t = np.asarray(t, dtype=float)
@@ -64,8 +65,10 @@ class ErrorSummary:
     n: int
 
     def as_dict(self) -> dict[str, float | int | None]:
-        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                for k, v in asdict(self).items()}
+        return {
+            k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+            for k, v in asdict(self).items()
+        }
 
 
 def summarize(errors: np.ndarray) -> ErrorSummary:
@@ -76,12 +79,21 @@ def summarize(errors: np.ndarray) -> ErrorSummary:
         nan = float("nan")
         return ErrorSummary(nan, nan, nan, nan, nan, nan, nan, 0)
     p50, p75, p95 = np.percentile(e, [50, 75, 95])
-    return ErrorSummary(float(e.mean()), float(p50), float(np.sqrt(np.mean(e * e))), float(p50),
-                        float(p75), float(p95), float(e.max()), int(e.size))
+    return ErrorSummary(
+        float(e.mean()),
+        float(p50),
+        float(np.sqrt(np.mean(e * e))),
+        float(p50),
+        float(p75),
+        float(p95),
+        float(e.max()),
+        int(e.size),
+    )
 
 
-def interpolate_truth(truth: Truth, t: np.ndarray, *, max_gap_s: float = DEFAULT_MAX_GAP_S,
-                      shift_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def interpolate_truth(
+    truth: Truth, t: np.ndarray, *, max_gap_s: float = DEFAULT_MAX_GAP_S, shift_s: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Truth position (M, 3) and sigma (M,) at times ``t - shift_s``; NaN where there is no
     bracketing pair of valid truth samples at most ``max_gap_s`` apart (never extrapolated).
     A time equal to a truth sample's takes that sample exactly."""
@@ -128,11 +140,14 @@ class Latency:
     searched: tuple[float, float, float]  # (-max, max, step)
 
     def as_dict(self) -> dict[str, object]:
-        return {"shift_s": self.shift_s, "ce50_2d_at_shift_m": _num(self.ce50_at_shift),
-                "ce50_2d_at_zero_m": _num(self.ce50_at_zero),
-                "searched_s": list(self.searched),
-                "meaning": "the time shift that minimises the median 2-D error; positive = "
-                           "the estimates lag the truth"}
+        return {
+            "shift_s": self.shift_s,
+            "ce50_2d_at_shift_m": _num(self.ce50_at_shift),
+            "ce50_2d_at_zero_m": _num(self.ce50_at_zero),
+            "searched_s": list(self.searched),
+            "meaning": "the time shift that minimises the median 2-D error; positive = "
+            "the estimates lag the truth",
+        }
 
 
 @dataclass(frozen=True)
@@ -160,9 +175,12 @@ class Score:
             "n": int(sig.size),
             "median": _num(float(np.median(sig))) if sig.size else None,
             "p95": _num(float(np.percentile(sig, 95))) if sig.size else None,
-            "note": ("the ground truth's own position 1-sigma at the scored estimates; errors "
-                     "below it are not resolved" if sig.size else
-                     "the ground truth carries no per-sample sigma"),
+            "note": (
+                "the ground truth's own position 1-sigma at the scored estimates; errors "
+                "below it are not resolved"
+                if sig.size
+                else "the ground truth carries no per-sample sigma"
+            ),
         }
         return {
             "error_2d_m": self.summary_2d.as_dict(),
@@ -185,8 +203,9 @@ def _errors(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e2, e3
 
 
-def coverage(t: np.ndarray, scored: np.ndarray, truth: Truth,
-             window_s: float = DEFAULT_COVERAGE_WINDOW_S) -> dict[str, object]:
+def coverage(
+    t: np.ndarray, scored: np.ndarray, truth: Truth, window_s: float = DEFAULT_COVERAGE_WINDOW_S
+) -> dict[str, object]:
     """How much was scored: estimates scored of all given, and the fraction of the truth's valid
     samples that have a scored estimate within ``window_s`` seconds."""
     n = len(t)
@@ -210,8 +229,15 @@ def coverage(t: np.ndarray, scored: np.ndarray, truth: Truth,
     }
 
 
-def estimate_latency(t: np.ndarray, est: np.ndarray, truth: Truth, *, max_shift_s: float = 3.0,
-                     step_s: float = 0.05, max_gap_s: float = DEFAULT_MAX_GAP_S) -> Latency | None:
+def estimate_latency(
+    t: np.ndarray,
+    est: np.ndarray,
+    truth: Truth,
+    *,
+    max_shift_s: float = 3.0,
+    step_s: float = 0.05,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+) -> Latency | None:
     """The time shift in [-max, max] (grid of ``step_s``) minimising the median 2-D error of
     ``est`` against the truth at ``t - shift``; None when too few estimates can be scored."""
     shifts = np.round(np.arange(-max_shift_s, max_shift_s + step_s / 2, step_s), 9)
@@ -233,9 +259,16 @@ def estimate_latency(t: np.ndarray, est: np.ndarray, truth: Truth, *, max_shift_
     return Latency(best[1], best[0], at_zero, (-max_shift_s, max_shift_s, step_s))
 
 
-def score(t: np.ndarray, est: np.ndarray, truth: Truth, *, max_gap_s: float = DEFAULT_MAX_GAP_S,
-          coverage_window_s: float = DEFAULT_COVERAGE_WINDOW_S,
-          latency_max_s: float | None = None, latency_step_s: float = 0.05) -> Score:
+def score(
+    t: np.ndarray,
+    est: np.ndarray,
+    truth: Truth,
+    *,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+    coverage_window_s: float = DEFAULT_COVERAGE_WINDOW_S,
+    latency_max_s: float | None = None,
+    latency_step_s: float = 0.05,
+) -> Score:
     """Per-estimate 2-D and 3-D errors of ``est`` (M, 3; z NaN when the localizer gives none)
     at times ``t`` against ``truth``, with coverage and, if ``latency_max_s`` is given, the
     latency estimate."""
@@ -247,6 +280,7 @@ def score(t: np.ndarray, est: np.ndarray, truth: Truth, *, max_gap_s: float = DE
     sig = np.where(scored, sig, np.nan)
     lat = None
     if latency_max_s is not None and latency_max_s > 0:
-        lat = estimate_latency(t, est, truth, max_shift_s=latency_max_s, step_s=latency_step_s,
-                               max_gap_s=max_gap_s)
+        lat = estimate_latency(
+            t, est, truth, max_shift_s=latency_max_s, step_s=latency_step_s, max_gap_s=max_gap_s
+        )
     return Score(t, e2, e3, ref, sig, coverage(t, scored, truth, coverage_window_s), lat)

@@ -51,14 +51,19 @@ def _cv_model(dt: float, q: float) -> tuple[np.ndarray, np.ndarray]:
     F = np.eye(6)
     F[:3, 3:] = dt * np.eye(3)
     Q = np.zeros((6, 6))
-    Q[:3, :3] = q * dt ** 3 / 3 * np.eye(3)
-    Q[:3, 3:] = Q[3:, :3] = q * dt ** 2 / 2 * np.eye(3)
+    Q[:3, :3] = q * dt**3 / 3 * np.eye(3)
+    Q[:3, 3:] = Q[3:, :3] = q * dt**2 / 2 * np.eye(3)
     Q[3:, 3:] = q * dt * np.eye(3)
     return F, Q
 
 
-def smooth_positions(t_meas: np.ndarray, z: np.ndarray, cov: np.ndarray, t_out: np.ndarray,
-                     settings: SmootherSettings | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def smooth_positions(
+    t_meas: np.ndarray,
+    z: np.ndarray,
+    cov: np.ndarray,
+    t_out: np.ndarray,
+    settings: SmootherSettings | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Smoothed positions at ``t_out``.
 
     ``t_meas`` (N,) sorted, ``z`` (N, 3), ``cov`` (N, 3, 3). Returns positions (M, 3) and their
@@ -71,7 +76,7 @@ def smooth_positions(t_meas: np.ndarray, z: np.ndarray, cov: np.ndarray, t_out: 
     sig = np.full(len(t_out), np.nan)
     accepted = np.zeros(len(t_meas), dtype=bool)
     H = np.hstack([np.eye(3), np.zeros((3, 3))])
-    floor = s.min_sigma_m ** 2 * np.eye(3)
+    floor = s.min_sigma_m**2 * np.eye(3)
     for a, b in _segments(t_meas, s.max_gap_s):
         lo, hi = t_meas[a], t_meas[b - 1]
         q_idx = np.flatnonzero((t_out >= lo) & (t_out <= hi))
@@ -131,7 +136,9 @@ def smooth_positions(t_meas: np.ndarray, z: np.ndarray, cov: np.ndarray, t_out: 
     return out, sig, accepted
 
 
-def supported(t_meas: np.ndarray, t_out: np.ndarray, max_gap: float, max_extrapolate: float) -> np.ndarray:
+def supported(
+    t_meas: np.ndarray, t_out: np.ndarray, max_gap: float, max_extrapolate: float
+) -> np.ndarray:
     """Output times that lie between two measurements closer than max_gap, or near one measurement."""
     t_meas = np.asarray(t_meas, float)
     if len(t_meas) == 0:
@@ -145,8 +152,9 @@ def supported(t_meas: np.ndarray, t_out: np.ndarray, max_gap: float, max_extrapo
     return exact | inside | near
 
 
-def _fit_many(t0: np.ndarray, t: np.ndarray, rot: Rotation, weight: np.ndarray, h: float,
-              exclude_self: bool) -> tuple[Rotation | None, np.ndarray]:
+def _fit_many(
+    t0: np.ndarray, t: np.ndarray, rot: Rotation, weight: np.ndarray, h: float, exclude_self: bool
+) -> tuple[Rotation | None, np.ndarray]:
     """Weighted local-linear rotation fits at all times ``t0`` at once.
 
     Each fit uses the measurements within +-3h of its time, Gaussian weights in
@@ -183,13 +191,20 @@ def _fit_many(t0: np.ndarray, t: np.ndarray, rot: Rotation, weight: np.ndarray, 
         v = (ref_rep.inv() * flat).as_rotvec().reshape(m, k, 3)
         AtWv = np.einsum("mki,mk,mkc->mic", A_t, w, v)
         coef = np.linalg.solve(AtWA, AtWv)  # (m, 2, 3)
-        offset = np.where((w > 0).sum(1)[:, None] >= 3, coef[:, 0], (w[:, :, None] * v).sum(1) / wsum)
+        offset = np.where(
+            (w > 0).sum(1)[:, None] >= 3, coef[:, 0], (w[:, :, None] * v).sum(1) / wsum
+        )
         ref = ref * Rotation.from_rotvec(offset)
     return ref, ok
 
 
-def smooth_rotations(t_meas: np.ndarray, rot: Rotation, var: np.ndarray, t_out: np.ndarray,
-                     settings: SmootherSettings | None = None) -> tuple[np.ndarray, np.ndarray]:
+def smooth_rotations(
+    t_meas: np.ndarray,
+    rot: Rotation,
+    var: np.ndarray,
+    t_out: np.ndarray,
+    settings: SmootherSettings | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Smoothed rotation matrices (M, 3, 3) at ``t_out`` (NaN where no measurement is near), and
     the (N,) mask of accepted measurements.
 

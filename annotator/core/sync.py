@@ -35,8 +35,11 @@ class CoverEvent:
 
     def edges(self) -> list[tuple[float, float]]:
         """(time, sigma) of the edges that were seen."""
-        return [(t, s) for t, s in ((self.cover, self.cover_sigma), (self.release, self.release_sigma))
-                if math.isfinite(t)]
+        return [
+            (t, s)
+            for t, s in ((self.cover, self.cover_sigma), (self.release, self.release_sigma))
+            if math.isfinite(t)
+        ]
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,7 +90,9 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(d[0::2].tolist(), d[1::2].tolist(), strict=True))
 
 
-def _merge_runs(runs: list[tuple[int, int]], t: np.ndarray, max_gap: float) -> list[tuple[int, int]]:
+def _merge_runs(
+    runs: list[tuple[int, int]], t: np.ndarray, max_gap: float
+) -> list[tuple[int, int]]:
     """Join runs whose gap (time from the last True to the next True) is at most ``max_gap``."""
     out: list[tuple[int, int]] = []
     for a, b in runs:
@@ -121,9 +126,16 @@ def _frame_durations(pts: np.ndarray) -> np.ndarray:
     return 0.5 * (left + right)
 
 
-def _brightness_edge(pts: np.ndarray, b: np.ndarray, dur: np.ndarray, i: int, level_before: float,
-                     level_after: float, noise: float,
-                     max_span: float) -> tuple[float, float]:
+def _brightness_edge(
+    pts: np.ndarray,
+    b: np.ndarray,
+    dur: np.ndarray,
+    i: int,
+    level_before: float,
+    level_after: float,
+    noise: float,
+    max_span: float,
+) -> tuple[float, float]:
     """Sub-frame time of one brightness edge near index ``i`` (the first frame of the new state).
 
     Each frame integrates light over its own interval, so the fraction of that interval spent in
@@ -154,9 +166,16 @@ def _brightness_edge(pts: np.ndarray, b: np.ndarray, dur: np.ndarray, i: int, le
     return float(t_edge), math.hypot(sig_noise, sig_model)
 
 
-def detect_video_events(pts: np.ndarray, brightness: np.ndarray, marker_count: np.ndarray | None = None,
-                        *, name: str = "video", min_duration: float = 0.3, max_duration: float = 10.0,
-                        min_contrast: float = 0.3) -> list[CoverEvent]:
+def detect_video_events(
+    pts: np.ndarray,
+    brightness: np.ndarray,
+    marker_count: np.ndarray | None = None,
+    *,
+    name: str = "video",
+    min_duration: float = 0.3,
+    max_duration: float = 10.0,
+    min_contrast: float = 0.3,
+) -> list[CoverEvent]:
     """Covered intervals of one video, in its own PTS seconds, from per-frame series.
 
     ``brightness`` is the mean grey level of each frame; ``marker_count`` (optional) the number of
@@ -218,17 +237,26 @@ def detect_video_events(pts: np.ndarray, brightness: np.ndarray, marker_count: n
                 seen = pts[z - 1] - pts[a] + dur[a]
                 if a == 0 or z == pts.size or not (min_duration <= seen <= max_duration):
                     continue
-                frame = float(np.median(dur[max(a - 1, 0):z + 1]))
+                frame = float(np.median(dur[max(a - 1, 0) : z + 1]))
                 cover = float(0.5 * (pts[a - 1] + pts[a]))
                 release = float(0.5 * (pts[z - 1] + pts[z]))
                 events.append(CoverEvent(cover, release, frame, frame, "markers"))
     if not events:
-        why = (f"brightness drops only {contrast:.0%} below its median" if contrast < min_contrast
-               else f"no dark run of {min_duration}-{max_duration} s without markers")
-        raise NoDataError(f"{name}: no cover event found ({why}); cover the bundle with both hands for "
-                          "1-2 s at the start, or use sync.mode: manual with sync.video_start")
-    log.info("%s: %d cover event(s): %s", name, len(events),
-             ", ".join(f"{e.cover:.3f}-{e.release:.3f} s" for e in events))
+        why = (
+            f"brightness drops only {contrast:.0%} below its median"
+            if contrast < min_contrast
+            else f"no dark run of {min_duration}-{max_duration} s without markers"
+        )
+        raise NoDataError(
+            f"{name}: no cover event found ({why}); cover the bundle with both hands for "
+            "1-2 s at the start, or use sync.mode: manual with sync.video_start"
+        )
+    log.info(
+        "%s: %d cover event(s): %s",
+        name,
+        len(events),
+        ", ".join(f"{e.cover:.3f}-{e.release:.3f} s" for e in events),
+    )
     return events
 
 
@@ -248,8 +276,15 @@ def _normalised_levels(rssi: np.ndarray, sensor_codes: np.ndarray, use: np.ndarr
     return z
 
 
-def _changepoint(t: np.ndarray, z: np.ndarray, lo: float, hi: float, grid: np.ndarray,
-                 into_covered: bool, same_advert_s: float = 0.0) -> tuple[float, float, float]:
+def _changepoint(
+    t: np.ndarray,
+    z: np.ndarray,
+    lo: float,
+    hi: float,
+    grid: np.ndarray,
+    into_covered: bool,
+    same_advert_s: float = 0.0,
+) -> tuple[float, float, float]:
     """Posterior mean, sigma and log-likelihood ratio of one change point on ``grid``.
 
     Model on [lo, hi): a Poisson stream of readings whose rate and mean (normalised) level change
@@ -292,8 +327,11 @@ def _changepoint(t: np.ndarray, z: np.ndarray, lo: float, hi: float, grid: np.nd
     r1, r2 = n1 / np.maximum(t1, 1e-9), n2 / np.maximum(t2, 1e-9)
     quieter = (r2 < r1) | (m2 < m1) if into_covered else (r1 < r2) | (m1 < m2)
     ll = np.where(quieter, ll_rate + ll_level, -np.inf)
-    ll_null = xlogy(np.array(float(n)), np.array(n / (hi - lo))) - n \
+    ll_null = (
+        xlogy(np.array(float(n)), np.array(n / (hi - lo)))
+        - n
         - 0.5 * n * np.log(max((q - c1[n] ** 2 / max(n, 1)) / max(n, 1), var_floor))
+    )
     best = float(np.max(ll))
     if not math.isfinite(best):
         return math.nan, math.nan, 0.0
@@ -305,9 +343,17 @@ def _changepoint(t: np.ndarray, z: np.ndarray, lo: float, hi: float, grid: np.nd
     return mean, math.hypot(sd, step / math.sqrt(12.0)), best - float(ll_null)
 
 
-def _coarse_dips(t: np.ndarray, rssi: np.ndarray, codes: np.ndarray, *, name: str, bin_s: float,
-                 window_s: float, rate_drop: float, level_drop_db: float
-                 ) -> tuple[np.ndarray, list[tuple[int, int]], float]:
+def _coarse_dips(
+    t: np.ndarray,
+    rssi: np.ndarray,
+    codes: np.ndarray,
+    *,
+    name: str,
+    bin_s: float,
+    window_s: float,
+    rate_drop: float,
+    level_drop_db: float,
+) -> tuple[np.ndarray, list[tuple[int, int]], float]:
     """Candidate covers: bin edges, runs of bins where the pooled rate or level dips, base rate.
 
     The rate and the mean normalised level are taken in a sliding ``window_s`` window over
@@ -337,12 +383,25 @@ def _coarse_dips(t: np.ndarray, rssi: np.ndarray, codes: np.ndarray, *, name: st
     return edges, runs, base
 
 
-def detect_rssi_events(t: np.ndarray, rssi: np.ndarray, sensor: np.ndarray, *, name: str = "RSSI",
-                       bin_s: float = 0.1, window_s: float = 0.5, min_duration: float = 0.3,
-                       max_duration: float = 10.0, rate_drop: float = 0.5, level_drop_db: float = 6.0,
-                       min_llr: float = 20.0, min_edge_llr: float = 6.0, search_s: float = 1.0,
-                       context_s: float = 3.0,
-                       grid_s: float = 0.005, same_advert_s: float = 0.002) -> list[CoverEvent]:
+def detect_rssi_events(
+    t: np.ndarray,
+    rssi: np.ndarray,
+    sensor: np.ndarray,
+    *,
+    name: str = "RSSI",
+    bin_s: float = 0.1,
+    window_s: float = 0.5,
+    min_duration: float = 0.3,
+    max_duration: float = 10.0,
+    rate_drop: float = 0.5,
+    level_drop_db: float = 6.0,
+    min_llr: float = 20.0,
+    min_edge_llr: float = 6.0,
+    search_s: float = 1.0,
+    context_s: float = 3.0,
+    grid_s: float = 0.005,
+    same_advert_s: float = 0.002,
+) -> list[CoverEvent]:
     """Covered intervals in the pooled readings of every sensor (one beacon), in the RSSI clock.
 
     ``t`` in seconds (any origin), ``rssi`` in dBm, ``sensor`` any per-reading sensor id. A
@@ -366,8 +425,16 @@ def detect_rssi_events(t: np.ndarray, rssi: np.ndarray, sensor: np.ndarray, *, n
     _, codes = np.unique(sensor[order], return_inverse=True)
 
     t0, t1 = float(t[0]), float(t[-1])
-    edges, runs, base = _coarse_dips(t, rssi, codes, name=name, bin_s=bin_s, window_s=window_s,
-                                     rate_drop=rate_drop, level_drop_db=level_drop_db)
+    edges, runs, base = _coarse_dips(
+        t,
+        rssi,
+        codes,
+        name=name,
+        bin_s=bin_s,
+        window_s=window_s,
+        rate_drop=rate_drop,
+        level_drop_db=level_drop_db,
+    )
     nb = edges.size - 1
 
     events: list[CoverEvent] = []
@@ -394,37 +461,59 @@ def detect_rssi_events(t: np.ndarray, rssi: np.ndarray, sensor: np.ndarray, *, n
             if not at_start:
                 grid = np.arange(max(c_cov - search_s, lo + grid_s), inner_c, grid_s)
                 if grid.size:
-                    cover, cs, llr_c = _changepoint(t, z, lo, inner_c, grid, into_covered=True,
-                                                                 same_advert_s=same_advert_s)
+                    cover, cs, llr_c = _changepoint(
+                        t, z, lo, inner_c, grid, into_covered=True, same_advert_s=same_advert_s
+                    )
             if not at_end:
                 inner_r = cover + half if math.isfinite(cover) else mid
                 grid = np.arange(inner_r + grid_s, min(c_rel + search_s, hi), grid_s)
                 if grid.size:
-                    release, rs, llr_r = _changepoint(t, z, inner_r, hi, grid, into_covered=False,
-                                                                   same_advert_s=same_advert_s)
+                    release, rs, llr_r = _changepoint(
+                        t, z, inner_r, hi, grid, into_covered=False, same_advert_s=same_advert_s
+                    )
             if at_start or not math.isfinite(release):
                 break
             inner_c = release - half
         llrs = [v for v in (llr_c, llr_r) if math.isfinite(v)]
-        log.debug("%s: edges %.3f +- %.3f / %.3f +- %.3f s, LLR %.1f / %.1f", name, cover, cs, release,
-                  rs, llr_c, llr_r)
+        log.debug(
+            "%s: edges %.3f +- %.3f / %.3f +- %.3f s, LLR %.1f / %.1f",
+            name,
+            cover,
+            cs,
+            release,
+            rs,
+            llr_c,
+            llr_r,
+        )
         candidates += 1
         if not llrs or sum(llrs) < min_llr or min(llrs) < min_edge_llr:
             continue
         if math.isnan(cover) and math.isnan(release):
             continue
-        if math.isfinite(cover) and math.isfinite(release) and not (
-                min_duration <= release - cover <= max_duration):
+        if (
+            math.isfinite(cover)
+            and math.isfinite(release)
+            and not (min_duration <= release - cover <= max_duration)
+        ):
             continue
         events.append(CoverEvent(cover, release, cs, rs, "rssi"))
     if not events:
-        why = (f"{candidates} dip(s) of the pooled rate or level were too weak to be a cover" if candidates
-               else f"the pooled reading rate never fell below {rate_drop:.0%} of {base:.1f}/s nor the "
-                    f"level by {level_drop_db:g} dB for {min_duration}-{max_duration} s")
-        raise NoDataError(f"{name}: no cover event found ({why}); cover the beacon with both hands for "
-                          "1-2 s, or use sync.mode: manual with sync.video_start")
-    log.info("%s: %d cover event(s): %s", name, len(events),
-             ", ".join(f"{e.cover:.3f}-{e.release:.3f}" for e in events))
+        why = (
+            f"{candidates} dip(s) of the pooled rate or level were too weak to be a cover"
+            if candidates
+            else f"the pooled reading rate never fell below {rate_drop:.0%} of {base:.1f}/s nor the "
+            f"level by {level_drop_db:g} dB for {min_duration}-{max_duration} s"
+        )
+        raise NoDataError(
+            f"{name}: no cover event found ({why}); cover the beacon with both hands for "
+            "1-2 s, or use sync.mode: manual with sync.video_start"
+        )
+    log.info(
+        "%s: %d cover event(s): %s",
+        name,
+        len(events),
+        ", ".join(f"{e.cover:.3f}-{e.release:.3f}" for e in events),
+    )
     return events
 
 
@@ -432,14 +521,20 @@ def detect_rssi_events(t: np.ndarray, rssi: np.ndarray, sensor: np.ndarray, *, n
 # (c) the clock map
 
 
-def _match_events(video: list[CoverEvent], rssi: list[CoverEvent], approx_start: float | None,
-                  tol: float, max_start_error: float) -> list[tuple[CoverEvent, CoverEvent]]:
+def _match_events(
+    video: list[CoverEvent],
+    rssi: list[CoverEvent],
+    approx_start: float | None,
+    tol: float,
+    max_start_error: float,
+) -> list[tuple[CoverEvent, CoverEvent]]:
     """Pair video events with RSSI events under one common offset.
 
     Every (video i, RSSI j) pair proposes an offset; the proposal that pairs the most events with
     consistent times and durations wins, then the smallest duration mismatch, then the one closest
     to ``approx_start``.
     """
+
     def anchor(e: CoverEvent) -> float:
         return e.cover if math.isfinite(e.cover) else e.release
 
@@ -462,8 +557,10 @@ def _match_events(video: list[CoverEvent], rssi: list[CoverEvent], approx_start:
                     if j in used:
                         continue
                     if abs(anchor(rr) - (anchor(vv) + off)) > tol and not (
-                            math.isfinite(vv.release) and math.isfinite(rr.release)
-                            and abs(rr.release - (vv.release + off)) <= tol):
+                        math.isfinite(vv.release)
+                        and math.isfinite(rr.release)
+                        and abs(rr.release - (vv.release + off)) <= tol
+                    ):
                         continue
                     dd = rr.duration - vv.duration
                     if math.isfinite(dd) and abs(dd) > max(tol, 0.3 * abs(vv.duration)):
@@ -488,8 +585,9 @@ def _match_events(video: list[CoverEvent], rssi: list[CoverEvent], approx_start:
 DRIFT_PRIOR: tuple[tuple[float, float], ...] = ((0.5, 1e-4), (0.5, 3e-3))
 
 
-def _drift_mixture_posterior(aw: np.ndarray, bw: np.ndarray, k: int,
-                             prior: tuple[tuple[float, float], ...]) -> tuple[np.ndarray, np.ndarray]:
+def _drift_mixture_posterior(
+    aw: np.ndarray, bw: np.ndarray, k: int, prior: tuple[tuple[float, float], ...]
+) -> tuple[np.ndarray, np.ndarray]:
     """Mean and covariance of the unknowns of the whitened system ``aw x = bw`` when unknown ``k``
     has a Gaussian-mixture prior [(weight, sigma), ...] and the others a flat one.
 
@@ -513,17 +611,27 @@ def _drift_mixture_posterior(aw: np.ndarray, bw: np.ndarray, k: int,
     p = np.exp(np.asarray(logs) - max(logs))
     p /= p.sum()
     mean = np.sum([pi * m for pi, m in zip(p, means, strict=True)], axis=0)
-    cov = np.sum([pi * (c + np.outer(m - mean, m - mean)) for pi, m, c in zip(p, means, covs, strict=True)],
-                 axis=0)
+    cov = np.sum(
+        [pi * (c + np.outer(m - mean, m - mean)) for pi, m, c in zip(p, means, covs, strict=True)],
+        axis=0,
+    )
     return mean, cov
 
 
-def fit_clock_map(video_events: list[CoverEvent], rssi_events: list[CoverEvent], *, name: str = "video",
-                  approx_start: float | None = None, max_start_error: float = math.inf,
-                  fit_drift: bool | None = None, min_drift_span: float = 10.0,
-                  match_tol: float = 0.75, lone_edge_sigma: float = 0.03,
-                  method: str = "auto",
-                  drift_prior: tuple[tuple[float, float], ...] | None = DRIFT_PRIOR) -> ClockMap:
+def fit_clock_map(
+    video_events: list[CoverEvent],
+    rssi_events: list[CoverEvent],
+    *,
+    name: str = "video",
+    approx_start: float | None = None,
+    max_start_error: float = math.inf,
+    fit_drift: bool | None = None,
+    min_drift_span: float = 10.0,
+    match_tol: float = 0.75,
+    lone_edge_sigma: float = 0.03,
+    method: str = "auto",
+    drift_prior: tuple[tuple[float, float], ...] | None = DRIFT_PRIOR,
+) -> ClockMap:
     """Map a video's PTS onto the RSSI clock from matched cover events.
 
     Each edge seen on both sides is one equation ``t_rssi = start + pts (1 + drift)``, weighted by
@@ -546,16 +654,21 @@ def fit_clock_map(video_events: list[CoverEvent], rssi_events: list[CoverEvent],
     if not pairs:
         raise NoDataError(
             f"{name}: its cover events ({', '.join(f'{e.duration:.2f} s' for e in video_events)}) match "
-            f"no RSSI cover event ({', '.join(f'{e.duration:.2f} s' for e in rssi_events)})")
+            f"no RSSI cover event ({', '.join(f'{e.duration:.2f} s' for e in rssi_events)})"
+        )
     # One equation per edge seen on both sides; sign: -1 cover, +1 release.
     x, y, s, sign = [], [], [], []
     has_pair = False
     edges = []
     for v, r in pairs:
-        both = [(tv, sv, tr, sr, sg) for tv, sv, tr, sr, sg in (
-            (v.cover, v.cover_sigma, r.cover, r.cover_sigma, -1.0),
-            (v.release, v.release_sigma, r.release, r.release_sigma, 1.0))
-            if math.isfinite(tv) and math.isfinite(tr)]
+        both = [
+            (tv, sv, tr, sr, sg)
+            for tv, sv, tr, sr, sg in (
+                (v.cover, v.cover_sigma, r.cover, r.cover_sigma, -1.0),
+                (v.release, v.release_sigma, r.release, r.release_sigma, 1.0),
+            )
+            if math.isfinite(tv) and math.isfinite(tr)
+        ]
         has_pair |= len(both) == 2
         edges.append(both)
     for both in edges:
@@ -565,8 +678,13 @@ def fit_clock_map(video_events: list[CoverEvent], rssi_events: list[CoverEvent],
             x.append(tv)
             y.append(tr)
             sign.append(sg)
-            s.append(math.sqrt((sv if math.isfinite(sv) else 0.0) ** 2
-                               + (sr if math.isfinite(sr) else 0.0) ** 2 + lone**2))
+            s.append(
+                math.sqrt(
+                    (sv if math.isfinite(sv) else 0.0) ** 2
+                    + (sr if math.isfinite(sr) else 0.0) ** 2
+                    + lone**2
+                )
+            )
     xa, ya, ga = np.asarray(x), np.asarray(y), np.asarray(sign)
     sa = np.maximum(np.asarray(s), 1e-4)  # never infinitely sure of an edge
     span = float(xa.max() - xa.min())
@@ -595,14 +713,25 @@ def fit_clock_map(video_events: list[CoverEvent], rssi_events: list[CoverEvent],
         chi2 = float(np.sum(wts * resid**2)) / dof
         cov = cov * max(1.0, chi2)
     k = A.shape[1] - 1  # drift is the last column when fitted
-    cm = ClockMap(video_start=float(coef[0]), drift=float(coef[k]) if drift else 0.0,
-                  video_start_sigma=float(math.sqrt(cov[0, 0])),
-                  drift_sigma=float(math.sqrt(cov[k, k])) if drift else math.nan, method=method,
-                  n_edges=int(xa.size), residual_rms=float(np.sqrt(np.mean(resid**2))),
-                  edge_bias=float(coef[1]) if has_pair else math.nan,
-                  start_drift_cov=float(cov[0, k]) if drift else 0.0)
-    log.info("%s: video_start %.4f +- %.4f s, drift %.2e, from %d edges", name, cm.video_start,
-             cm.video_start_sigma, cm.drift, cm.n_edges)
+    cm = ClockMap(
+        video_start=float(coef[0]),
+        drift=float(coef[k]) if drift else 0.0,
+        video_start_sigma=float(math.sqrt(cov[0, 0])),
+        drift_sigma=float(math.sqrt(cov[k, k])) if drift else math.nan,
+        method=method,
+        n_edges=int(xa.size),
+        residual_rms=float(np.sqrt(np.mean(resid**2))),
+        edge_bias=float(coef[1]) if has_pair else math.nan,
+        start_drift_cov=float(cov[0, k]) if drift else 0.0,
+    )
+    log.info(
+        "%s: video_start %.4f +- %.4f s, drift %.2e, from %d edges",
+        name,
+        cm.video_start,
+        cm.video_start_sigma,
+        cm.drift,
+        cm.n_edges,
+    )
     return cm
 
 
@@ -627,9 +756,15 @@ class SyncResult:
     mode: str
 
 
-def synchronise(series: dict[str, VideoSeries], rssi_events: list[CoverEvent], *,
-                approx_start: dict[str, float] | None = None, max_start_error: float = 60.0,
-                min_duration: float = 0.3, max_duration: float = 10.0) -> SyncResult:
+def synchronise(
+    series: dict[str, VideoSeries],
+    rssi_events: list[CoverEvent],
+    *,
+    approx_start: dict[str, float] | None = None,
+    max_start_error: float = 60.0,
+    min_duration: float = 0.3,
+    max_duration: float = 10.0,
+) -> SyncResult:
     """Clock map of every video onto the RSSI clock (``sync.mode: auto``).
 
     ``rssi_events`` come from :func:`detect_rssi_events` (run it first: it is cheap and fails
@@ -640,33 +775,60 @@ def synchronise(series: dict[str, VideoSeries], rssi_events: list[CoverEvent], *
     clocks: dict[str, ClockMap] = {}
     video_events: dict[str, list[CoverEvent]] = {}
     for name, s in series.items():
-        evs = detect_video_events(s.pts, s.brightness, s.marker_count, name=name,
-                                  min_duration=min_duration, max_duration=max_duration)
+        evs = detect_video_events(
+            s.pts,
+            s.brightness,
+            s.marker_count,
+            name=name,
+            min_duration=min_duration,
+            max_duration=max_duration,
+        )
         video_events[name] = evs
         prior = None if approx_start is None else approx_start.get(name)
-        clocks[name] = fit_clock_map(evs, rssi_events, name=name, approx_start=prior,
-                                     max_start_error=max_start_error if prior is not None else math.inf)
+        clocks[name] = fit_clock_map(
+            evs,
+            rssi_events,
+            name=name,
+            approx_start=prior,
+            max_start_error=max_start_error if prior is not None else math.inf,
+        )
     # A camera that saw an event only in part (it started or stopped while covered) can do better
     # through a camera that saw it whole: both watch the same hands, so their edges agree without
     # the brightness-vs-RSSI bias that only a cover/release pair cancels.
-    complete = [n for n, evs in video_events.items()
-                if any(math.isfinite(e.cover) and math.isfinite(e.release) for e in evs)]
+    complete = [
+        n
+        for n, evs in video_events.items()
+        if any(math.isfinite(e.cover) and math.isfinite(e.release) for e in evs)
+    ]
     for name, evs in video_events.items():
         if name in complete:
             continue
         for ref in complete:
             cm = clocks[ref]
-            mapped = [CoverEvent(float(cm.to_rssi(e.cover)), float(cm.to_rssi(e.release)),
-                                 math.hypot(e.cover_sigma, cm.video_start_sigma),
-                                 math.hypot(e.release_sigma, cm.video_start_sigma), f"video {ref}")
-                      for e in video_events[ref]]
+            mapped = [
+                CoverEvent(
+                    float(cm.to_rssi(e.cover)),
+                    float(cm.to_rssi(e.release)),
+                    math.hypot(e.cover_sigma, cm.video_start_sigma),
+                    math.hypot(e.release_sigma, cm.video_start_sigma),
+                    f"video {ref}",
+                )
+                for e in video_events[ref]
+            ]
             try:
-                via = fit_clock_map(evs, mapped, name=name, lone_edge_sigma=0.0, method=f"auto via {ref}")
+                via = fit_clock_map(
+                    evs, mapped, name=name, lone_edge_sigma=0.0, method=f"auto via {ref}"
+                )
             except NoDataError:
                 continue
             if via.video_start_sigma < clocks[name].video_start_sigma:
-                log.info("%s: synchronised through %s (%.1f ms instead of %.1f ms)", name, ref,
-                         1e3 * via.video_start_sigma, 1e3 * clocks[name].video_start_sigma)
+                log.info(
+                    "%s: synchronised through %s (%.1f ms instead of %.1f ms)",
+                    name,
+                    ref,
+                    1e3 * via.video_start_sigma,
+                    1e3 * clocks[name].video_start_sigma,
+                )
                 clocks[name] = via
     return SyncResult(clocks, video_events, list(rssi_events), "auto")
 

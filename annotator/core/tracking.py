@@ -48,7 +48,9 @@ class TrackSettings:
     paper: PaperSettings = field(default_factory=PaperSettings)
     joint: bool = True  # rig: joint two-camera solve of near-simultaneous frames
     max_frames: int | None = None  # per video; for quick looks and benchmarks
-    uncertainty: UncertaintySettings = field(default_factory=UncertaintySettings)  # what sigma_m holds
+    uncertainty: UncertaintySettings = field(
+        default_factory=UncertaintySettings
+    )  # what sigma_m holds
     # rig: self-calibration after the first pass (annotator.core.refine): none | map | all
     refine: str = "all"
     # Assumed exposure for the motion-blur measure (predicted smear, px, of each frame's markers).
@@ -73,15 +75,27 @@ def stack_poses(items: list[tuple[float, BundlePose]]) -> Trajectory:
     items = sorted(items, key=lambda it: it[0])
     if not items:
         z = np.zeros(0)
-        return Trajectory(z, np.zeros((0, 3)), np.zeros((0, 3, 3)),
-                          {"cov": np.zeros((0, 6, 6)), "markers": z, "rms_px": z})
-    return Trajectory(np.array([t for t, _ in items]), np.array([p.t_wb for _, p in items]),
-                      np.array([p.R_wb for _, p in items]),
-                      {"cov": np.array([p.cov for _, p in items]), "markers": np.array([p.n_markers for _, p in items]),
-                       "rms_px": np.array([p.rms_px for _, p in items])})
+        return Trajectory(
+            z,
+            np.zeros((0, 3)),
+            np.zeros((0, 3, 3)),
+            {"cov": np.zeros((0, 6, 6)), "markers": z, "rms_px": z},
+        )
+    return Trajectory(
+        np.array([t for t, _ in items]),
+        np.array([p.t_wb for _, p in items]),
+        np.array([p.R_wb for _, p in items]),
+        {
+            "cov": np.array([p.cov for _, p in items]),
+            "markers": np.array([p.n_markers for _, p in items]),
+            "rms_px": np.array([p.rms_px for _, p in items]),
+        },
+    )
 
 
-def resolve_ambiguities(items: list[tuple[float, BundlePose]], window_s: float) -> list[tuple[float, BundlePose]]:
+def resolve_ambiguities(
+    items: list[tuple[float, BundlePose]], window_s: float
+) -> list[tuple[float, BundlePose]]:
     """For single-marker frames pick the mirror solution closest to unambiguous neighbours.
 
     Frames with no unambiguous neighbour within ``window_s`` cannot be decided and are dropped.
@@ -107,26 +121,46 @@ def resolve_ambiguities(items: list[tuple[float, BundlePose]], window_s: float) 
     return sorted(out, key=lambda it: it[0])
 
 
-def smooth(meas: Trajectory, t_out: np.ndarray, s: SmootherSettings,
-           pool: ProcessPoolExecutor | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def smooth(
+    meas: Trajectory,
+    t_out: np.ndarray,
+    s: SmootherSettings,
+    pool: ProcessPoolExecutor | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Positions (M, 3), rotations (M, 3, 3) and position sigma (M,) at t_out; NaN where unsupported.
 
     With a pool, the rotation fit runs in a worker while this process filters the positions.
     """
     if len(meas.t) == 0:
-        return np.full((len(t_out), 3), np.nan), np.full((len(t_out), 3, 3), np.nan), np.full(len(t_out), np.nan)
+        return (
+            np.full((len(t_out), 3), np.nan),
+            np.full((len(t_out), 3, 3), np.nan),
+            np.full(len(t_out), np.nan),
+        )
     # Vague measurements (a lone far marker) would only bridge gaps with guesses.
-    vague = np.sqrt(np.trace(meas.quality["cov"][:, 3:, 3:], axis1=1, axis2=2) / 3) > s.max_meas_sigma_m
+    vague = (
+        np.sqrt(np.trace(meas.quality["cov"][:, 3:, 3:], axis1=1, axis2=2) / 3) > s.max_meas_sigma_m
+    )
     meas = meas.select(~vague)
     if len(meas.t) == 0:
-        return np.full((len(t_out), 3), np.nan), np.full((len(t_out), 3, 3), np.nan), np.full(len(t_out), np.nan)
+        return (
+            np.full((len(t_out), 3), np.nan),
+            np.full((len(t_out), 3, 3), np.nan),
+            np.full(len(t_out), np.nan),
+        )
     cov = meas.quality["cov"]
     var = np.trace(cov[:, :3, :3], axis1=1, axis2=2) / 3
     rot_args = (meas.t, Rotation.from_matrix(meas.rotation), var, t_out, s)
     rot_future = None if pool is None else pool.submit(smooth_rotations, *rot_args)
     pos, sig, ok_p = smooth_positions(meas.t, meas.position, cov[:, 3:, 3:], t_out, s)
     R, ok_r = smooth_rotations(*rot_args) if rot_future is None else rot_future.result()
-    log.info("smoother kept %d/%d positions, %d/%d rotations", ok_p.sum(), len(ok_p), ok_r.sum(), len(ok_r))
+    log.info(
+        "smoother kept %d/%d positions, %d/%d rotations",
+        ok_p.sum(),
+        len(ok_p),
+        ok_r.sum(),
+        len(ok_r),
+    )
     ok = supported(meas.t[ok_p & ok_r], t_out, s.max_gap_s, s.max_extrapolate_s)
     bad = ~ok | ~np.isfinite(pos).all(1) | ~np.isfinite(R).all((1, 2)) | ~(sig <= s.max_out_sigma_m)
     pos[bad], R[bad], sig[bad] = np.nan, np.nan, np.nan
@@ -135,24 +169,41 @@ def smooth(meas: Trajectory, t_out: np.ndarray, s: SmootherSettings,
 
 def _solve_chunk(args: tuple[Any, ...]) -> list[BundlePose | None]:
     room, solver, problems = args
-    return [solve_bundle_pose(obs, room, solver, prior=prior, prior_first=True) for obs, prior in problems]
+    return [
+        solve_bundle_pose(obs, room, solver, prior=prior, prior_first=True)
+        for obs, prior in problems
+    ]
 
 
-def solve_all(problems: list[tuple[list[CameraObservation], tuple[np.ndarray, np.ndarray]]], room: MarkerRoom,
-               solver: SolverSettings, pool: ProcessPoolExecutor | None, jobs: int) -> list[BundlePose | None]:
+def solve_all(
+    problems: list[tuple[list[CameraObservation], tuple[np.ndarray, np.ndarray]]],
+    room: MarkerRoom,
+    solver: SolverSettings,
+    pool: ProcessPoolExecutor | None,
+    jobs: int,
+) -> list[BundlePose | None]:
     """Joint solves (each independent of the others), in the pool's processes when there is one."""
     if pool is None or len(problems) < 64:  # a handful of solves costs less than shipping them
         return _solve_chunk((room, solver, problems))
     # A few chunks per worker even out uneven chunks on a loaded machine.
     bounds = np.linspace(0, len(problems), 2 * jobs + 1).astype(int)
-    chunks = [(room, solver, problems[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+    chunks = [
+        (room, solver, problems[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a
+    ]
     return [pose for part in pool.map(_solve_chunk, chunks) for pose in part]
 
 
-def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: MarkerRoom, settings: TrackSettings,
-                       t_grid: np.ndarray, pos: np.ndarray, R: np.ndarray,
-                       pool: ProcessPoolExecutor | None = None,
-                       resolve_singles: bool = False) -> list[tuple[float, BundlePose]]:
+def joint_measurements(
+    frames: list[CameraFrames],
+    exp: Experiment,
+    room: MarkerRoom,
+    settings: TrackSettings,
+    t_grid: np.ndarray,
+    pos: np.ndarray,
+    R: np.ndarray,
+    pool: ProcessPoolExecutor | None = None,
+    resolve_singles: bool = False,
+) -> list[tuple[float, BundlePose]]:
     """Joint solves pairing each frame of the first camera with the other cameras' nearest frames.
 
     The other camera saw the room at a slightly different time; its extrinsics are moved by the
@@ -175,7 +226,9 @@ def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: Marker
     need = np.array([float(cf.t[j]) for cams in pairs for cf, j in cams])
     R_at, p_at, om_at, v_at, ok_at = motion_at(need, t_grid, pos, R)
     lookup = {float(tt): n for n, tt in enumerate(need)}
-    tasks: list[tuple[float, list[CameraObservation], tuple[np.ndarray, np.ndarray], list[tuple[int, int]]]] = []
+    tasks: list[
+        tuple[float, list[CameraObservation], tuple[np.ndarray, np.ndarray], list[tuple[int, int]]]
+    ] = []
     for k, t in enumerate(base.t):
         cams = pairs[k]
         n0 = lookup[float(t)]
@@ -204,7 +257,9 @@ def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: Marker
         if sum(len(o.ids) for o in obs) == 0:
             continue
         tasks.append((float(t), obs, at_t, joined))
-    solved = solve_all([(obs, at_t) for _, obs, at_t, _ in tasks], room, settings.solver, pool, settings.jobs)
+    solved = solve_all(
+        [(obs, at_t) for _, obs, at_t, _ in tasks], room, settings.solver, pool, settings.jobs
+    )
     for (t, obs, at_t, joined), pose in zip(tasks, solved, strict=True):
         if pose is not None:
             out.append((t, blurred(pose, obs, at_t, lookup[t], om_at, v_at, settings.exposure_s)))
@@ -213,40 +268,61 @@ def joint_measurements(frames: list[CameraFrames], exp: Experiment, room: Marker
     single = single_solver(exp, room, settings, resolve_singles)
     # Frames of the other cameras not paired with any base frame keep their own solves.
     for ci, cf in enumerate(frames[1:], 1):
-        out += [(float(cf.t[j]), p) for j in range(len(cf.t)) if j not in used_other[ci]
-                and (p := single(cf, j)) is not None]
+        out += [
+            (float(cf.t[j]), p)
+            for j in range(len(cf.t))
+            if j not in used_other[ci] and (p := single(cf, j)) is not None
+        ]
     # Base frames whose joint solve failed keep their single-camera solve.
     done = {t for t, _ in out}
-    out += [(float(t), p) for j, t in enumerate(base.t) if float(t) not in done and (p := single(base, j)) is not None]
+    out += [
+        (float(t), p)
+        for j, t in enumerate(base.t)
+        if float(t) not in done and (p := single(base, j)) is not None
+    ]
     return out
 
 
-def single_solver(exp: Experiment, room: MarkerRoom, settings: TrackSettings,
-                   resolve: bool) -> Callable[[CameraFrames, int], BundlePose | None]:
+def single_solver(
+    exp: Experiment, room: MarkerRoom, settings: TrackSettings, resolve: bool
+) -> Callable[[CameraFrames, int], BundlePose | None]:
     """A frame's single-camera pose: the first pass's, or (resolve) solved again with ``exp``'s
     parameters (after refinement the first pass's poses carry the old map, rig and lenses)."""
+
     def single(cf: CameraFrames, j: int) -> BundlePose | None:
         first = cf.poses[j]
         if not resolve or (first is None and not len(cf.detections[j].ids)):
             return first
         cam = exp.rig.cameras[cf.camera]
-        obs = observe(cf.detections[j], room, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera)
+        obs = observe(
+            cf.detections[j], room, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera
+        )
         # A frame the first pass could not solve may see markers the refinement mapped.
         if first is None:
             return solve_bundle_pose([obs], room, settings.solver)
         prior = (first.R_wb, first.t_wb)
         return solve_bundle_pose([obs], room, settings.solver, prior, prior_first=True)
+
     return single
 
 
-def blurred(pose: BundlePose, obs: list[CameraObservation], at_t: tuple[np.ndarray, np.ndarray], n: int,
-             om_at: np.ndarray, v_at: np.ndarray, exposure_s: float) -> BundlePose:
+def blurred(
+    pose: BundlePose,
+    obs: list[CameraObservation],
+    at_t: tuple[np.ndarray, np.ndarray],
+    n: int,
+    om_at: np.ndarray,
+    v_at: np.ndarray,
+    exposure_s: float,
+) -> BundlePose:
     """The pose with its covariance widened by the frame's predicted motion blur (the smear of its
     markers during the exposure, from the first pass's velocity)."""
     o = obs[0]
     if not len(o.ids) or exposure_s <= 0:
         return pose
-    smear = predicted_smear_px(o.world, at_t[0], at_t[1], om_at[n], v_at[n], o.R_bc, o.t_bc, o.focal, exposure_s)
+    smear = predicted_smear_px(
+        o.world, at_t[0], at_t[1], om_at[n], v_at[n], o.R_bc, o.t_bc, o.focal, exposure_s
+    )
     w = blur_weight(smear)
     return pose if w >= 0.999 else dataclasses.replace(pose, cov=pose.cov / w)
 
@@ -256,7 +332,11 @@ def measurement_quality(meas: Trajectory, t_out: np.ndarray) -> dict[str, np.nda
     that very time (0 markers and NaN where there was none)."""
     idx = np.searchsorted(meas.t, t_out)
     idx = np.clip(idx, 0, max(len(meas.t) - 1, 0))
-    hit = (len(meas.t) > 0) & (np.abs(meas.t[idx] - t_out) < 1e-6) if len(meas.t) else np.zeros(len(t_out), bool)
+    hit = (
+        (len(meas.t) > 0) & (np.abs(meas.t[idx] - t_out) < 1e-6)
+        if len(meas.t)
+        else np.zeros(len(t_out), bool)
+    )
     n_markers = np.where(hit, meas.quality["markers"][idx] if len(meas.t) else 0, 0)
     rms = np.where(hit, meas.quality["rms_px"][idx] if len(meas.t) else np.nan, np.nan)
     return {"markers": n_markers.astype(float), "rms_px": rms}
@@ -265,8 +345,13 @@ def measurement_quality(meas: Trajectory, t_out: np.ndarray) -> dict[str, np.nda
 def mapped_poses(refinement: Refinement) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """(R_world_marker, centre) of the markers a refinement mapped from the video."""
     markers = refinement.experiment.markers.markers
-    return {mid: (Rotation.from_euler("xyz", markers[mid].euler_xyz).as_matrix(), np.asarray(markers[mid].position))
-            for mid in refinement.mapped}
+    return {
+        mid: (
+            Rotation.from_euler("xyz", markers[mid].euler_xyz).as_matrix(),
+            np.asarray(markers[mid].position),
+        )
+        for mid in refinement.mapped
+    }
 
 
 def track_paper(frames: list[CameraFrames], settings: TrackSettings) -> Trajectory:
@@ -277,7 +362,9 @@ def track_paper(frames: list[CameraFrames], settings: TrackSettings) -> Trajecto
         raise NoDataError("no marker from the map was detected in any video")
     tb, pos, rot, used = paper_track(t, poses, settings.paper)
     if not len(tb):
-        raise NoDataError(f"{len(t)} frames in all are fewer than one batch of {settings.paper.frames}")
+        raise NoDataError(
+            f"{len(t)} frames in all are fewer than one batch of {settings.paper.frames}"
+        )
     bad = used == 0
     pos[bad], rot[bad] = np.nan, np.nan
     return Trajectory(tb, pos, rot, {"markers": used.astype(float)})

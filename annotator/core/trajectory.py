@@ -29,16 +29,24 @@ class Trajectory:
     @property
     def valid(self) -> np.ndarray:
         """Rows with a pose: finite time, position and rotation."""
-        return (np.isfinite(self.t) & np.isfinite(self.position).all(1)
-                & np.isfinite(self.rotation.reshape(-1, 9)).all(1))
+        return (
+            np.isfinite(self.t)
+            & np.isfinite(self.position).all(1)
+            & np.isfinite(self.rotation.reshape(-1, 9)).all(1)
+        )
 
     @classmethod
     def empty(cls) -> Trajectory:
         return cls(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
 
     @classmethod
-    def from_rotation(cls, t: np.ndarray, position: np.ndarray, rotation: Rotation,
-                      quality: dict[str, np.ndarray] | None = None) -> Trajectory:
+    def from_rotation(
+        cls,
+        t: np.ndarray,
+        position: np.ndarray,
+        rotation: Rotation,
+        quality: dict[str, np.ndarray] | None = None,
+    ) -> Trajectory:
         """From a scipy Rotation; the rows with a NaN position are gaps (their rotation NaN too)."""
         mats = np.array(rotation.as_matrix(), dtype=float).reshape(-1, 3, 3)
         position = np.asarray(position, dtype=float)
@@ -47,8 +55,12 @@ class Trajectory:
 
     def select(self, rows: np.ndarray) -> Trajectory:
         """The rows ``rows`` (boolean mask or indices), quality arrays included."""
-        return Trajectory(self.t[rows], self.position[rows], self.rotation[rows],
-                          {k: np.asarray(v)[rows] for k, v in self.quality.items()})
+        return Trajectory(
+            self.t[rows],
+            self.position[rows],
+            self.rotation[rows],
+            {k: np.asarray(v)[rows] for k, v in self.quality.items()},
+        )
 
     def compact(self) -> Trajectory:
         """Only the rows with a pose, in time order; of rows with the same time the first is kept
@@ -71,7 +83,13 @@ class Trajectory:
             return pos, rot, np.zeros(m, dtype=bool)
         lo, hi, w = bracket(self.t, times)
         valid = self.valid
-        ok = np.isfinite(times) & (times >= self.t[0]) & (times <= self.t[-1]) & valid[lo] & valid[hi]
+        ok = (
+            np.isfinite(times)
+            & (times >= self.t[0])
+            & (times <= self.t[-1])
+            & valid[lo]
+            & valid[hi]
+        )
         if ok.any():
             pos[ok], rot[ok] = blend(self.position, self.rotation, lo[ok], hi[ok], w[ok])
         return pos, rot, ok
@@ -93,8 +111,9 @@ def bracket(t_grid: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return lo, hi, w
 
 
-def blend(position: np.ndarray, rotation: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-          w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def blend(
+    position: np.ndarray, rotation: np.ndarray, lo: np.ndarray, hi: np.ndarray, w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Poses between rows lo and hi at weight w: linear in position, slerp in rotation.
     Rotations are projected to the nearest rotation first (published references are not always
     orthonormal)."""

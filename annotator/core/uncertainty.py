@@ -86,7 +86,9 @@ class UncertaintySettings:
     max_scale: float = 4.0
     max_smear_px: float = 10.0  # frames smearing more are down-weighted, beyond 3x dropped
     unmodelled_m: float = 0.0015  # floor added in quadrature to every row's sigma
-    default_exposure_frac: float = 0.5  # exposure as a share of the frame interval when not calibrated
+    default_exposure_frac: float = (
+        0.5  # exposure as a share of the frame interval when not calibrated
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,7 +105,9 @@ class RowUncertainty:
         return np.sqrt(self.params_var.sum(1))
 
 
-def parameter_covariance(exp: Experiment, params: ParameterCovariance | None = None) -> ParameterCovariance:
+def parameter_covariance(
+    exp: Experiment, params: ParameterCovariance | None = None
+) -> ParameterCovariance:
     """``params`` if given (e.g. from refinement), else the experiment's priors."""
     if params is not None:
         return params
@@ -130,11 +134,19 @@ def _sqrt_psd(cov: np.ndarray) -> np.ndarray:
 def _skew(v: np.ndarray) -> np.ndarray:
     """(..., 3) -> (..., 3, 3) cross-product matrices: skew(a) @ b = a x b."""
     z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+    return np.stack(
+        [
+            np.stack([z, -v[..., 2], v[..., 1]], -1),
+            np.stack([v[..., 2], z, -v[..., 0]], -1),
+            np.stack([-v[..., 1], v[..., 0], z], -1),
+        ],
+        -2,
+    )
 
 
-def trajectory_twist(t: np.ndarray, pos: np.ndarray, R: np.ndarray, h: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+def trajectory_twist(
+    t: np.ndarray, pos: np.ndarray, R: np.ndarray, h: float = 0.02
+) -> tuple[np.ndarray, np.ndarray]:
     """World-frame angular velocity (rad/s) and velocity (m/s) at each row by central differences
     over +-h (one-sided at a run's ends); NaN where the trajectory has no pose."""
     ok = np.isfinite(pos).all(1) & np.isfinite(R).all((1, 2))
@@ -172,7 +184,9 @@ class FrameView:
     twist: np.ndarray  # (6,) world-frame (omega, velocity) at the frame's time
 
 
-def _undistort(cal: CameraCalibration, pixels: np.ndarray, K: np.ndarray | None = None) -> np.ndarray:
+def _undistort(
+    cal: CameraCalibration, pixels: np.ndarray, K: np.ndarray | None = None
+) -> np.ndarray:
     return undistort_points(cal if K is None else replace(cal, camera_matrix=K), pixels)
 
 
@@ -183,7 +197,9 @@ class _ViewBlock:
     camera: str
     r: np.ndarray  # (2m,)
     J: np.ndarray  # (2m, 6)
-    markers: list[tuple[int, int, np.ndarray]]  # (marker id, first row, (8, 6) block) of mapped markers
+    markers: list[
+        tuple[int, int, np.ndarray]
+    ]  # (marker id, first row, (8, 6) block) of mapped markers
     Br: np.ndarray  # (2m, 6)
     Bi: np.ndarray  # (2m, 4)
     Bro: np.ndarray  # (2m,)
@@ -223,7 +239,9 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
     J = np.concatenate([a @ _skew(d), -a], axis=2)  # world-frame rotation, then position
     r = focal * (proj - xn)
     # Markers: corner = exp(w) (c - centre) + centre + dp -> d corner = -skew(c - centre) w + dp.
-    rel = np.einsum("mij,kj->mki", room.R_world_marker[idx], marker_corners_local(room.length)).reshape(-1, 3)
+    rel = np.einsum(
+        "mij,kj->mki", room.R_world_marker[idx], marker_corners_local(room.length)
+    ).reshape(-1, 3)
     Bm = np.concatenate([-a @ _skew(rel), a], axis=2)  # (m, 2, 6)
     # Corner noise: what is left of each square's residual after its own rigid motion (the map
     # error of one marker is exactly such a motion): 2 of its 8 degrees of freedom.
@@ -246,7 +264,9 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
             Kp, Km = K.copy(), K.copy()
             Kp[at] += steps[j]
             Km[at] -= steps[j]
-            dxn = (_undistort(v.cal, pix, Kp) - _undistort(v.cal, pix, Km)).reshape(-1, 2) / (2 * steps[j])
+            dxn = (_undistort(v.cal, pix, Kp) - _undistort(v.cal, pix, Km)).reshape(-1, 2) / (
+                2 * steps[j]
+            )
             Bi[:, j] = -focal * dxn.ravel()
     if dist_cov is not None and nd:
         steps = np.sqrt(np.maximum(np.diag(dist_cov), 1e-12)) * 0.1
@@ -261,8 +281,18 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
     img_vel = J @ v.twist  # (m, 2) pixels per second
     rows_frac = pix.reshape(-1, 2)[:, 1] / v.cal.height
     Bro = -(img_vel * rows_frac[:, None]).reshape(-1)
-    return _ViewBlock(v.camera, r.reshape(-1), J.reshape(-1, 6), markers, Br, Bi, Bro, inner,
-                      np.linalg.norm(img_vel, axis=1), len(ids))
+    return _ViewBlock(
+        v.camera,
+        r.reshape(-1),
+        J.reshape(-1, 6),
+        markers,
+        Br,
+        Bi,
+        Bro,
+        inner,
+        np.linalg.norm(img_vel, axis=1),
+        len(ids),
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -278,9 +308,14 @@ class FrameJacobians:
     noise2: float  # corner noise variance, px^2
 
 
-def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: ParameterCovariance,
-                    readout_sigma_s: float, settings: UncertaintySettings,
-                    cache: dict[int, _ViewBlock | None] | None = None) -> FrameJacobians | None:
+def frame_jacobians(
+    views: Sequence[FrameView],
+    room: MarkerRoom,
+    params: ParameterCovariance,
+    readout_sigma_s: float,
+    settings: UncertaintySettings,
+    cache: dict[int, _ViewBlock | None] | None = None,
+) -> FrameJacobians | None:
     """Residuals, weights and the pose / parameter Jacobians of one output row's frames.
 
     Returns None without usable corners. ``cache`` keeps each view's blocks between the rows
@@ -306,9 +341,11 @@ def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: Parame
     corner_norm = np.linalg.norm(r.reshape(-1, 2), axis=1)
     marker_of = np.repeat(np.arange(sum(b.n_markers for b in blocks)), 4)
     n_mk = int(marker_of.max()) + 1
-    mk_rms = np.sqrt(np.bincount(marker_of, corner_norm ** 2, n_mk) / 4.0)
+    mk_rms = np.sqrt(np.bincount(marker_of, corner_norm**2, n_mk) / 4.0)
     limit = max(settings.marker_gate_px, 4.0 * float(np.median(mk_rms)))
-    wc = np.where(corner_norm <= settings.huber_px, 1.0, settings.huber_px / np.maximum(corner_norm, 1e-12))
+    wc = np.where(
+        corner_norm <= settings.huber_px, 1.0, settings.huber_px / np.maximum(corner_norm, 1e-12)
+    )
     good_mk = mk_rms <= limit
     wc = wc * good_mk[marker_of]
     e_inner = np.concatenate([b.inner for b in blocks])[good_mk]
@@ -321,7 +358,7 @@ def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: Parame
         Bmk = np.zeros((n0, 6 * len(mids)))
         for b, a0 in zip(blocks, starts, strict=False):
             for mid, first, blk in b.markers:
-                Bmk[a0 + first:a0 + first + 8, 6 * col[mid]:6 * col[mid] + 6] = blk
+                Bmk[a0 + first : a0 + first + 8, 6 * col[mid] : 6 * col[mid] + 6] = blk
         B["markers"] = Bmk
         L["markers"] = block_diag(*[_sqrt_psd(params.markers[mid]) for mid in mids])
     cams = sorted({b.camera for b in blocks})
@@ -334,22 +371,34 @@ def frame_jacobians(views: Sequence[FrameView], room: MarkerRoom, params: Parame
     for b, a0 in zip(blocks, starts, strict=False):
         c = cams.index(b.camera)
         a1 = a0 + len(b.r)
-        Brig[a0:a1, 6 * c:6 * c + 6] = b.Br
-        Bint[a0:a1, col0[b.camera]:col0[b.camera] + width[b.camera]] = b.Bi
+        Brig[a0:a1, 6 * c : 6 * c + 6] = b.Br
+        Bint[a0:a1, col0[b.camera] : col0[b.camera] + width[b.camera]] = b.Bi
         Bro[a0:a1, c if readouts else 0] = b.Bro
     B["rig"] = Brig
-    L["rig"] = block_diag(*[_sqrt_psd(params.rig[c]) if c in params.rig else np.zeros((6, 6)) for c in cams])
+    L["rig"] = block_diag(
+        *[_sqrt_psd(params.rig[c]) if c in params.rig else np.zeros((6, 6)) for c in cams]
+    )
     B["intrinsics"] = Bint
     dist = _distortion(params)
-    L["intrinsics"] = block_diag(*[block_diag(_sqrt_psd(params.intrinsics[c]) if c in params.intrinsics
-                                              else np.zeros((4, 4)),
-                                              _sqrt_psd(dist[c]) if width[c] > 4 else np.zeros((0, 0)))
-                                   for c in cams])
+    L["intrinsics"] = block_diag(
+        *[
+            block_diag(
+                _sqrt_psd(params.intrinsics[c]) if c in params.intrinsics else np.zeros((4, 4)),
+                _sqrt_psd(dist[c]) if width[c] > 4 else np.zeros((0, 0)),
+            )
+            for c in cams
+        ]
+    )
     # Readout: refined per camera when the record has it; otherwise one error shared by all
     # cameras (a rig's cameras are usually the same model, their readout unknown alike).
     B["readout"] = Bro
-    L["readout"] = (np.diag([math.sqrt(float(np.ravel(readouts[c])[0])) if c in readouts else 0.0 for c in cams])
-                    if readouts else np.array([[readout_sigma_s]]))
+    L["readout"] = (
+        np.diag(
+            [math.sqrt(float(np.ravel(readouts[c])[0])) if c in readouts else 0.0 for c in cams]
+        )
+        if readouts
+        else np.array([[readout_sigma_s]])
+    )
     speeds = np.concatenate([b.speed for b in blocks])
     return FrameJacobians(r, w, J, B, L, speeds, float(e_inner.sum()) / max(2 * len(e_inner), 1))
 
@@ -382,12 +431,19 @@ def propagate(jac: FrameJacobians) -> tuple[np.ndarray, np.ndarray, float, float
         A = Hinv @ (Jw.T @ BL)  # (6, k) pose change per unit-sigma parameter
         var[k] = float(np.sum(A[3:] ** 2)) / 3
         resid = BL - Jw @ A
-        q[k] = float(np.sum(resid ** 2))
+        q[k] = float(np.sum(resid**2))
     return var, q, e_obs - jac.noise2 * dof, dof
 
 
-def _views_at(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
-              omega: np.ndarray, vel: np.ndarray) -> list[list[FrameView]]:
+def _views_at(
+    frames: Sequence[VideoFrames],
+    exp: Experiment,
+    t_out: np.ndarray,
+    pos: np.ndarray,
+    R: np.ndarray,
+    omega: np.ndarray,
+    vel: np.ndarray,
+) -> list[list[FrameView]]:
     """Each output row's frames (every camera's frame within half a frame), each at its own pose."""
     rows: list[list[FrameView]] = [[] for _ in t_out]
     ok = np.isfinite(pos).all(1) & np.isfinite(R).all((1, 2))
@@ -402,9 +458,17 @@ def _views_at(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.ndarray,
             det = cf.detections[int(j)]
             if not ok[k] or not len(det.ids) or not np.isfinite(vel[k]).all():
                 continue
-            view = FrameView(cf.camera, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera,
-                             np.asarray(det.ids), np.asarray(det.corners, float).reshape(-1, 4, 2), R[k], pos[k],
-                             np.concatenate([omega[k], vel[k]]))
+            view = FrameView(
+                cf.camera,
+                cam.calibration,
+                cam.R_bundle_camera,
+                cam.t_bundle_camera,
+                np.asarray(det.ids),
+                np.asarray(det.corners, float).reshape(-1, 4, 2),
+                R[k],
+                pos[k],
+                np.concatenate([omega[k], vel[k]]),
+            )
             lo = np.searchsorted(t_out, times[j] - half)
             hi = np.searchsorted(t_out, times[j] + half, side="right")
             for kk in range(lo, hi):
@@ -412,8 +476,14 @@ def _views_at(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.ndarray,
     return rows
 
 
-def _scales(var: np.ndarray, q: np.ndarray, e: np.ndarray, dof: np.ndarray,
-            settings: UncertaintySettings, shrink: bool = True) -> dict[str, float]:
+def _scales(
+    var: np.ndarray,
+    q: np.ndarray,
+    e: np.ndarray,
+    dof: np.ndarray,
+    settings: UncertaintySettings,
+    shrink: bool = True,
+) -> dict[str, float]:
     """Each block's scale from the residual energy of the whole capture.
 
     Regression over the rows: e = c dof + sum_b s_b^2 q_b (e: energy beyond the within-marker
@@ -451,15 +521,27 @@ def _scales(var: np.ndarray, q: np.ndarray, e: np.ndarray, dof: np.ndarray,
     lower = coef2[1] - 2.0 * se2[1]
     inflate = float(np.clip(math.sqrt(max(lower, 1.0)), 1.0, settings.max_scale))
     out = {b: v * inflate for b, v in out.items()}
-    log.debug("scale^2 regression: %s; common factor^2 %.3g +- %.2g",
-              ", ".join(f"{BLOCKS[k]} {coef[c]:.3g} +- {se[c]:.2g}" for c, k in enumerate(ks, 1)), coef2[1], se2[1])
-    log.info("prior scales from the residuals: %s", ", ".join(f"{b} {v:.2f}" for b, v in out.items()))
+    log.debug(
+        "scale^2 regression: %s; common factor^2 %.3g +- %.2g",
+        ", ".join(f"{BLOCKS[k]} {coef[c]:.3g} +- {se[c]:.2g}" for c, k in enumerate(ks, 1)),
+        coef2[1],
+        se2[1],
+    )
+    log.info(
+        "prior scales from the residuals: %s", ", ".join(f"{b} {v:.2f}" for b, v in out.items())
+    )
     return out
 
 
-def row_uncertainty(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
-                    params: ParameterCovariance | None = None,
-                    settings: UncertaintySettings | None = None) -> RowUncertainty:
+def row_uncertainty(
+    frames: Sequence[VideoFrames],
+    exp: Experiment,
+    t_out: np.ndarray,
+    pos: np.ndarray,
+    R: np.ndarray,
+    params: ParameterCovariance | None = None,
+    settings: UncertaintySettings | None = None,
+) -> RowUncertainty:
     """Parameter, blur and smear figures of every trajectory row (pose of the smoothed trajectory).
 
     ``params`` None: the experiment's priors, checked against the capture's residuals (see
@@ -469,7 +551,9 @@ def row_uncertainty(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.nd
     """
     s = settings or UncertaintySettings()
     pc = parameter_covariance(exp, params)
-    readout_sigma = exp.priors.readout_sigma_s  # shared by the cameras unless the record has its own
+    readout_sigma = (
+        exp.priors.readout_sigma_s
+    )  # shared by the cameras unless the record has its own
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
     n = len(t_out)
     omega, vel = trajectory_twist(t_out, pos, R)
@@ -496,8 +580,10 @@ def row_uncertainty(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.nd
     var = var * np.array([scales[b] ** 2 for b in BLOCKS])[None, :]
     if log.isEnabledFor(logging.DEBUG) and np.isfinite(var).any():
         med = np.sqrt(np.nanmedian(var, axis=0))
-        log.debug("median per-axis sigma by block (mm): %s",
-                  ", ".join(f"{b} {1e3 * v:.2f}" for b, v in zip(BLOCKS, med, strict=True)))
+        log.debug(
+            "median per-axis sigma by block (mm): %s",
+            ", ".join(f"{b} {1e3 * v:.2f}" for b, v in zip(BLOCKS, med, strict=True)),
+        )
     var = _kernel_average(t_out, var, s.param_window_s)
     speed = np.linalg.norm(vel, axis=1)
     exp_row = max(exposure.values()) if exposure else 0.0
@@ -523,9 +609,9 @@ def _kernel_average(t: np.ndarray, x: np.ndarray, h: float) -> np.ndarray:
     for i in range(len(t)):
         if hi[i] <= lo[i]:
             continue
-        dt = tv[lo[i]:hi[i]] - t[i]
+        dt = tv[lo[i] : hi[i]] - t[i]
         wk = np.exp(-0.5 * (dt / h) ** 2)
-        out[i] = wk @ xv[lo[i]:hi[i]] / wk.sum()
+        out[i] = wk @ xv[lo[i] : hi[i]] / wk.sum()
     return out
 
 
@@ -544,8 +630,14 @@ def _fill_nearest(t: np.ndarray, x: np.ndarray, want: np.ndarray) -> np.ndarray:
     return out
 
 
-def row_smear(frames: Sequence[VideoFrames], exp: Experiment, t_out: np.ndarray, pos: np.ndarray, R: np.ndarray,
-              settings: UncertaintySettings | None = None) -> np.ndarray:
+def row_smear(
+    frames: Sequence[VideoFrames],
+    exp: Experiment,
+    t_out: np.ndarray,
+    pos: np.ndarray,
+    R: np.ndarray,
+    settings: UncertaintySettings | None = None,
+) -> np.ndarray:
     """Predicted corner smear (px) of every row's frames: median image speed of the detected
     corners under the trajectory's motion, times the exposure (worst camera of the row)."""
     s = settings or UncertaintySettings()
@@ -575,12 +667,18 @@ def image_speed(view: FrameView, room: MarkerRoom) -> np.ndarray:
     return np.zeros(0) if J is None else np.linalg.norm(J @ view.twist, axis=1)
 
 
-def _exposures(frames: Sequence[VideoFrames], exp: Experiment, s: UncertaintySettings) -> dict[str, float]:
+def _exposures(
+    frames: Sequence[VideoFrames], exp: Experiment, s: UncertaintySettings
+) -> dict[str, float]:
     out = {}
     for cf in frames:
         cal = exp.rig.cameras[cf.camera].calibration
         given = getattr(cal, "exposure_s", None)
-        out[cf.camera] = float(given) if given is not None else s.default_exposure_frac * float(cf.frame_interval)
+        out[cf.camera] = (
+            float(given)
+            if given is not None
+            else s.default_exposure_frac * float(cf.frame_interval)
+        )
     return out
 
 
@@ -610,17 +708,25 @@ def smear_weights(smear_px: np.ndarray, max_smear_px: float) -> np.ndarray:
     return np.where(sm > 3 * max_smear_px, np.inf, f)
 
 
-def total_sigma(smoother_m: np.ndarray, u: RowUncertainty, settings: UncertaintySettings | None = None) -> dict[str, np.ndarray]:
+def total_sigma(
+    smoother_m: np.ndarray, u: RowUncertainty, settings: UncertaintySettings | None = None
+) -> dict[str, np.ndarray]:
     """The trajectory's sigma columns: sigma_m (all parts in quadrature) and each part."""
     s = settings or UncertaintySettings()
     sm = np.asarray(smoother_m, float)
     params = u.params_m
     blur = np.nan_to_num(u.blur_m, nan=0.0)
     floor = np.full(len(sm), s.unmodelled_m)
-    total = np.sqrt(sm ** 2 + np.nan_to_num(params, nan=0.0) ** 2 + blur ** 2 + floor ** 2)
+    total = np.sqrt(sm**2 + np.nan_to_num(params, nan=0.0) ** 2 + blur**2 + floor**2)
     total[~np.isfinite(sm)] = np.nan
-    out = {"sigma_m": total, "sigma_smoother_m": sm, "sigma_params_m": params, "sigma_blur_m": u.blur_m,
-           "sigma_unmodelled_m": np.where(np.isfinite(sm), floor, np.nan), "smear_px": u.smear_px}
+    out = {
+        "sigma_m": total,
+        "sigma_smoother_m": sm,
+        "sigma_params_m": params,
+        "sigma_blur_m": u.blur_m,
+        "sigma_unmodelled_m": np.where(np.isfinite(sm), floor, np.nan),
+        "smear_px": u.smear_px,
+    }
     return out
 
 

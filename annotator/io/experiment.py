@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 
 # --- YAML plumbing --------------------------------------------------------------------------
 
+
 def _yaml_loader() -> type:
     import yaml
 
@@ -58,8 +59,9 @@ def load_yaml(path: Path, what: str) -> Any:
     from bgt_core.safe_yaml import YamlError, load_file
 
     try:
-        return load_file(path, loader=_yaml_loader(),
-                         preprocess=lambda text: _DIRECTIVE.sub("", text, count=1))
+        return load_file(
+            path, loader=_yaml_loader(), preprocess=lambda text: _DIRECTIVE.sub("", text, count=1)
+        )
     except YamlError as e:
         raise ConfigError(f"{what}: {e}") from None
 
@@ -110,8 +112,13 @@ def _matrix(value: Any, source: str, key: str, shape: tuple[int, ...] | None = N
 # --- calibration ----------------------------------------------------------------------------
 
 # `distortion_model` as written by OpenCV tools / ROS camera_info -> our lens model name.
-LENS_MODELS = {"plumb_bob": "radtan", "rational_polynomial": "radtan", "radtan": "radtan",
-               "fisheye": "fisheye", "equidistant": "fisheye"}
+LENS_MODELS = {
+    "plumb_bob": "radtan",
+    "rational_polynomial": "radtan",
+    "radtan": "radtan",
+    "fisheye": "fisheye",
+    "equidistant": "fisheye",
+}
 # Optional calibration key: rolling-shutter readout, first row to last, seconds.
 READOUT_KEY = "rolling_shutter_readout_s"
 # Optional calibration key: exposure time, seconds (the motion-blur measure; default half a frame).
@@ -119,18 +126,25 @@ EXPOSURE_KEY = "exposure_s"
 # Optional calibration key written by the refinement: the detector's corner bias, px.
 CORNER_BIAS_KEY = "marker_corner_bias_px"
 
+
 def _lens(d: dict[str, Any], source: str) -> tuple[str, np.ndarray]:
     """The lens model and its distortion coefficients, checked against what OpenCV takes."""
     dist = _matrix(d["distortion_coefficients"], source, "distortion_coefficients").ravel()
     named = d.get("distortion_model", "plumb_bob")
     if named not in LENS_MODELS:
-        raise ConfigError(f"{source}: distortion_model {named!r} is not supported ({', '.join(LENS_MODELS)})")
+        raise ConfigError(
+            f"{source}: distortion_model {named!r} is not supported ({', '.join(LENS_MODELS)})"
+        )
     model = LENS_MODELS[named]
     if model == "fisheye" and dist.size != 4:
-        raise ConfigError(f"{source}: distortion_coefficients: the fisheye model takes 4 values (k1 k2 k3 k4), "
-                          f"not {dist.size}")
+        raise ConfigError(
+            f"{source}: distortion_coefficients: the fisheye model takes 4 values (k1 k2 k3 k4), "
+            f"not {dist.size}"
+        )
     if model == "radtan" and dist.size not in (0, 4, 5, 8, 12, 14):
-        raise ConfigError(f"{source}: distortion_coefficients: {dist.size} values; OpenCV takes 4, 5, 8, 12 or 14")
+        raise ConfigError(
+            f"{source}: distortion_coefficients: {dist.size} values; OpenCV takes 4, 5, 8, 12 or 14"
+        )
     return model, (np.zeros(5) if dist.size == 0 else dist)
 
 
@@ -160,7 +174,9 @@ def parse_calibration(obj: Any, source: str) -> CameraCalibration:
     d = _mapping(obj, source, "a camera calibration")
     for key in ("camera_matrix", "distortion_coefficients", "image_width", "image_height"):
         if key not in d:
-            raise ConfigError(f"{source}: missing '{key}' (need an OpenCV FileStorage or ROS camera_info calibration)")
+            raise ConfigError(
+                f"{source}: missing '{key}' (need an OpenCV FileStorage or ROS camera_info calibration)"
+            )
     K = _matrix(d["camera_matrix"], source, "camera_matrix", (3, 3))
     model, dist = _lens(d, source)
     readout = _number(d.get(READOUT_KEY, 0.0), f"{source}: {READOUT_KEY} (seconds)", -1e3, 1e3)
@@ -178,8 +194,9 @@ def parse_calibration(obj: Any, source: str) -> CameraCalibration:
         raise ConfigError(f"{source}: {CORNER_BIAS_KEY} must be a number (pixels)") from None
     if not abs(bias) < 5:
         raise ConfigError(f"{source}: {CORNER_BIAS_KEY} must be within +-5 px, not {bias}")
-    return CameraCalibration(K, dist, width, height, source, model, readout, exposure_s=exposure,
-                             corner_bias_px=bias)
+    return CameraCalibration(
+        K, dist, width, height, source, model, readout, exposure_s=exposure, corner_bias_px=bias
+    )
 
 
 def load_calibration(path: str | Path) -> CameraCalibration:
@@ -188,6 +205,7 @@ def load_calibration(path: str | Path) -> CameraCalibration:
 
 
 # --- rig ------------------------------------------------------------------------------------
+
 
 def _rotation(value: Any, source: str, key: str) -> np.ndarray:
     R = _matrix(value, source, key, (3, 3))
@@ -230,6 +248,7 @@ def load_rig(path: str | Path) -> Rig:
 
 # --- experiment -----------------------------------------------------------------------------
 
+
 def _markers(value: Any, base: Path, source: str) -> MarkerSetup:
     d = _mapping(value, source, "markers")
     for key in ("file", "dictionary", "length"):
@@ -262,7 +281,9 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> SyncSettings:
     sync = dict(_mapping(obj, source, "sync"))
     unknown = sorted(set(map(str, sync)) - set(SYNC_KEYS))
     if unknown:
-        raise ConfigError(f"{source}: sync: unknown key {unknown[0][:40]!r} (allowed: {', '.join(SYNC_KEYS)})")
+        raise ConfigError(
+            f"{source}: sync: unknown key {unknown[0][:40]!r} (allowed: {', '.join(SYNC_KEYS)})"
+        )
     mode = sync.get("mode", "manual")
     if mode not in ("manual", "auto"):
         raise ConfigError(f"{source}: sync.mode must be 'manual' or 'auto', not {mode!r:.40}")
@@ -270,9 +291,16 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> SyncSettings:
     video_start: dict[str, float] | None = None
     if sync.get("video_start") is not None:
         starts = _mapping(sync["video_start"], source, "sync.video_start")
-        video_start = {str(k): _number(v, f"{source}: sync.video_start.{str(k)[:40]}", 0.0, UNIX_S_MAX,
-                                        "Unix seconds in 1970..2100")
-                       for k, v in starts.items()}
+        video_start = {
+            str(k): _number(
+                v,
+                f"{source}: sync.video_start.{str(k)[:40]}",
+                0.0,
+                UNIX_S_MAX,
+                "Unix seconds in 1970..2100",
+            )
+            for k, v in starts.items()
+        }
         missing = sorted(set(cameras) - set(video_start))
         if missing:
             raise ConfigError(f"{source}: sync.video_start: no start time for {', '.join(missing)}")
@@ -285,12 +313,16 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> SyncSettings:
     lo = sync.get("min_cover_s", SyncSettings.min_cover_s)
     hi = sync.get("max_cover_s", SyncSettings.max_cover_s)
     if not lo < hi:
-        raise ConfigError(f"{source}: sync.min_cover_s ({lo:g}) must be less than sync.max_cover_s ({hi:g})")
+        raise ConfigError(
+            f"{source}: sync.min_cover_s ({lo:g}) must be less than sync.max_cover_s ({hi:g})"
+        )
     if sync.get("beacon") is not None:
         try:
             sync["beacon"] = normalize_mac(sync["beacon"])
         except WireError:
-            raise ConfigError(f"{source}: sync.beacon: not a MAC address: {sync['beacon']!r:.40}") from None
+            raise ConfigError(
+                f"{source}: sync.beacon: not a MAC address: {sync['beacon']!r:.40}"
+            ) from None
     return SyncSettings(**sync)
 
 
@@ -309,7 +341,9 @@ def parse_experiment(obj: Any, path: Path) -> Experiment:
     videos_raw = _mapping(d["videos"], source, "videos")
     unknown = sorted(set(map(str, videos_raw)) - set(rig.cameras))
     if unknown:
-        raise ConfigError(f"{source}: videos: camera(s) {', '.join(unknown)} not in the rig ({rig_path.name})")
+        raise ConfigError(
+            f"{source}: videos: camera(s) {', '.join(unknown)} not in the rig ({rig_path.name})"
+        )
     if not videos_raw:
         raise ConfigError(f"{source}: videos: no video given")
     videos = {str(k): base / str(v) for k, v in videos_raw.items()}
@@ -328,5 +362,7 @@ def load_experiment(path: str | Path) -> Experiment:
     if not path.is_file():
         raise ConfigError(f"no such experiment file: {path}")
     exp = parse_experiment(load_yaml(path, "experiment"), path)
-    log.debug("experiment %s: cameras %s, %d markers", path, list(exp.videos), len(exp.markers.markers))
+    log.debug(
+        "experiment %s: cameras %s, %d markers", path, list(exp.videos), len(exp.markers.markers)
+    )
     return exp

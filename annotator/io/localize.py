@@ -40,12 +40,14 @@ def read_radiomap_grids(folder: str | Path) -> list:
     return grids
 
 
-def radiomap_arrays(grids: list, beacon: str, occupancy: str | Path | None = None,
-                    free_value: int = 0) -> RadioMapArrays:
+def radiomap_arrays(
+    grids: list, beacon: str, occupancy: str | Path | None = None, free_value: int = 0
+) -> RadioMapArrays:
     """Stack the per-sensor grids for ``beacon`` into (C, S, K) over the cells any sensor maps,
     restricted to the free cells of ``occupancy`` when given."""
-    keys = sorted({c for g in grids for c, b in g.cells.items() if beacon in b},
-                  key=lambda c: (c[1], c[0]))
+    keys = sorted(
+        {c for g in grids for c, b in g.cells.items() if beacon in b}, key=lambda c: (c[1], c[0])
+    )
     if not keys:
         raise NoDataError(f"the radio map has no cell for beacon {beacon}")
     cell = grids[0].cell
@@ -89,8 +91,9 @@ def reading_files(run: str | Path) -> list[Path]:
     return annotated_files([run])
 
 
-def read_readings(run: str | Path, sensors: tuple[str, ...], beacon: str | None,
-                  map_beacons: Counter) -> tuple[Readings, str]:
+def read_readings(
+    run: str | Path, sensors: tuple[str, ...], beacon: str | None, map_beacons: Counter
+) -> tuple[Readings, str]:
     from bgt_core.formats.tables import load_mbd
 
     df = load_mbd(reading_files(run))
@@ -110,9 +113,18 @@ def read_readings(run: str | Path, sensors: tuple[str, ...], beacon: str | None,
     return Readings(df["t_ns"].to_numpy() / 1e9, sensor, df["rssi"].to_numpy()), beacon
 
 
-def localize_run(run: str | Path, radiomap: str | Path, method: str, *, beacon: str | None = None,
-                 occupancy: str | Path | None = None, k: int = 4, window_s: float = 2.0,
-                 step_s: float = 0.5, speed_mps: float = 1.0) -> tuple[Estimates2D, str]:
+def localize_run(
+    run: str | Path,
+    radiomap: str | Path,
+    method: str,
+    *,
+    beacon: str | None = None,
+    occupancy: str | Path | None = None,
+    k: int = 4,
+    window_s: float = 2.0,
+    step_s: float = 0.5,
+    speed_mps: float = 1.0,
+) -> tuple[Estimates2D, str]:
     if method not in METHODS:
         raise ConfigError(f"--method must be one of {', '.join(METHODS)}, not {method!r}")
     from bgt_core.wire import WireError, normalize_mac

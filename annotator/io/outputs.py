@@ -44,8 +44,10 @@ def track_lines(table: RssiTable, labels: Labels, rows: np.ndarray) -> list[str]
     for k, i in enumerate(rows.tolist()):
         pos = ",".join(pf.format(v) for v in p[k])
         rot = ",".join(rf.format(v) for v in r[k])
-        out.append(f"{format_ts(int(table.t_ns[i]))},{table.sensor[i]},{table.beacon[i]},"
-                   f"{int(table.rssi[i])},{pos},{rot}\n")
+        out.append(
+            f"{format_ts(int(table.t_ns[i]))},{table.sensor[i]},{table.beacon[i]},"
+            f"{int(table.rssi[i])},{pos},{rot}\n"
+        )
     return out
 
 
@@ -136,8 +138,14 @@ def write_report(path: str | Path, report: dict[str, Any]) -> Path:
 
 
 def _event_dict(e: Any, clock: Any = None) -> dict[str, Any]:
-    d = {"cover": e.cover, "release": e.release, "cover_sigma": e.cover_sigma,
-         "release_sigma": e.release_sigma, "duration": e.duration, "signal": e.source}
+    d = {
+        "cover": e.cover,
+        "release": e.release,
+        "cover_sigma": e.cover_sigma,
+        "release_sigma": e.release_sigma,
+        "duration": e.duration,
+        "signal": e.source,
+    }
     if clock is not None:  # a video event: also where it lands on the RSSI clock
         d["cover_rssi_clock"] = float(clock.to_rssi(e.cover))
         d["release_rssi_clock"] = float(clock.to_rssi(e.release))
@@ -149,12 +157,26 @@ def _stats(x: np.ndarray) -> dict[str, float | None]:
     x = x[np.isfinite(x)]
     if not x.size:
         return {"median": None, "p95": None, "max": None}
-    return {"median": float(np.median(x)), "p95": float(np.percentile(x, 95)), "max": float(x.max())}
+    return {
+        "median": float(np.median(x)),
+        "p95": float(np.percentile(x, 95)),
+        "max": float(x.max()),
+    }
 
 
-def build_report(*, experiment: str | Path, sync: Any, beacon: str, readings_total: int,
-                 table: RssiTable, labels: Labels, traj_t: np.ndarray, traj_valid: np.ndarray,
-                 max_gap: float, method: str) -> dict[str, Any]:
+def build_report(
+    *,
+    experiment: str | Path,
+    sync: Any,
+    beacon: str,
+    readings_total: int,
+    table: RssiTable,
+    labels: Labels,
+    traj_t: np.ndarray,
+    traj_valid: np.ndarray,
+    max_gap: float,
+    method: str,
+) -> dict[str, Any]:
     """What report.json says: sync offsets with uncertainty, counts, coverage and quality.
 
     ``sync`` is an :class:`annotator.core.sync.SyncResult`; ``table`` and ``labels`` are the bundle
@@ -167,9 +189,14 @@ def build_report(*, experiment: str | Path, sync: Any, beacon: str, readings_tot
     sync_part: dict[str, Any] = {"mode": sync.mode, "cameras": {}}
     for name, cm in sync.clocks.items():
         sync_part["cameras"][name] = {
-            "video_start": cm.video_start, "video_start_sigma_s": cm.video_start_sigma,
-            "drift": cm.drift, "drift_sigma": cm.drift_sigma, "edges_used": cm.n_edges,
-            "edge_residual_rms_s": cm.residual_rms, "edge_bias_s": cm.edge_bias, "method": cm.method,
+            "video_start": cm.video_start,
+            "video_start_sigma_s": cm.video_start_sigma,
+            "drift": cm.drift,
+            "drift_sigma": cm.drift_sigma,
+            "edges_used": cm.n_edges,
+            "edge_residual_rms_s": cm.residual_rms,
+            "edge_bias_s": cm.edge_bias,
+            "method": cm.method,
             "events": [_event_dict(e, cm) for e in sync.video_events.get(name, [])],
         }
     sync_part["rssi_events"] = [_event_dict(e) for e in sync.rssi_events]
@@ -179,18 +206,35 @@ def build_report(*, experiment: str | Path, sync: Any, beacon: str, readings_tot
         "method": method,
         "beacon": beacon,
         "sync": sync_part,
-        "tracked_span": {"start": float(tv[0]) if tv.size else None,
-                         "stop": float(tv[-1]) if tv.size else None,
-                         "poses": int(tv.size), "frames": int(np.size(traj_t))},
-        "counts": {"readings_in_files": int(readings_total), "readings_of_beacon": len(table),
-                   **{k.replace(" ", "_"): v for k, v in labels.counts.items()}},
-        "coverage": {"labelled_of_tracked_span": tracked_span_coverage(labels),
-                     "labelled_of_all": float(lab.mean()) if lab.size else 0.0,
-                     "max_gap_s": max_gap},
-        "quality": {"pos_sigma_m": _stats(labels.sigma[lab]), "gap_to_pose_s": _stats(labels.gap_s[lab]),
-                    "markers_used": {"median": float(np.median(markers)) if markers.size else None,
-                                     "zero": int(np.sum(markers == 0))}},
-        "per_sensor": {s: {"readings": int(np.sum(table.sensor == s)),
-                           "labelled": int(np.sum(lab & (table.sensor == s)))}
-                       for s in sorted(set(table.sensor.tolist()))},
+        "tracked_span": {
+            "start": float(tv[0]) if tv.size else None,
+            "stop": float(tv[-1]) if tv.size else None,
+            "poses": int(tv.size),
+            "frames": int(np.size(traj_t)),
+        },
+        "counts": {
+            "readings_in_files": int(readings_total),
+            "readings_of_beacon": len(table),
+            **{k.replace(" ", "_"): v for k, v in labels.counts.items()},
+        },
+        "coverage": {
+            "labelled_of_tracked_span": tracked_span_coverage(labels),
+            "labelled_of_all": float(lab.mean()) if lab.size else 0.0,
+            "max_gap_s": max_gap,
+        },
+        "quality": {
+            "pos_sigma_m": _stats(labels.sigma[lab]),
+            "gap_to_pose_s": _stats(labels.gap_s[lab]),
+            "markers_used": {
+                "median": float(np.median(markers)) if markers.size else None,
+                "zero": int(np.sum(markers == 0)),
+            },
+        },
+        "per_sensor": {
+            s: {
+                "readings": int(np.sum(table.sensor == s)),
+                "labelled": int(np.sum(lab & (table.sensor == s))),
+            }
+            for s in sorted(set(table.sensor.tolist()))
+        },
     }

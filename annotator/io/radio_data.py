@@ -42,7 +42,9 @@ def _mbd_in(path: Path) -> list[Path]:
     raise FileNotFoundError(f"no such file or directory: {path}")
 
 
-def stationary_files(paths: Iterable[str | Path]) -> list[tuple[Path, str, tuple[float, float, float]]]:
+def stationary_files(
+    paths: Iterable[str | Path],
+) -> list[tuple[Path, str, tuple[float, float, float]]]:
     """Every ``<alias>_<x>_<y>_<z>.mbd`` under ``paths`` (files or directories, not recursive),
     with its alias and position. A file whose name does not follow the pattern is an error."""
     out = []
@@ -51,8 +53,9 @@ def stationary_files(paths: Iterable[str | Path]) -> list[tuple[Path, str, tuple
             try:
                 alias, pos = fp.parse_fingerprint_name(f.name)
             except ValueError:
-                raise ConfigError(f"{f}: fingerprint files must be named "
-                                  f"'<alias>_<x>_<y>_<z>.mbd'") from None
+                raise ConfigError(
+                    f"{f}: fingerprint files must be named '<alias>_<x>_<y>_<z>.mbd'"
+                ) from None
             out.append((f, alias, pos))
     if not out:
         raise NoDataError(f"no .mbd files in {', '.join(str(p) for p in paths)}")
@@ -85,8 +88,9 @@ def site_occupancy(name: str = "tetam", cell: float = 0.5) -> Occupancy:
     return read_occ(site_dir(name) / f"{name}_{cell:g}.occ")
 
 
-def _complete_devices(given: Devices | None, seen_sensors: dict[str, str],
-                      seen_beacons: Iterable[str]) -> Devices:
+def _complete_devices(
+    given: Devices | None, seen_sensors: dict[str, str], seen_beacons: Iterable[str]
+) -> Devices:
     """The devices written into the .hst: the given file's (or the built-in tetam site's when it
     knows every sensor seen), plus anything seen in the data but not listed there."""
     base = given
@@ -97,8 +101,11 @@ def _complete_devices(given: Devices | None, seen_sensors: dict[str, str],
     for mac, alias in seen_sensors.items():
         if mac not in dongles:
             if given is not None:
-                log.warning("sensor %s (%s) is not in the devices file; listed without a position",
-                            mac, alias)
+                log.warning(
+                    "sensor %s (%s) is not in the devices file; listed without a position",
+                    mac,
+                    alias,
+                )
             dongles[mac] = Device(mac, (), 0, alias)
     beacons = dict(base.beacons)
     for i, mac in enumerate(sorted(set(seen_beacons) - set(beacons)), len(beacons) + 1):
@@ -126,9 +133,12 @@ class FingerprintResult:
     used: int  # readings inside the bin range that went into a histogram
 
 
-def stationary_fingerprints(paths: Sequence[str | Path], edges: np.ndarray,
-                            devices: Devices | None = None,
-                            progress: Progress = _noop) -> FingerprintResult:
+def stationary_fingerprints(
+    paths: Sequence[str | Path],
+    edges: np.ndarray,
+    devices: Devices | None = None,
+    progress: Progress = _noop,
+) -> FingerprintResult:
     """Normalised per-position, per-sensor, per-beacon histograms of stationary recordings.
     Files for the same position and sensor (e.g. two sessions) are pooled before normalising."""
     files = stationary_files(paths)
@@ -140,8 +150,10 @@ def stationary_fingerprints(paths: Sequence[str | Path], edges: np.ndarray,
     for f, alias, pos in files:
         df = load_mbd(f)
         if "x" in df.columns:
-            raise ConfigError(f"{f}: rows carry positions, so this is an annotated track, not a "
-                              "stationary recording; use --from-annotated")
+            raise ConfigError(
+                f"{f}: rows carry positions, so this is an annotated track, not a "
+                "stationary recording; use --from-annotated"
+            )
         rows += len(df)
         for (s, b), g in df.groupby(["sensor", "beacon"], sort=True):
             if wanted is not None and b not in wanted:
@@ -153,8 +165,12 @@ def stationary_fingerprints(paths: Sequence[str | Path], edges: np.ndarray,
         progress(1)
     table, used = _normalised(counts)
     if not table:
-        raise NoDataError(f"no readings inside {edges[0]:g}..{edges[-1]:g} dBm in {len(files)} files")
-    h = histograms_from_mapping(edges, _complete_devices(devices, seen_sensors, seen_beacons), table)
+        raise NoDataError(
+            f"no readings inside {edges[0]:g}..{edges[-1]:g} dBm in {len(files)} files"
+        )
+    h = histograms_from_mapping(
+        edges, _complete_devices(devices, seen_sensors, seen_beacons), table
+    )
     return FingerprintResult(h, len(files), rows, used)
 
 
@@ -173,10 +189,16 @@ def _normalised(counts: dict) -> tuple[dict, int]:
     return table, used
 
 
-def annotated_fingerprints(paths: Sequence[str | Path], edges: np.ndarray, cell: float,
-                           devices: Devices | None = None, *, min_readings: int = 1,
-                           origin: tuple[float, float] = (0.0, 0.0),
-                           progress: Progress = _noop) -> FingerprintResult:
+def annotated_fingerprints(
+    paths: Sequence[str | Path],
+    edges: np.ndarray,
+    cell: float,
+    devices: Devices | None = None,
+    *,
+    min_readings: int = 1,
+    origin: tuple[float, float] = (0.0, 0.0),
+    progress: Progress = _noop,
+) -> FingerprintResult:
     """Fingerprints from moving, position-annotated captures: readings binned into grid cells of
     ``cell`` metres (anchored at ``origin``); each occupied cell becomes a reference position at
     its centre (height: median of the readings' z there). A (cell, sensor, beacon) histogram
@@ -190,8 +212,10 @@ def annotated_fingerprints(paths: Sequence[str | Path], edges: np.ndarray, cell:
 
     df = pd.concat(frames, ignore_index=True)
     if "x" not in df.columns:
-        raise NoDataError(f"{files[0]}: rows carry no positions; --from-annotated needs "
-                          "annotated track files (ts,sensor,beacon,rssi,x,y,z,...)")
+        raise NoDataError(
+            f"{files[0]}: rows carry no positions; --from-annotated needs "
+            "annotated track files (ts,sensor,beacon,rssi,x,y,z,...)"
+        )
     wanted = _beacon_filter(devices)
     if wanted is not None:
         df = df[df["beacon"].isin(wanted)]
@@ -212,8 +236,9 @@ def annotated_fingerprints(paths: Sequence[str | Path], edges: np.ndarray, cell:
     if not table:
         raise NoDataError(f"no cell has {min_readings} or more readings inside the bin range")
     seen_sensors = {s: s for s in df["sensor"].unique()}
-    h = histograms_from_mapping(edges, _complete_devices(devices, seen_sensors,
-                                                         df["beacon"].unique()), table)
+    h = histograms_from_mapping(
+        edges, _complete_devices(devices, seen_sensors, df["beacon"].unique()), table
+    )
     return FingerprintResult(h, len(files), len(df), used)
 
 
@@ -256,14 +281,22 @@ def detect_site(devices: Devices) -> Site | None:
     return None
 
 
-def make_grid(h: FingerprintHistograms, cell: float | None, occupancy: Occupancy | None,
-              site: Site | None, *, free_value: int = 0) -> Grid:
+def make_grid(
+    h: FingerprintHistograms,
+    cell: float | None,
+    occupancy: Occupancy | None,
+    site: Site | None,
+    *,
+    free_value: int = 0,
+) -> Grid:
     """The cells to compute: an occupancy grid's cells whose value is ``free_value`` (0 in the
     published files, see bgt_core.formats.occ), or every cell of the site's / the data's
     extent in ``cell`` metre steps."""
     if occupancy is not None:
         if cell is not None and abs(cell - occupancy.cell) > 1e-9:
-            raise ConfigError(f"--cell {cell} does not match the occupancy grid's {occupancy.cell} m cells")
+            raise ConfigError(
+                f"--cell {cell} does not match the occupancy grid's {occupancy.cell} m cells"
+            )
         try:
             xs, ys, mask = occ_to_mask(occupancy, free_value)
         except ValueError as e:
@@ -285,8 +318,13 @@ def make_grid(h: FingerprintHistograms, cell: float | None, occupancy: Occupancy
         hi = np.where(hi > lo, hi, lo + cell)
         limits = ((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])))
     x_lo, y_lo = grid_corners(limits, cell)
-    return Grid(limits, float(cell), np.asarray(x_lo), np.asarray(y_lo),
-                np.ones((len(y_lo), len(x_lo)), dtype=bool))
+    return Grid(
+        limits,
+        float(cell),
+        np.asarray(x_lo),
+        np.asarray(y_lo),
+        np.ones((len(y_lo), len(x_lo)), dtype=bool),
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -295,8 +333,14 @@ class SensorMap:
     mean: np.ndarray  # [iy, ix] mean RSSI over beacons (NaN outside the mask)
 
 
-def radio_maps(h: FingerprintHistograms, grid: Grid, *, neighbours: int = 4, power: float = 2.0,
-               progress: Progress = _noop) -> list[SensorMap]:
+def radio_maps(
+    h: FingerprintHistograms,
+    grid: Grid,
+    *,
+    neighbours: int = 4,
+    power: float = 2.0,
+    progress: Progress = _noop,
+) -> list[SensorMap]:
     """One radio map per sensor in the .hst: every masked cell's histogram per beacon."""
     positions, sensors, beacons, p = hst_to_arrays(h)
     if not len(positions):
@@ -308,8 +352,9 @@ def radio_maps(h: FingerprintHistograms, grid: Grid, *, neighbours: int = 4, pow
     for si, s in enumerate(sensors):
         per_beacon = {}
         for bi, b in enumerate(beacons):
-            hist = rm.interpolate(positions[:, :2], p[:, si, bi], targets, edges,
-                                  neighbours=neighbours, power=power)
+            hist = rm.interpolate(
+                positions[:, :2], p[:, si, bi], targets, edges, neighbours=neighbours, power=power
+            )
             if np.isfinite(hist).all(axis=1).any():
                 per_beacon[b] = hist
         cells: dict = {}
@@ -323,8 +368,9 @@ def radio_maps(h: FingerprintHistograms, grid: Grid, *, neighbours: int = 4, pow
             means = np.stack([rm.mean_rssi(hh, edges) for hh in per_beacon.values()])
             ok = np.isfinite(means)
             n = ok.sum(axis=0)
-            mean[iy, ix] = np.where(n > 0, np.where(ok, means, 0.0).sum(axis=0) / np.maximum(n, 1),
-                                    np.nan)
+            mean[iy, ix] = np.where(
+                n > 0, np.where(ok, means, 0.0).sum(axis=0) / np.maximum(n, 1), np.nan
+            )
         out.append(SensorMap(RadioMapGrid(s, grid.limits, grid.cell, tuple(h.bins), cells), mean))
         progress(1)
     return out
@@ -334,15 +380,26 @@ def cell_label(cell: float) -> str:
     return repr(float(cell))
 
 
-def write_radio_maps(maps: Sequence[SensorMap], h: FingerprintHistograms, grid: Grid,
-                     out_dir: str | Path, stem: str, *, plots: bool = True,
-                     site: Site | None = None, progress: Progress = _noop) -> list[Path]:
+def write_radio_maps(
+    maps: Sequence[SensorMap],
+    h: FingerprintHistograms,
+    grid: Grid,
+    out_dir: str | Path,
+    stem: str,
+    *,
+    plots: bool = True,
+    site: Site | None = None,
+    progress: Progress = _noop,
+) -> list[Path]:
     """``<stem>_<sensor>_<cell>.grd`` (and ``.png`` heat map) per sensor in ``out_dir``."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
-    sensors_xy = {m: (d.position[0], d.position[1]) for m, d in h.devices.dongles.items()
-                  if len(d.position) >= 2}
+    sensors_xy = {
+        m: (d.position[0], d.position[1])
+        for m, d in h.devices.dongles.items()
+        if len(d.position) >= 2
+    }
     fps = np.array([p[:2] for p in h.fingerprints], dtype=float)
     for m in maps:
         # not Path.with_suffix: the cell size ("0.5") already contains a dot
@@ -355,11 +412,19 @@ def write_radio_maps(maps: Sequence[SensorMap], h: FingerprintHistograms, grid: 
 
             alias = h.devices.dongles.get(m.grid.sensor)
             name = alias.alias if alias is not None else m.grid.sensor
-            plot_mean_rssi(png_path, grid.xs, grid.ys, grid.cell, m.mean,
-                           title=f"{name} ({m.grid.sensor}): mean RSSI, {grid.cell:g} m cells",
-                           sensors=sensors_xy, highlight=m.grid.sensor, fingerprints=fps,
-                           floor_plan=site.floor_plan if site else None,
-                           params=site.params if site else None)
+            plot_mean_rssi(
+                png_path,
+                grid.xs,
+                grid.ys,
+                grid.cell,
+                m.mean,
+                title=f"{name} ({m.grid.sensor}): mean RSSI, {grid.cell:g} m cells",
+                sensors=sensors_xy,
+                highlight=m.grid.sensor,
+                fingerprints=fps,
+                floor_plan=site.floor_plan if site else None,
+                params=site.params if site else None,
+            )
             written.append(png_path)
         progress(1)
     return written

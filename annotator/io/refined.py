@@ -47,24 +47,46 @@ def write_refined(folder: str | Path, refinement: Refinement) -> dict[str, str]:
     for mid in sorted(markers):
         m = markers[mid]
         c = cov.get(mid)
-        rows.append({
-            "id": int(mid), "position": [round(float(v), 5) for v in m.position],
-            "rotation_xyz": [round(float(v), 6) for v in m.euler_xyz],
-            "sigma_m": None if c is None else round(math.sqrt(float(np.trace(c[3:, 3:])) / 3), 5),
-            "sigma_deg": None if c is None else round(math.degrees(math.sqrt(float(np.trace(c[:3, :3])) / 3)), 4),
-            "source": "video" if mid in refinement.mapped else ("video, moved since the survey?" if mid in moved
-                                                                 else "survey + video"),
-        })
-    header = ("# Marker map refined from the capture (annotator.core.refine). sigma_*: 1-sigma per axis.\n"
-              f"# dictionary {exp.markers.dictionary}, marker length {exp.markers.length} m\n")
-    (out / "markers.yaml").write_text(header + yaml.safe_dump({"markers": rows}, sort_keys=False), encoding="utf-8")
+        rows.append(
+            {
+                "id": int(mid),
+                "position": [round(float(v), 5) for v in m.position],
+                "rotation_xyz": [round(float(v), 6) for v in m.euler_xyz],
+                "sigma_m": None
+                if c is None
+                else round(math.sqrt(float(np.trace(c[3:, 3:])) / 3), 5),
+                "sigma_deg": None
+                if c is None
+                else round(math.degrees(math.sqrt(float(np.trace(c[:3, :3])) / 3)), 4),
+                "source": "video"
+                if mid in refinement.mapped
+                else ("video, moved since the survey?" if mid in moved else "survey + video"),
+            }
+        )
+    header = (
+        "# Marker map refined from the capture (annotator.core.refine). sigma_*: 1-sigma per axis.\n"
+        f"# dictionary {exp.markers.dictionary}, marker length {exp.markers.length} m\n"
+    )
+    (out / "markers.yaml").write_text(
+        header + yaml.safe_dump({"markers": rows}, sort_keys=False), encoding="utf-8"
+    )
     lines = ["# Rig refined from the capture (annotator.core.refine).", "cameras:"]
     for name, cam in exp.rig.cameras.items():
         _write_calibration(out / f"{name}.yaml", cam.calibration)
-        rows_r = ", ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in cam.R_bundle_camera)
-        lines += [f"  {name}:", f"    calibration: {name}.yaml", f"    R_bundle_camera: [{rows_r}]",
-                  "    t_bundle_camera: [" + ", ".join(repr(float(v)) for v in cam.t_bundle_camera) + "]"]
+        rows_r = ", ".join(
+            "[" + ", ".join(repr(float(v)) for v in row) + "]" for row in cam.R_bundle_camera
+        )
+        lines += [
+            f"  {name}:",
+            f"    calibration: {name}.yaml",
+            f"    R_bundle_camera: [{rows_r}]",
+            "    t_bundle_camera: [" + ", ".join(repr(float(v)) for v in cam.t_bundle_camera) + "]",
+        ]
     (out / "rig.yaml").write_text("\n".join(lines) + "\n", encoding="utf-8")
-    files = {"marker_positions": "marker_positions.dat", "markers": "markers.yaml", "rig": "rig.yaml"}
+    files = {
+        "marker_positions": "marker_positions.dat",
+        "markers": "markers.yaml",
+        "rig": "rig.yaml",
+    }
     files.update({f"calibration_{n}": f"{n}.yaml" for n in exp.rig.cameras})
     return files

@@ -37,8 +37,14 @@ class RssiTable:
         return int(self.t_ns.size)
 
     def select(self, mask: np.ndarray) -> RssiTable:
-        return RssiTable(self.t_ns[mask], self.sensor[mask], self.beacon[mask], self.rssi[mask],
-                         self.files, self.run_info)
+        return RssiTable(
+            self.t_ns[mask],
+            self.sensor[mask],
+            self.beacon[mask],
+            self.rssi[mask],
+            self.files,
+            self.run_info,
+        )
 
     def t_seconds(self) -> np.ndarray:
         """Float Unix seconds (about 0.2 us resolution; use t_ns where exactness matters)."""
@@ -111,8 +117,14 @@ def load_rssi(path: str | Path) -> RssiTable:
             raise ConfigError(f"run info: {e}") from None
         if not isinstance(info, dict):
             info = None
-    table = RssiTable(t_ns[order], np.asarray(sensor)[order], np.asarray(beacon)[order],
-                      np.asarray(rssi, dtype=np.int16)[order], tuple(files), info)
+    table = RssiTable(
+        t_ns[order],
+        np.asarray(sensor)[order],
+        np.asarray(beacon)[order],
+        np.asarray(rssi, dtype=np.int16)[order],
+        tuple(files),
+        info,
+    )
     log.info("rssi: %d readings from %d file(s) under %s", len(table), len(files), path)
     return table
 
@@ -122,10 +134,16 @@ def bundle_beacon(table: RssiTable, beacon: str | None = None) -> str:
     heard = Counter(table.beacon.tolist())
     if beacon is not None:
         if beacon not in heard:
-            raise NoDataError(f"rssi: beacon {beacon} is never heard (heard: {', '.join(sorted(heard))})")
+            raise NoDataError(
+                f"rssi: beacon {beacon} is never heard (heard: {', '.join(sorted(heard))})"
+            )
         return beacon
     (top, n), *rest = heard.most_common()
     if rest:
-        log.warning("rssi: %d beacons heard; labelling the most frequent, %s (%d readings)",
-                    len(heard), top, n)
+        log.warning(
+            "rssi: %d beacons heard; labelling the most frequent, %s (%d readings)",
+            len(heard),
+            top,
+            n,
+        )
     return top

@@ -40,24 +40,29 @@ def read_estimates(path: str | Path) -> Estimates:
     df.columns = [str(c).strip().lower() for c in df.columns]
     missing = [c for c in ESTIMATE_COLUMNS if c not in df.columns]
     if missing:
-        raise AnnotatorError(f"{path}: header lacks column(s) {', '.join(missing)}; expected "
-                             "'t,x,y' or 't,x,y,z'")
+        raise AnnotatorError(
+            f"{path}: header lacks column(s) {', '.join(missing)}; expected 't,x,y' or 't,x,y,z'"
+        )
     has_z = "z" in df.columns
     cols = [*ESTIMATE_COLUMNS, *(["z"] if has_z else [])]
     try:
         data = df[cols].apply(pd.to_numeric, errors="raise").to_numpy(dtype=float)
     except (ValueError, TypeError):
-        bad = next(i for i, row in enumerate(df[cols].itertuples(index=False))
-                   if not all(_is_number(v) for v in row))
-        raise AnnotatorError(f"{path}:{bad + 2}: t, x, y{', z' if has_z else ''} must be "
-                             "numbers") from None
+        bad = next(
+            i
+            for i, row in enumerate(df[cols].itertuples(index=False))
+            if not all(_is_number(v) for v in row)
+        )
+        raise AnnotatorError(
+            f"{path}:{bad + 2}: t, x, y{', z' if has_z else ''} must be numbers"
+        ) from None
     if not len(data):
         raise NoDataError(f"{path}: no estimates")
     if not np.isfinite(data[:, 0]).all():
         bad = int(np.flatnonzero(~np.isfinite(data[:, 0]))[0])
         raise AnnotatorError(f"{path}:{bad + 2}: t must be a finite time (Unix seconds)")
     pos = np.full((len(data), 3), np.nan)
-    pos[:, :data.shape[1] - 1] = data[:, 1:]
+    pos[:, : data.shape[1] - 1] = data[:, 1:]
     order = np.argsort(data[:, 0], kind="stable")
     return Estimates(data[order, 0], pos[order], has_z, str(path))
 
@@ -90,8 +95,10 @@ def _truth_from_mbd(paths: list[Path], source: str) -> Truth:
 
     df = load_mbd(paths)
     if "x" not in df.columns:
-        raise AnnotatorError(f"{source}: rows carry no positions; the truth must be an annotated "
-                             "track (ts,sensor,beacon,rssi,x,y,z,...)")
+        raise AnnotatorError(
+            f"{source}: rows carry no positions; the truth must be an annotated "
+            "track (ts,sensor,beacon,rssi,x,y,z,...)"
+        )
     if not len(df):
         raise NoDataError(f"{source}: no rows")
     pos = df[["x", "y", "z"]].to_numpy(dtype=float)
@@ -119,8 +126,10 @@ def read_truth(path: str | Path) -> Truth:
         merged = sorted(path.glob("*all_sensors.mbd"))
         files = merged[:1] or sorted(path.glob("*.mbd"))
         if not files:
-            raise NoDataError(f"{path}: neither trajectory.csv, annotated/all_sensors.mbd nor "
-                              "track .mbd files in it")
+            raise NoDataError(
+                f"{path}: neither trajectory.csv, annotated/all_sensors.mbd nor "
+                "track .mbd files in it"
+            )
         return _truth_from_mbd(files, str(path))
     if not path.is_file():
         raise AnnotatorError(f"cannot read truth {path}: no such file or directory")
@@ -141,8 +150,7 @@ def _json_safe(v: Any) -> Any:
     return v
 
 
-def write_score(out_dir: str | Path, s: Score, *, estimates: str, truth: str,
-                has_z: bool) -> Path:
+def write_score(out_dir: str | Path, s: Score, *, estimates: str, truth: str, has_z: bool) -> Path:
     """``out_dir/score.json``: blocks error_2d_m and error_3d_m (mean, median, rmse, ce50, ce75,
     ce95, max, n), the truth's sigma, coverage and the latency estimate."""
     out = Path(out_dir)

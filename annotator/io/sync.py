@@ -11,8 +11,9 @@ from annotator.errors import NoDataError
 from annotator.io.video import iter_frames
 
 
-def brightness_series(path: str | Path, progress: Callable[[int], None] | None = None,
-                      stride: int = 4) -> tuple[np.ndarray, np.ndarray]:
+def brightness_series(
+    path: str | Path, progress: Callable[[int], None] | None = None, stride: int = 4
+) -> tuple[np.ndarray, np.ndarray]:
     """(pts seconds, mean grey level) of every frame; every ``stride``-th pixel is plenty."""
     pts, level = [], []
     for k, (t, frame) in enumerate(iter_frames(path, gray=True)):

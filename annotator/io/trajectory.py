@@ -36,7 +36,9 @@ def write_trajectory(path: str | Path, traj: Trajectory) -> None:
             cells += [_fmt(v, 12) for v in rot[i]]  # 12 decimals keep R orthonormal to ~1e-12
             for q in qnames:
                 v = float(traj.quality[q][i])
-                cells.append("nan" if not math.isfinite(v) else (str(int(v)) if v == int(v) else f"{v:.6g}"))
+                cells.append(
+                    "nan" if not math.isfinite(v) else (str(int(v)) if v == int(v) else f"{v:.6g}")
+                )
             f.write(",".join(cells) + "\n")
     tmp.replace(path)
 
@@ -92,8 +94,9 @@ def _check_columns(path: Path, col: dict[str, np.ndarray]) -> None:
     t = col["t"]
     bad = ~np.isfinite(t) | (t < 0) | (t >= T_MAX_S)
     if bad.any():
-        raise AnnotatorError(f"{path}:{line(bad)}: t must be Unix seconds in 1970..2100, "
-                             f"not {t[bad][0]:g}")
+        raise AnnotatorError(
+            f"{path}:{line(bad)}: t must be Unix seconds in 1970..2100, not {t[bad][0]:g}"
+        )
     if len(t) > 1 and np.any(np.diff(t) < 0):
         raise AnnotatorError(f"{path}:{line(np.r_[False, np.diff(t) < 0])}: column t is not sorted")
     for name in POSE_COLUMNS[1:]:
@@ -101,5 +104,7 @@ def _check_columns(path: Path, col: dict[str, np.ndarray]) -> None:
         limit = POSITION_MAX_M if name in ("x", "y", "z") else 1.0 + 1e-6
         bad = np.isinf(v) | (np.abs(np.nan_to_num(v)) > limit)
         if bad.any():
-            raise AnnotatorError(f"{path}:{line(bad)}: {name} = {v[bad][0]:g} is out of range "
-                                 f"(|{name}| <= {limit:g}; NaN marks a gap)")
+            raise AnnotatorError(
+                f"{path}:{line(bad)}: {name} = {v[bad][0]:g} is out of range "
+                f"(|{name}| <= {limit:g}; NaN marks a gap)"
+            )

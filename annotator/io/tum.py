@@ -80,8 +80,11 @@ def format_tum(p: Trajectory, *, flat: bool = False) -> str:
         if not ok:
             continue
         z = 0.0 if flat else xyz[2]
-        lines.append(f"{float(t)!r} {float(xyz[0])!r} {float(xyz[1])!r} {float(z)!r} "
-                     + " ".join(repr(float(v)) for v in q) + "\n")
+        lines.append(
+            f"{float(t)!r} {float(xyz[0])!r} {float(xyz[1])!r} {float(z)!r} "
+            + " ".join(repr(float(v)) for v in q)
+            + "\n"
+        )
     return "".join(lines)
 
 

@@ -41,8 +41,13 @@ def video_info(path: str | Path) -> VideoInfo:
     path = Path(path)
     cap = _open(path)
     try:
-        return VideoInfo(path, int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
-                         float(cap.get(cv2.CAP_PROP_FPS)), int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
+        return VideoInfo(
+            path,
+            int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+            int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+            float(cap.get(cv2.CAP_PROP_FPS)),
+            int(cap.get(cv2.CAP_PROP_FRAME_COUNT)),
+        )
     finally:
         cap.release()
 
@@ -65,7 +70,9 @@ def _quiet_opencv() -> Iterator[None]:
 def _open_luma(path: Path, threads: int | None) -> cv2.VideoCapture | None:
     """A capture returning the decoder's own luma plane (no YUV -> BGR -> grey), or None if the
     stream's pixel format is not one whose first plane is the whole grey image."""
-    params = [cv2.CAP_PROP_CONVERT_RGB, 0] + ([] if threads is None else [cv2.CAP_PROP_N_THREADS, int(threads)])
+    params = [cv2.CAP_PROP_CONVERT_RGB, 0] + (
+        [] if threads is None else [cv2.CAP_PROP_N_THREADS, int(threads)]
+    )
     with _quiet_opencv():
         cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG, params)
     if not cap.isOpened():
@@ -77,8 +84,9 @@ def _open_luma(path: Path, threads: int | None) -> cv2.VideoCapture | None:
     return cap
 
 
-def iter_frames(path: str | Path, gray: bool = False, threads: int | None = None,
-                luma: bool = False) -> Iterator[tuple[float, np.ndarray]]:
+def iter_frames(
+    path: str | Path, gray: bool = False, threads: int | None = None, luma: bool = False
+) -> Iterator[tuple[float, np.ndarray]]:
     """Yield (pts_seconds, frame) in decode order; pts is relative to the stream start.
 
     After ``read()``, CAP_PROP_POS_MSEC is the presentation time of the frame just returned,

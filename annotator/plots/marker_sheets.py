@@ -15,8 +15,13 @@ from annotator.errors import ConfigError
 
 INCH = 0.0254
 # ISO 216 portrait sizes, metres.
-PAPERS = {"A4": (0.210, 0.297), "A3": (0.297, 0.420), "A2": (0.420, 0.594), "A1": (0.594, 0.841),
-          "A0": (0.841, 1.189)}
+PAPERS = {
+    "A4": (0.210, 0.297),
+    "A3": (0.297, 0.420),
+    "A2": (0.420, 0.594),
+    "A1": (0.594, 0.841),
+    "A0": (0.841, 1.189),
+}
 SIDE_MARGIN = 0.012  # printers cannot print to the edge; also the white quiet zone
 LABEL_SPACE = 0.055  # below the marker: id line and 10 cm scale bar
 SCALE_BAR = 0.100
@@ -54,6 +59,7 @@ def marker_cells(dictionary: str, marker_id: int) -> np.ndarray:
 
 def choose_paper(length: float, paper: str = "auto") -> str:
     """The smallest ISO paper (or the asked one) holding the marker, its margins and labels."""
+
     def fits(name: str) -> bool:
         w, h = PAPERS[name]
         return length + 2 * SIDE_MARGIN <= w and length + 2 * SIDE_MARGIN + LABEL_SPACE <= h
@@ -63,7 +69,9 @@ def choose_paper(length: float, paper: str = "auto") -> str:
         if name not in PAPERS:
             raise ConfigError(f"--paper {paper!r}: expected auto or one of {', '.join(PAPERS)}")
         if not fits(name):
-            raise ConfigError(f"a {length * 1000:.0f} mm marker does not fit on {name}; try a larger --paper")
+            raise ConfigError(
+                f"a {length * 1000:.0f} mm marker does not fit on {name}; try a larger --paper"
+            )
         return name
     for name in PAPERS:
         if fits(name):
@@ -71,7 +79,9 @@ def choose_paper(length: float, paper: str = "auto") -> str:
     raise ConfigError(f"a {length * 1000:.0f} mm marker is larger than A0 paper")
 
 
-def marker_page(marker_id: int, length: float, dictionary: str, paper: str) -> tuple[Figure, tuple[float, float, float, float]]:
+def marker_page(
+    marker_id: int, length: float, dictionary: str, paper: str
+) -> tuple[Figure, tuple[float, float, float, float]]:
     """One page; returns the figure and the marker's black-square box (left, bottom, w, h) in metres."""
     pw, ph = PAPERS[paper]
     fig = Figure(figsize=(pw / INCH, ph / INCH))
@@ -89,20 +99,42 @@ def marker_page(marker_id: int, length: float, dictionary: str, paper: str) -> t
             start = c
             while c < n and cells[r, c]:
                 c += 1
-            ax.add_patch(Rectangle((start, n - r - 1), c - start, 1, facecolor="black", edgecolor="none",
-                                   antialiased=False))
+            ax.add_patch(
+                Rectangle(
+                    (start, n - r - 1),
+                    c - start,
+                    1,
+                    facecolor="black",
+                    edgecolor="none",
+                    antialiased=False,
+                )
+            )
     ax.set_xlim(0, n)
     ax.set_ylim(0, n)
     ax.set_axis_off()
 
     text_y = bottom - 0.018
-    fig.text(0.5, text_y / ph, f"ArUco {dictionary}  id {marker_id}   black square {length * 1000:.1f} mm",
-             ha="center", va="top", fontsize=14)
-    bar = fig.add_axes(((pw - SCALE_BAR) / 2 / pw, (text_y - 0.030) / ph, SCALE_BAR / pw, 0.004 / ph))
+    fig.text(
+        0.5,
+        text_y / ph,
+        f"ArUco {dictionary}  id {marker_id}   black square {length * 1000:.1f} mm",
+        ha="center",
+        va="top",
+        fontsize=14,
+    )
+    bar = fig.add_axes(
+        ((pw - SCALE_BAR) / 2 / pw, (text_y - 0.030) / ph, SCALE_BAR / pw, 0.004 / ph)
+    )
     bar.add_patch(Rectangle((0, 0), 1, 1, facecolor="black", edgecolor="none", antialiased=False))
     bar.set_xlim(0, 1)
     bar.set_ylim(0, 1)
     bar.set_axis_off()
-    fig.text(0.5, (text_y - 0.034) / ph, "100 mm: measure this bar; print at 100 % (no 'fit to page')",
-             ha="center", va="top", fontsize=9)
+    fig.text(
+        0.5,
+        (text_y - 0.034) / ph,
+        "100 mm: measure this bar; print at 100 % (no 'fit to page')",
+        ha="center",
+        va="top",
+        fontsize=9,
+    )
     return fig, (left, bottom, length, length)

@@ -10,12 +10,20 @@ import numpy as np
 from bgt_core.formats.devices import MapParams
 
 
-def plot_mean_rssi(path: str | Path, xs: np.ndarray, ys: np.ndarray, cell: float,
-                   mean: np.ndarray, *, title: str,
-                   sensors: dict[str, tuple[float, float]] | None = None,
-                   highlight: str | None = None,
-                   fingerprints: np.ndarray | None = None,
-                   floor_plan: Path | None = None, params: MapParams | None = None) -> Path:
+def plot_mean_rssi(
+    path: str | Path,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    cell: float,
+    mean: np.ndarray,
+    *,
+    title: str,
+    sensors: dict[str, tuple[float, float]] | None = None,
+    highlight: str | None = None,
+    fingerprints: np.ndarray | None = None,
+    floor_plan: Path | None = None,
+    params: MapParams | None = None,
+) -> Path:
     """Write a PNG: ``mean[iy, ix]`` (dBm, NaN = no value) on the grid with lower-left corners
     ``xs`` x ``ys``; sensor positions (``highlight`` drawn larger) and fingerprint positions
     marked. With ``floor_plan`` and ``params`` the grid is drawn in map pixels over the image."""
@@ -29,6 +37,7 @@ def plot_mean_rssi(path: str | Path, xs: np.ndarray, ys: np.ndarray, cell: float
     gx, gy = np.meshgrid(np.append(xs, xs[-1] + cell), np.append(ys, ys[-1] + cell))
     fig, ax = plt.subplots(figsize=(8, 7))
     try:
+
         def to_plot(x, y):
             return (x, y) if params is None else params.world_to_pixel(x, y)
 
@@ -44,18 +53,34 @@ def plot_mean_rssi(path: str | Path, xs: np.ndarray, ys: np.ndarray, cell: float
             ax.set_aspect("equal")
         px, py = to_plot(gx, gy)
         masked = np.ma.masked_invalid(np.asarray(mean, dtype=float))
-        mesh = ax.pcolormesh(px, py, masked, cmap="viridis", alpha=0.75 if params else 1.0,
-                             shading="flat", zorder=1)
+        mesh = ax.pcolormesh(
+            px, py, masked, cmap="viridis", alpha=0.75 if params else 1.0, shading="flat", zorder=1
+        )
         fig.colorbar(mesh, ax=ax, label="mean RSSI (dBm)")
         if fingerprints is not None and len(fingerprints):
             fx, fy = to_plot(fingerprints[:, 0], fingerprints[:, 1])
-            ax.scatter(fx, fy, s=10, c="white", edgecolors="black", linewidths=0.5, zorder=2,
-                       label="fingerprints")
+            ax.scatter(
+                fx,
+                fy,
+                s=10,
+                c="white",
+                edgecolors="black",
+                linewidths=0.5,
+                zorder=2,
+                label="fingerprints",
+            )
         for mac, (sx, sy) in (sensors or {}).items():
             qx, qy = to_plot(sx, sy)
             big = mac == highlight
-            ax.scatter([qx], [qy], marker="^", s=120 if big else 40, c="red" if big else "orange",
-                       edgecolors="black", zorder=3)
+            ax.scatter(
+                [qx],
+                [qy],
+                marker="^",
+                s=120 if big else 40,
+                c="red" if big else "orange",
+                edgecolors="black",
+                zorder=3,
+            )
         ax.set_title(title)
         if fingerprints is not None and len(fingerprints):
             ax.legend(loc="upper right", fontsize="small")

@@ -32,7 +32,9 @@ class FloorMap:
         return np.asarray(px), np.asarray(py)
 
 
-def builtin_site_for(markers: dict[int, MarkerPose], names: tuple[str, ...] = ("tetam",)) -> str | None:
+def builtin_site_for(
+    markers: dict[int, MarkerPose], names: tuple[str, ...] = ("tetam",)
+) -> str | None:
     """Name of the built-in site whose marker map equals ``markers`` (to 1 mm), else None."""
     for name in names:
         try:
@@ -40,8 +42,10 @@ def builtin_site_for(markers: dict[int, MarkerPose], names: tuple[str, ...] = ("
         except FileNotFoundError:
             continue
         if set(ref) == set(markers) and all(
-                np.allclose(ref[k].position, markers[k].position, atol=1e-3)
-                and np.allclose(ref[k].euler_xyz, markers[k].euler_xyz, atol=1e-3) for k in ref):
+            np.allclose(ref[k].position, markers[k].position, atol=1e-3)
+            and np.allclose(ref[k].euler_xyz, markers[k].euler_xyz, atol=1e-3)
+            for k in ref
+        ):
             return name
     return None
 
@@ -51,8 +55,10 @@ def load_site(name: str) -> tuple[FloorMap, Devices]:
     import matplotlib.image
 
     d = site_dir(name)
-    return (FloorMap(matplotlib.image.imread(d / f"{name}.png"), read_par(d / f"{name}.par")),
-            read_dev(d / f"{name}.dev"))
+    return (
+        FloorMap(matplotlib.image.imread(d / f"{name}.png"), read_par(d / f"{name}.par")),
+        read_dev(d / f"{name}.dev"),
+    )
 
 
 def _figure(w: float, h: float):  # -> matplotlib.figure.Figure
@@ -77,7 +83,9 @@ def _xy(floor: FloorMap | None, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return floor.to_pixels(p) if floor is not None else (p[:, 0], p[:, 1])
 
 
-def _sensor_points(ax, floor: FloorMap | None, devices: Devices | None, only: str | None = None) -> None:
+def _sensor_points(
+    ax, floor: FloorMap | None, devices: Devices | None, only: str | None = None
+) -> None:
     if devices is None:
         return
     for mac, d in devices.dongles.items():
@@ -88,8 +96,14 @@ def _sensor_points(ax, floor: FloorMap | None, devices: Devices | None, only: st
         ax.annotate(d.alias, (x[0], y[0]), textcoords="offset points", xytext=(4, 4), fontsize=7)
 
 
-def plot_trajectory_map(path: str | Path, positions: np.ndarray, *, floor: FloorMap | None = None,
-                        devices: Devices | None = None, title: str = "Trajectory") -> Path:
+def plot_trajectory_map(
+    path: str | Path,
+    positions: np.ndarray,
+    *,
+    floor: FloorMap | None = None,
+    devices: Devices | None = None,
+    title: str = "Trajectory",
+) -> Path:
     """The bundle's path (NaN rows break the line) over the floor map, with the sensors."""
     fig = _figure(7, 7)
     ax = fig.add_subplot()
@@ -109,9 +123,17 @@ def plot_trajectory_map(path: str | Path, positions: np.ndarray, *, floor: Floor
     return path
 
 
-def plot_rssi_time(path: str | Path, t: np.ndarray, rssi: np.ndarray, sensor: np.ndarray, *,
-                   events: Sequence[tuple[float, float]] = (), span: tuple[float, float] | None = None,
-                   aliases: dict[str, str] | None = None, t0: float | None = None) -> Path:
+def plot_rssi_time(
+    path: str | Path,
+    t: np.ndarray,
+    rssi: np.ndarray,
+    sensor: np.ndarray,
+    *,
+    events: Sequence[tuple[float, float]] = (),
+    span: tuple[float, float] | None = None,
+    aliases: dict[str, str] | None = None,
+    t0: float | None = None,
+) -> Path:
     """RSSI over time, one panel per sensor; shaded: the sync event(s); dashed: the tracked span.
 
     ``t`` and the event/span times are on the same clock (Unix seconds); the axis shows seconds
@@ -141,9 +163,17 @@ def plot_rssi_time(path: str | Path, t: np.ndarray, rssi: np.ndarray, sensor: np
     return path
 
 
-def plot_rssi_on_trajectory(path: str | Path, trajectory: np.ndarray, positions: np.ndarray,
-                            rssi: np.ndarray, sensor: np.ndarray, *, floor: FloorMap | None = None,
-                            devices: Devices | None = None, aliases: dict[str, str] | None = None) -> Path:
+def plot_rssi_on_trajectory(
+    path: str | Path,
+    trajectory: np.ndarray,
+    positions: np.ndarray,
+    rssi: np.ndarray,
+    sensor: np.ndarray,
+    *,
+    floor: FloorMap | None = None,
+    devices: Devices | None = None,
+    aliases: dict[str, str] | None = None,
+) -> Path:
     """One panel per sensor: the labelled reading positions coloured by RSSI, over the path."""
     sensors = sorted(set(np.asarray(sensor).tolist()), key=lambda s: (aliases or {}).get(s, s))
     n = max(len(sensors), 1)
@@ -152,7 +182,7 @@ def plot_rssi_on_trajectory(path: str | Path, trajectory: np.ndarray, positions:
     fig = _figure(3.2 * cols + 0.8, 3.2 * rows)
     axes = fig.subplots(rows, cols, squeeze=False).ravel()
     rssi = np.asarray(rssi, dtype=float)
-    vmin, vmax = (np.percentile(rssi, [2, 98]) if rssi.size else (-100.0, -40.0))
+    vmin, vmax = np.percentile(rssi, [2, 98]) if rssi.size else (-100.0, -40.0)
     sc = None
     tx, ty = _xy(floor, trajectory)
     for ax, s in zip(axes, sensors, strict=False):
@@ -163,19 +193,28 @@ def plot_rssi_on_trajectory(path: str | Path, trajectory: np.ndarray, positions:
         sc = ax.scatter(x, y, c=rssi[mine], s=4, cmap="viridis", vmin=vmin, vmax=vmax)
         _sensor_points(ax, floor, devices, only=s)
         ax.set_title((aliases or {}).get(s, s), fontsize=8)
-    for ax in axes[len(sensors):]:
+    for ax in axes[len(sensors) :]:
         ax.set_visible(False)
     if sc is not None:
-        fig.colorbar(sc, ax=list(axes[:len(sensors)]), label="RSSI (dBm)", shrink=0.8)
+        fig.colorbar(sc, ax=list(axes[: len(sensors)]), label="RSSI (dBm)", shrink=0.8)
     path = Path(path)
     fig.savefig(path)
     return path
 
 
-def write_run_plots(out_dir: str | Path, *, trajectory: np.ndarray, t_s: np.ndarray, rssi: np.ndarray,
-                    sensor: np.ndarray, labelled: np.ndarray, label_positions: np.ndarray,
-                    events: list[tuple[float, float]], span: tuple[float, float] | None,
-                    markers: dict[int, MarkerPose] | None = None) -> dict[str, Path]:
+def write_run_plots(
+    out_dir: str | Path,
+    *,
+    trajectory: np.ndarray,
+    t_s: np.ndarray,
+    rssi: np.ndarray,
+    sensor: np.ndarray,
+    labelled: np.ndarray,
+    label_positions: np.ndarray,
+    events: list[tuple[float, float]],
+    span: tuple[float, float] | None,
+    markers: dict[int, MarkerPose] | None = None,
+) -> dict[str, Path]:
     """The three plots of `annotator run`; the floor map is drawn when the marker map is a built-in site's.
 
     ``t_s``, ``rssi``, ``sensor`` are the bundle beacon's readings (Unix seconds); ``labelled``
@@ -187,14 +226,26 @@ def write_run_plots(out_dir: str | Path, *, trajectory: np.ndarray, t_s: np.ndar
     aliases = {m: d.alias for m, d in devices.dongles.items()} if devices else None
     lab = np.asarray(labelled, dtype=bool)
     paths = {
-        "trajectory": plot_trajectory_map(out / "trajectory_map.png", trajectory, floor=floor,
-                                          devices=devices, title="Tracked trajectory"),
-        "rssi_time": plot_rssi_time(out / "rssi_time.png", t_s, rssi, sensor, events=events, span=span,
-                                    aliases=aliases),
-        "rssi_on_trajectory": plot_rssi_on_trajectory(out / "rssi_on_trajectory.png", trajectory,
-                                                      label_positions[lab], np.asarray(rssi)[lab],
-                                                      np.asarray(sensor)[lab], floor=floor,
-                                                      devices=devices, aliases=aliases),
+        "trajectory": plot_trajectory_map(
+            out / "trajectory_map.png",
+            trajectory,
+            floor=floor,
+            devices=devices,
+            title="Tracked trajectory",
+        ),
+        "rssi_time": plot_rssi_time(
+            out / "rssi_time.png", t_s, rssi, sensor, events=events, span=span, aliases=aliases
+        ),
+        "rssi_on_trajectory": plot_rssi_on_trajectory(
+            out / "rssi_on_trajectory.png",
+            trajectory,
+            label_positions[lab],
+            np.asarray(rssi)[lab],
+            np.asarray(sensor)[lab],
+            floor=floor,
+            devices=devices,
+            aliases=aliases,
+        ),
     }
     log.info("plots: %s", ", ".join(str(p) for p in paths.values()))
     return paths

@@ -36,8 +36,12 @@ def plot_cdf(path: Path, s: Score) -> Path:
     sig = s.truth_sigma[np.isfinite(s.truth_sigma)]
     if sig.size:
         ax.axvspan(0, float(np.median(sig)), color="0.85", label="truth 1-sigma (median)")
-    ax.set(xlabel="position error (m)", ylabel="fraction of estimates", ylim=(0, 1.02),
-           title="error CDF")
+    ax.set(
+        xlabel="position error (m)",
+        ylabel="fraction of estimates",
+        ylim=(0, 1.02),
+        title="error CDF",
+    )
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right")
     fig.savefig(path, dpi=120)
@@ -55,8 +59,11 @@ def plot_error_over_time(path: Path, s: Score) -> Path:
     ok3 = np.isfinite(s.error_3d)
     if ok3.any():
         ax.plot(s.t[ok3] - t0, s.error_3d[ok3], lw=0.6, alpha=0.6, label="3-D error")
-    ax.set(xlabel="time since the first scored estimate (s)", ylabel="error (m)",
-           title="error over time")
+    ax.set(
+        xlabel="time since the first scored estimate (s)",
+        ylabel="error (m)",
+        title="error over time",
+    )
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right")
     fig.savefig(path, dpi=120)
@@ -74,8 +81,13 @@ def plot_floor(path: Path, s: Score, est_position: np.ndarray, truth: Truth) -> 
     pts = np.concatenate([est[:, :2], tp[:, :2]])
     pts = pts[np.isfinite(pts).all(axis=1)]
     x0, y0, x1, y1 = params.limits
-    on_plan = pts.size and (pts[:, 0] >= x0 - 1).all() and (pts[:, 0] <= x1 + 1).all() \
-        and (pts[:, 1] >= y0 - 1).all() and (pts[:, 1] <= y1 + 1).all()
+    on_plan = (
+        pts.size
+        and (pts[:, 0] >= x0 - 1).all()
+        and (pts[:, 0] <= x1 + 1).all()
+        and (pts[:, 1] >= y0 - 1).all()
+        and (pts[:, 1] <= y1 + 1).all()
+    )
 
     def xy(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return params.world_to_pixel(p[:, 0], p[:, 1]) if on_plan else (p[:, 0], p[:, 1])
@@ -94,7 +106,9 @@ def plot_floor(path: Path, s: Score, est_position: np.ndarray, truth: Truth) -> 
         ex, ey = xy(est[ok])
         tx, ty = xy(s.truth_at_estimates[ok])
         segs = np.stack([np.column_stack([ex, ey]), np.column_stack([tx, ty])], axis=1)
-        ax.add_collection(LineCollection(list(segs), colors="tab:red", linewidths=0.4, alpha=0.4, zorder=1))
+        ax.add_collection(
+            LineCollection(list(segs), colors="tab:red", linewidths=0.4, alpha=0.4, zorder=1)
+        )
     gx, gy = xy(tp)
     ax.plot(gx, gy, color="black", lw=2, zorder=2, label="ground truth")
     fe = np.isfinite(est[:, :2]).all(axis=1)
@@ -107,7 +121,9 @@ def plot_floor(path: Path, s: Score, est_position: np.ndarray, truth: Truth) -> 
     return path
 
 
-def write_score_plots(out_dir: Path, s: Score, est_position: np.ndarray, truth: Truth) -> dict[str, Path]:
+def write_score_plots(
+    out_dir: Path, s: Score, est_position: np.ndarray, truth: Truth
+) -> dict[str, Path]:
     out_dir = Path(out_dir)
     return {
         "error_cdf": plot_cdf(out_dir / "error_cdf.png", s),

@@ -66,7 +66,9 @@ class CameraModel:
         """Camera-frame points (N,3) -> distorted pixel coordinates (N,2), as cv2.projectPoints."""
         pts = np.asarray(points_cam, float).reshape(-1, 1, 3)
         if self.model == "fisheye":
-            uv, _ = cv2.fisheye.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist_array.reshape(4, 1))
+            uv, _ = cv2.fisheye.projectPoints(
+                pts, np.zeros(3), np.zeros(3), self.K, self.dist_array.reshape(4, 1)
+            )
         else:
             uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist_array)
         return uv.reshape(-1, 2)
@@ -81,7 +83,9 @@ class CameraModel:
         pix = np.asarray(pixels, np.float64).reshape(-1, 1, 2)
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
         if self.model == "fisheye":
-            xn = cv2.fisheye.undistortPoints(pix, self.K, self.dist_array.reshape(4, 1), criteria=crit)
+            xn = cv2.fisheye.undistortPoints(
+                pix, self.K, self.dist_array.reshape(4, 1), criteria=crit
+            )
         else:
             xn = cv2.undistortPoints(pix, self.K, self.dist_array, criteria=crit)
         xn = xn.reshape(-1, 2)
@@ -114,8 +118,9 @@ LENSES: dict[str, tuple[str, tuple[float, ...], tuple[float, ...]]] = {
 }
 
 
-def default_cameras(width: int = 960, height: int = 540, lens: str = "mild",
-                    k1: float | None = None) -> dict[str, CameraModel]:
+def default_cameras(
+    width: int = 960, height: int = 540, lens: str = "mild", k1: float | None = None
+) -> dict[str, CameraModel]:
     """Two slightly different cameras (fx ~ 620 at 960 px wide) with the named lens (`LENSES`);
     `k1` replaces both cameras' first radial coefficient."""
     if lens not in LENSES:
@@ -125,14 +130,32 @@ def default_cameras(width: int = 960, height: int = 540, lens: str = "mild",
         d_front, d_back = (k1, *d_front[1:]), (k1, *d_back[1:])
     s = width / 960.0
     return {
-        "front": CameraModel(width, height, 620.0 * s, 621.5 * s, width / 2 + 3.2 * s,
-                             height / 2 - 2.1 * s, d_front, model),
-        "back": CameraModel(width, height, 616.0 * s, 617.0 * s, width / 2 - 2.6 * s,
-                            height / 2 + 1.7 * s, d_back, model),
+        "front": CameraModel(
+            width,
+            height,
+            620.0 * s,
+            621.5 * s,
+            width / 2 + 3.2 * s,
+            height / 2 - 2.1 * s,
+            d_front,
+            model,
+        ),
+        "back": CameraModel(
+            width,
+            height,
+            616.0 * s,
+            617.0 * s,
+            width / 2 - 2.6 * s,
+            height / 2 + 1.7 * s,
+            d_back,
+            model,
+        ),
     }
 
 
-def camera_pose(bundle_rot: Rotation, bundle_pos: np.ndarray, camera: str) -> tuple[Rotation, np.ndarray]:
+def camera_pose(
+    bundle_rot: Rotation, bundle_pos: np.ndarray, camera: str
+) -> tuple[Rotation, np.ndarray]:
     """World pose of a rig camera (R_world_camera, camera centre) from bundle poses (vectorised)."""
     r_bc, t_bc = RIG_EXTRINSICS[camera]
     r_wc = bundle_rot * Rotation.from_matrix(r_bc)
@@ -152,7 +175,9 @@ class DistortionMap:
 
 def build_distortion_map(cam: CameraModel) -> DistortionMap:
     """For each output pixel, where its ray lands on an undistorted pinhole canvas."""
-    u, v = np.meshgrid(np.arange(cam.width, dtype=np.float64), np.arange(cam.height, dtype=np.float64))
+    u, v = np.meshgrid(
+        np.arange(cam.width, dtype=np.float64), np.arange(cam.height, dtype=np.float64)
+    )
     pix = np.stack([u.ravel(), v.ravel()], axis=1)
     # Exact inversion: the renderer must invert the projection it claims, not approximate it.
     norm = cam.undistort(pix)
@@ -194,12 +219,24 @@ def write_calibration(path: str, cam: CameraModel, readout_s: float | None = Non
 def rig_yaml(extrinsics: dict[str, tuple[np.ndarray, np.ndarray]]) -> str:
     """rig.yaml for cameras at the given (R_bundle_camera, t_bundle_camera); the standard rig
     gives exactly `RIG_YAML`."""
-    if all(np.array_equal(extrinsics[n][0], RIG_EXTRINSICS[n][0]) and np.array_equal(extrinsics[n][1], RIG_EXTRINSICS[n][1])
-           for n in RIG_EXTRINSICS) and set(extrinsics) == set(RIG_EXTRINSICS):
+    if all(
+        np.array_equal(extrinsics[n][0], RIG_EXTRINSICS[n][0])
+        and np.array_equal(extrinsics[n][1], RIG_EXTRINSICS[n][1])
+        for n in RIG_EXTRINSICS
+    ) and set(extrinsics) == set(RIG_EXTRINSICS):
         return RIG_YAML
-    lines = ["# Rig as written for the annotator (see perturbation.yaml for the true one).", "cameras:"]
+    lines = [
+        "# Rig as written for the annotator (see perturbation.yaml for the true one).",
+        "cameras:",
+    ]
     for name, (r, t) in extrinsics.items():
-        rows = ", ".join("[" + ", ".join(repr(float(v)) for v in row) + "]" for row in np.asarray(r))
-        lines += [f"  {name}:", f"    calibration: {name}.yaml", f"    R_bundle_camera: [{rows}]",
-                  "    t_bundle_camera: [" + ", ".join(repr(float(v)) for v in np.asarray(t)) + "]"]
+        rows = ", ".join(
+            "[" + ", ".join(repr(float(v)) for v in row) + "]" for row in np.asarray(r)
+        )
+        lines += [
+            f"  {name}:",
+            f"    calibration: {name}.yaml",
+            f"    R_bundle_camera: [{rows}]",
+            "    t_bundle_camera: [" + ", ".join(repr(float(v)) for v in np.asarray(t)) + "]",
+        ]
     return "\n".join(lines) + "\n"

@@ -37,15 +37,23 @@ def flicker_gain(t: np.ndarray, amplitude: float, hz: float, phase: float = 0.0)
     what ends up in the picture, after the exposure has averaged part of it away. With a rolling
     shutter each row has its own time, so the flicker shows as horizontal bands.
     """
-    return 1.0 + amplitude * np.sin(2 * np.pi * hz * (np.asarray(t, float) % (1e4 / max(hz, 1e-9))) + phase)
+    return 1.0 + amplitude * np.sin(
+        2 * np.pi * hz * (np.asarray(t, float) % (1e4 / max(hz, 1e-9))) + phase
+    )
 
 
 class NoiseBank:
     """A few precomputed Gaussian noise frames, drawn at random: realistic enough, and cheap."""
 
-    def __init__(self, shape: tuple[int, ...], sigma: float, rng: np.random.Generator, count: int = 6):
+    def __init__(
+        self, shape: tuple[int, ...], sigma: float, rng: np.random.Generator, count: int = 6
+    ):
         self.sigma = sigma
-        self.frames = [sigma * rng.standard_normal(shape, dtype=np.float32) for _ in range(count)] if sigma > 0 else []
+        self.frames = (
+            [sigma * rng.standard_normal(shape, dtype=np.float32) for _ in range(count)]
+            if sigma > 0
+            else []
+        )
         self.rng = rng
 
     def apply(self, img: np.ndarray) -> np.ndarray:

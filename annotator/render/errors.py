@@ -34,13 +34,19 @@ class FileErrors:
     focal_rel: float = 0.0  # one relative error applied to both fx and fy
     principal_px: float = 0.0  # cx and cy, each
     distortion: float = 0.0  # added to each radial coefficient (k1, k2) of the lens
-    write_readout: bool = False  # write the true rolling-shutter readout (else 0, as users rarely know it)
-    surveyed: int | None = None  # only this many markers (a seeded random choice) in the written map
+    write_readout: bool = (
+        False  # write the true rolling-shutter readout (else 0, as users rarely know it)
+    )
+    surveyed: int | None = (
+        None  # only this many markers (a seeded random choice) in the written map
+    )
     seed: int = 0
 
     def __post_init__(self) -> None:
         for key, value in asdict(self).items():
-            if key not in ("write_readout", "seed", "surveyed") and not (np.isfinite(value) and value >= 0):
+            if key not in ("write_readout", "seed", "surveyed") and not (
+                np.isfinite(value) and value >= 0
+            ):
                 raise ValueError(f"{key} must be a finite number >= 0, not {value!r}")
         if self.surveyed is not None and self.surveyed < 1:
             raise ValueError(f"surveyed must be at least 1, not {self.surveyed}")
@@ -50,8 +56,9 @@ def _stream(seed: int, kind: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, kind]))
 
 
-def perturb_markers(markers: dict[int, MarkerPose], sigma_m: float, sigma_deg: float,
-                    seed: int) -> dict[int, MarkerPose]:
+def perturb_markers(
+    markers: dict[int, MarkerPose], sigma_m: float, sigma_deg: float, seed: int
+) -> dict[int, MarkerPose]:
     """The marker map a surveyor with these per-axis 1-sigma errors would have written."""
     rng = _stream(seed, _SURVEY)
     out = {}
@@ -67,7 +74,9 @@ def perturb_markers(markers: dict[int, MarkerPose], sigma_m: float, sigma_deg: f
     return out
 
 
-def surveyed_subset(markers: dict[int, MarkerPose], count: int | None, seed: int) -> dict[int, MarkerPose]:
+def surveyed_subset(
+    markers: dict[int, MarkerPose], count: int | None, seed: int
+) -> dict[int, MarkerPose]:
     """The markers a surveyor who measured only `count` of them (a seeded random choice) wrote down."""
     if count is None or count >= len(markers):
         return markers
@@ -76,8 +85,12 @@ def surveyed_subset(markers: dict[int, MarkerPose], count: int | None, seed: int
     return {i: markers[i] for i in keep}
 
 
-def perturb_rig(extrinsics: dict[str, tuple[np.ndarray, np.ndarray]], sigma_m: float, sigma_deg: float,
-                seed: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def perturb_rig(
+    extrinsics: dict[str, tuple[np.ndarray, np.ndarray]],
+    sigma_m: float,
+    sigma_deg: float,
+    seed: int,
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """(R_bundle_camera, t_bundle_camera) per camera as a hand measurement would have them."""
     rng = _stream(seed, _RIG)
     out = {}
@@ -88,12 +101,20 @@ def perturb_rig(extrinsics: dict[str, tuple[np.ndarray, np.ndarray]], sigma_m: f
         if sigma_m == 0 and sigma_deg == 0:
             out[name] = (r, t)
             continue
-        out[name] = ((Rotation.from_rotvec(d_rot) * Rotation.from_matrix(r)).as_matrix(), np.asarray(t, float) + d_t)
+        out[name] = (
+            (Rotation.from_rotvec(d_rot) * Rotation.from_matrix(r)).as_matrix(),
+            np.asarray(t, float) + d_t,
+        )
     return {name: out[name] for name in extrinsics}
 
 
-def perturb_cameras(cameras: dict[str, CameraModel], focal_rel: float, principal_px: float,
-                    distortion: float, seed: int) -> dict[str, CameraModel]:
+def perturb_cameras(
+    cameras: dict[str, CameraModel],
+    focal_rel: float,
+    principal_px: float,
+    distortion: float,
+    seed: int,
+) -> dict[str, CameraModel]:
     """Calibrations as a calibration with these 1-sigma errors would have written them."""
     rng = _stream(seed, _INTRINSICS)
     out = {}
@@ -104,28 +125,51 @@ def perturb_cameras(cameras: dict[str, CameraModel], focal_rel: float, principal
         e_k = distortion * rng.standard_normal(2)
         dist = np.array(cam.dist, float)
         dist[:2] += e_k
-        out[name] = replace(cam, fx=cam.fx * (1 + e_f), fy=cam.fy * (1 + e_f), cx=cam.cx + e_c[0],
-                            cy=cam.cy + e_c[1], dist=tuple(float(v) for v in dist))
+        out[name] = replace(
+            cam,
+            fx=cam.fx * (1 + e_f),
+            fy=cam.fy * (1 + e_f),
+            cx=cam.cx + e_c[0],
+            cy=cam.cy + e_c[1],
+            dist=tuple(float(v) for v in dist),
+        )
     return {name: out[name] for name in cameras}
 
 
 def _marker_record(m: MarkerPose) -> dict[str, list[float]]:
-    return {"position": [float(v) for v in m.position], "rotation_xyz": [float(v) for v in m.euler_xyz]}
+    return {
+        "position": [float(v) for v in m.position],
+        "rotation_xyz": [float(v) for v in m.euler_xyz],
+    }
 
 
-def _camera_record(cam: CameraModel, r: np.ndarray, t: np.ndarray, readout: float) -> dict[str, object]:
-    return {"model": cam.model, "fx": float(cam.fx), "fy": float(cam.fy), "cx": float(cam.cx), "cy": float(cam.cy),
-            "dist": [float(v) for v in cam.dist], "readout_s": float(readout),
-            "R_bundle_camera": [[float(v) for v in row] for row in np.asarray(r)],
-            "t_bundle_camera": [float(v) for v in np.asarray(t)]}
+def _camera_record(
+    cam: CameraModel, r: np.ndarray, t: np.ndarray, readout: float
+) -> dict[str, object]:
+    return {
+        "model": cam.model,
+        "fx": float(cam.fx),
+        "fy": float(cam.fy),
+        "cx": float(cam.cx),
+        "cy": float(cam.cy),
+        "dist": [float(v) for v in cam.dist],
+        "readout_s": float(readout),
+        "R_bundle_camera": [[float(v) for v in row] for row in np.asarray(r)],
+        "t_bundle_camera": [float(v) for v in np.asarray(t)],
+    }
 
 
-def perturbation_record(settings: dict[str, object], true_markers: dict[int, MarkerPose],
-                        written_markers: dict[int, MarkerPose],
-                        true_cams: dict[str, CameraModel], written_cams: dict[str, CameraModel],
-                        true_rig: dict[str, tuple[np.ndarray, np.ndarray]],
-                        written_rig: dict[str, tuple[np.ndarray, np.ndarray]],
-                        readout: float, written_readout: float) -> dict[str, object]:
+def perturbation_record(
+    settings: dict[str, object],
+    true_markers: dict[int, MarkerPose],
+    written_markers: dict[int, MarkerPose],
+    true_cams: dict[str, CameraModel],
+    written_cams: dict[str, CameraModel],
+    true_rig: dict[str, tuple[np.ndarray, np.ndarray]],
+    written_rig: dict[str, tuple[np.ndarray, np.ndarray]],
+    readout: float,
+    written_readout: float,
+) -> dict[str, object]:
     """What perturbation.yaml holds: the settings, and true vs written values with their
     differences (written - true; rotations as the rotation vector taking true to written, deg)."""
     markers = []
@@ -134,10 +178,18 @@ def perturbation_record(settings: dict[str, object], true_markers: dict[int, Mar
         if b is None:  # not surveyed: absent from the written map
             markers.append({"id": int(mid), "true": _marker_record(a), "written": None})
             continue
-        d_rot = Rotation.from_euler("xyz", b.euler_xyz) * Rotation.from_euler("xyz", a.euler_xyz).inv()
-        markers.append({"id": int(mid), "true": _marker_record(a), "written": _marker_record(b),
-                        "offset_m": [float(v) for v in np.subtract(b.position, a.position)],
-                        "rotation_offset_deg": [float(v) for v in np.degrees(d_rot.as_rotvec())]})
+        d_rot = (
+            Rotation.from_euler("xyz", b.euler_xyz) * Rotation.from_euler("xyz", a.euler_xyz).inv()
+        )
+        markers.append(
+            {
+                "id": int(mid),
+                "true": _marker_record(a),
+                "written": _marker_record(b),
+                "offset_m": [float(v) for v in np.subtract(b.position, a.position)],
+                "rotation_offset_deg": [float(v) for v in np.degrees(d_rot.as_rotvec())],
+            }
+        )
     cameras = {}
     for name in true_cams:
         tc, wc = true_cams[name], written_cams[name]

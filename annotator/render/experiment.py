@@ -100,8 +100,15 @@ class RenderResult:
 class FrameRenderer:
     """Draws frames of one camera; holds the per-camera precomputed maps and textures."""
 
-    def __init__(self, camera: CameraModel, markers: dict[int, MarkerPose], marker_length: float,
-                 dictionary: str, noise_sigma: float, seed: int) -> None:
+    def __init__(
+        self,
+        camera: CameraModel,
+        markers: dict[int, MarkerPose],
+        marker_length: float,
+        dictionary: str,
+        noise_sigma: float,
+        seed: int,
+    ) -> None:
         self.camera = camera
         self.scene = MarkerScene(markers, marker_length)
         self.textures = MarkerTextures(aruco_dictionary(dictionary))
@@ -122,24 +129,35 @@ class FrameRenderer:
         pitch = np.arcsin(np.clip(fwd[2], -1, 1))
         x0 = int(round(-yaw * self.camera.fx)) % self.pano_width
         y0 = int(np.clip(round(self.margin - pitch * self.camera.fy), 0, 2 * self.margin))
-        return self.pano[y0:y0 + ch, x0:x0 + cw].copy()
+        return self.pano[y0 : y0 + ch, x0 : x0 + cw].copy()
 
-    def image_motion(self, r_open: np.ndarray, c_open: np.ndarray, r_close: np.ndarray,
-                     c_close: np.ndarray) -> np.ndarray:
+    def image_motion(
+        self, r_open: np.ndarray, c_open: np.ndarray, r_close: np.ndarray, c_close: np.ndarray
+    ) -> np.ndarray:
         """Median pixel displacement during the exposure of the marker corners in view.
 
         Falls back to points on a wall 3 m ahead when no marker is in the picture.
         """
         scene, cam = self.scene, self.camera
         vis = scene.visible(r_open, c_open)
-        world = np.vstack([m.centre + scene.inner @ m.rotation.T for m in vis]) if vis else np.zeros((0, 3))
+        world = (
+            np.vstack([m.centre + scene.inner @ m.rotation.T for m in vis])
+            if vis
+            else np.zeros((0, 3))
+        )
         grid = np.array([[x, y, 3.0] for x in (-1.0, 0.0, 1.0) for y in (-0.6, 0.0, 0.6)])
         k = cam.K
 
         def proj(pts: np.ndarray, r: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             pc = (pts - c) @ r
             uv = (pc @ k.T)[:, :2] / np.maximum(pc[:, 2:3], 1e-6)
-            ok = (pc[:, 2] > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+            ok = (
+                (pc[:, 2] > 0.05)
+                & (uv[:, 0] >= 0)
+                & (uv[:, 0] < cam.width)
+                & (uv[:, 1] >= 0)
+                & (uv[:, 1] < cam.height)
+            )
             return uv, ok
 
         a, ok = proj(world, r_open, c_open)
@@ -150,8 +168,14 @@ class FrameRenderer:
         # The median: one marker sliding past the image border must not blur the whole frame.
         return np.median(b[ok] - a[ok], axis=0)
 
-    def render_bands(self, r_wc: np.ndarray, c_w: np.ndarray, band_rows: Sequence[int],
-                     r_bands: np.ndarray, c_bands: np.ndarray) -> np.ndarray:
+    def render_bands(
+        self,
+        r_wc: np.ndarray,
+        c_w: np.ndarray,
+        band_rows: Sequence[int],
+        r_bands: np.ndarray,
+        c_bands: np.ndarray,
+    ) -> np.ndarray:
         """The distorted gray picture of a rolling-shutter frame: output rows
         band_rows[b]:band_rows[b+1] seen from pose (r_bands[b], c_bands[b]).
 
@@ -174,38 +198,60 @@ class FrameRenderer:
             self.scene.draw(strip, k, r_bands[b], c_bands[b], self.textures, order=order)
             map1 = self.dmap.map1[r0:r1].copy()
             map1[..., 1] -= lo  # integer part of the sampled canvas row
-            out[r0:r1] = cv2.remap(strip, map1, self.dmap.map2[r0:r1], cv2.INTER_LINEAR,
-                                   borderMode=cv2.BORDER_REPLICATE)
+            out[r0:r1] = cv2.remap(
+                strip,
+                map1,
+                self.dmap.map2[r0:r1],
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REPLICATE,
+            )
         return out
 
-    def render(self, r_wc: np.ndarray, c_w: np.ndarray, motion: np.ndarray | tuple[float, float] = (0.0, 0.0),
-               cover: float = 0.0, bands: tuple[Sequence[int], np.ndarray, np.ndarray] | None = None,
-               gain: np.ndarray | None = None) -> np.ndarray:
+    def render(
+        self,
+        r_wc: np.ndarray,
+        c_w: np.ndarray,
+        motion: np.ndarray | tuple[float, float] = (0.0, 0.0),
+        cover: float = 0.0,
+        bands: tuple[Sequence[int], np.ndarray, np.ndarray] | None = None,
+        gain: np.ndarray | None = None,
+    ) -> np.ndarray:
         """One BGR frame: markers on the background, lens distortion, blur, brightness, cover,
         noise. `bands` = (row boundaries, rotations, centres) renders a rolling shutter; `gain`
         is a brightness factor per row (flicker)."""
         if bands is None:
             canvas = self._background(r_wc)
             self.scene.draw(canvas, self.dmap.canvas_K, r_wc, c_w, self.textures)
-            img = cv2.remap(canvas, self.dmap.map1, self.dmap.map2, cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_REPLICATE)
+            img = cv2.remap(
+                canvas,
+                self.dmap.map1,
+                self.dmap.map2,
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REPLICATE,
+            )
         else:
             img = self.render_bands(r_wc, c_w, *bands)
         kernel = motion_kernel(np.asarray(motion))
         if kernel is not None:
             img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REPLICATE)
         if gain is not None:
-            img = np.clip(img * np.asarray(gain, np.float32)[:, None] + 0.5, 0, 255).astype(np.uint8)
+            img = np.clip(img * np.asarray(gain, np.float32)[:, None] + 0.5, 0, 255).astype(
+                np.uint8
+            )
         # Luminance noise on the gray picture: a third of the work of per-channel noise.
         img = cv2.cvtColor(self.noise.apply(img), cv2.COLOR_GRAY2BGR)
         return apply_cover(img, cover, self.skin)
 
 
-def render_camera(job: CameraJob, progress: Progress | None = None,
-                  queue: Queue[tuple[str, int, int]] | None = None) -> int:
+def render_camera(
+    job: CameraJob,
+    progress: Progress | None = None,
+    queue: Queue[tuple[str, int, int]] | None = None,
+) -> int:
     """Render and encode one camera's video (mp4v); returns the number of frames written."""
-    fr = FrameRenderer(job.camera, job.markers, job.marker_length, job.dictionary,
-                       job.noise_sigma, job.seed)
+    fr = FrameRenderer(
+        job.camera, job.markers, job.marker_length, job.dictionary, job.noise_sigma, job.seed
+    )
     size = (job.camera.width, job.camera.height)
     writer = cv2.VideoWriter(job.path, cv2.VideoWriter.fourcc(*"mp4v"), job.fps, size)
     if not writer.isOpened():
@@ -213,7 +259,9 @@ def render_camera(job: CameraJob, progress: Progress | None = None,
     n = len(job.times)
     try:
         for i in range(n):
-            motion = fr.image_motion(job.r_wc_open[i], job.c_w_open[i], job.r_wc_close[i], job.c_w_close[i])
+            motion = fr.image_motion(
+                job.r_wc_open[i], job.c_w_open[i], job.r_wc_close[i], job.c_w_close[i]
+            )
             cover = cover_fraction(float(job.times[i]), list(job.covers))
             bands = None
             if job.r_wc_bands is not None and job.c_w_bands is not None:
@@ -260,12 +308,15 @@ def format_truth(times: np.ndarray, pos: np.ndarray, rot: Rotation) -> str:
     mats = rot.as_matrix().reshape(-1, 9)
     lines = [TRUTH_HEADER]
     for t, p, m in zip(times, pos, mats, strict=True):
-        lines.append(f"{t:.6f}," + ",".join(f"{v:.9f}" for v in p) + ","
-                     + ",".join(f"{v:.12f}" for v in m))
+        lines.append(
+            f"{t:.6f}," + ",".join(f"{v:.9f}" for v in p) + "," + ",".join(f"{v:.12f}" for v in m)
+        )
     return "\n".join(lines) + "\n"
 
 
-def experiment_yaml(video_start: dict[str, float], dictionary: str, length: float, media: str = "") -> str:
+def experiment_yaml(
+    video_start: dict[str, float], dictionary: str, length: float, media: str = ""
+) -> str:
     """experiment.yaml of a render; `media` is the folder of the videos and rssi/ relative to it."""
     starts = ", ".join(f"{k}: {v!r}" for k, v in video_start.items())
     return (
@@ -283,8 +334,10 @@ def experiment_yaml(video_start: dict[str, float], dictionary: str, length: floa
 def path_yaml(waypoints: Sequence[Sequence[float]]) -> str:
     """The planned path in the YAML `annotator evaluate --path` reads."""
     pts = ", ".join(f"[{float(x)!r}, {float(y)!r}]" for x, y in waypoints)
-    return ("# Planned path of this render (room xy, m): `annotator evaluate TRAJ.csv --path path.yaml`.\n"
-            f"waypoints: [{pts}]\n")
+    return (
+        "# Planned path of this render (room xy, m): `annotator evaluate TRAJ.csv --path path.yaml`.\n"
+        f"waypoints: [{pts}]\n"
+    )
 
 
 def write_experiment_files(
@@ -306,31 +359,49 @@ def write_experiment_files(
     Returns the perturbation record."""
     out = Path(out_dir)
     errors = errors or FileErrors()
-    written_markers = surveyed_subset(perturb_markers(markers, errors.survey_m, errors.survey_deg, errors.seed),
-                                      errors.surveyed, errors.seed)
+    written_markers = surveyed_subset(
+        perturb_markers(markers, errors.survey_m, errors.survey_deg, errors.seed),
+        errors.surveyed,
+        errors.seed,
+    )
     true_rig = {name: RIG_EXTRINSICS[name] for name in cameras}
     written_rig = perturb_rig(true_rig, errors.rig_m, errors.rig_deg, errors.seed)
-    written_cams = perturb_cameras(cameras, errors.focal_rel, errors.principal_px, errors.distortion, errors.seed)
+    written_cams = perturb_cameras(
+        cameras, errors.focal_rel, errors.principal_px, errors.distortion, errors.seed
+    )
     written_readout = readout if errors.write_readout else 0.0
 
     (out / "true").mkdir(parents=True, exist_ok=True)
     (out / "rssi").mkdir(exist_ok=True)
-    for folder, cams, rig, mk, ro, media in ((out, written_cams, written_rig, written_markers, written_readout, ""),
-                                             (out / "true", cameras, true_rig, markers, readout, "../")):
+    for folder, cams, rig, mk, ro, media in (
+        (out, written_cams, written_rig, written_markers, written_readout, ""),
+        (out / "true", cameras, true_rig, markers, readout, "../"),
+    ):
         for name, cam in cams.items():
             write_calibration(str(folder / f"{name}.yaml"), cam, ro)
         (folder / "rig.yaml").write_text(rig_yaml(rig), encoding="utf-8")
         (folder / "marker_positions.dat").write_text(format_dat(mk), encoding="utf-8")
-        (folder / "experiment.yaml").write_text(experiment_yaml(video_start, dictionary, marker_length, media),
-                                                encoding="utf-8")
-    record = perturbation_record({**(settings or {}), **asdict(errors), "readout_s": float(readout)},
-                                 markers, written_markers, cameras, written_cams, true_rig, written_rig,
-                                 readout, written_readout)
+        (folder / "experiment.yaml").write_text(
+            experiment_yaml(video_start, dictionary, marker_length, media), encoding="utf-8"
+        )
+    record = perturbation_record(
+        {**(settings or {}), **asdict(errors), "readout_s": float(readout)},
+        markers,
+        written_markers,
+        cameras,
+        written_cams,
+        true_rig,
+        written_rig,
+        readout,
+        written_readout,
+    )
     from bgt_core.safe_yaml import dump
 
-    text = ("# What `annotator simulate` changed in the files handed to the annotator: true vs written\n"
-            "# values (offsets are written - true; rotation offsets are rotation vectors, degrees, taking\n"
-            "# the true orientation to the written one, world frame for markers, bundle frame for the rig).\n")
+    text = (
+        "# What `annotator simulate` changed in the files handed to the annotator: true vs written\n"
+        "# values (offsets are written - true; rotation offsets are rotation vectors, degrees, taking\n"
+        "# the true orientation to the written one, world frame for markers, bundle frame for the rig).\n"
+    )
     (out / "perturbation.yaml").write_text(text + dump(record, sort_keys=False), encoding="utf-8")
     return record
 
@@ -375,17 +446,23 @@ def render_experiment(
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    marker_src = Path(marker_file) if marker_file is not None else site_dir("tetam") / "marker_positions.dat"
+    marker_src = (
+        Path(marker_file) if marker_file is not None else site_dir("tetam") / "marker_positions.dat"
+    )
     markers = read_marker_map(marker_src)
     aruco_dictionary(dictionary)  # fail early on a bad name
     cams = cameras or default_cameras(width, height, lens, k1)
     if not 0 <= readout < 1 / fps:
-        raise ValueError(f"readout {readout} s must be between 0 and the frame interval {1 / fps:.4f} s")
+        raise ValueError(
+            f"readout {readout} s must be between 0 and the frame interval {1 / fps:.4f} s"
+        )
     t0, t1 = float(t_span[0]), float(t_span[1])
     starts = {"front": t0, "back": t0 + start_offset}
     wall_covers = tuple((t0 + s, d) for s, d in covers)
     errors = errors or FileErrors(seed=seed)
-    flicker_phase = float(np.random.default_rng(np.random.SeedSequence([seed & 0xFFFFFFFF, 4])).uniform(0, 2 * np.pi))
+    flicker_phase = float(
+        np.random.default_rng(np.random.SeedSequence([seed & 0xFFFFFFFF, 4])).uniform(0, 2 * np.pi)
+    )
 
     job_list = []
     for idx, name in enumerate(("front", "back")):
@@ -408,20 +485,58 @@ def render_experiment(
         if flicker > 0:
             row_t = times[:, None] + readout * np.arange(cam.height)[None, :] / cam.height
             gains = flicker_gain(row_t, flicker, flicker_hz, flicker_phase).astype(np.float32)
-        job_list.append(CameraJob(name, cam, str(out / f"{name}.mp4"), fps, times, r, c, ro, co,
-                                  rc, cc, markers, marker_length, dictionary, wall_covers,
-                                  noise_sigma, seed * 1000 + idx, band_rows, rb, cb, gains))
+        job_list.append(
+            CameraJob(
+                name,
+                cam,
+                str(out / f"{name}.mp4"),
+                fps,
+                times,
+                r,
+                c,
+                ro,
+                co,
+                rc,
+                cc,
+                markers,
+                marker_length,
+                dictionary,
+                wall_covers,
+                noise_sigma,
+                seed * 1000 + idx,
+                band_rows,
+                rb,
+                cb,
+                gains,
+            )
+        )
 
     settings: dict[str, object] = {
-        "lens": lens if cameras is None else "custom", "k1": k1, "exposure_s": float(exposure),
-        "flicker": float(flicker), "flicker_hz": float(flicker_hz),
-        "flicker_phase_rad": flicker_phase, "render_seed": int(seed)}
-    write_experiment_files(out, cams, markers, starts, dictionary=dictionary, marker_length=marker_length,
-                           readout=readout, errors=errors, settings=settings)
+        "lens": lens if cameras is None else "custom",
+        "k1": k1,
+        "exposure_s": float(exposure),
+        "flicker": float(flicker),
+        "flicker_hz": float(flicker_hz),
+        "flicker_phase_rad": flicker_phase,
+        "render_seed": int(seed),
+    }
+    write_experiment_files(
+        out,
+        cams,
+        markers,
+        starts,
+        dictionary=dictionary,
+        marker_length=marker_length,
+        readout=readout,
+        errors=errors,
+        settings=settings,
+    )
 
     all_t = np.unique(np.concatenate([j.times for j in job_list]))
     pos, rot = pose_at(all_t)
-    (out / "truth.csv").write_text(format_truth(all_t, np.asarray(pos, float), rot), encoding="utf-8")
+    (out / "truth.csv").write_text(
+        format_truth(all_t, np.asarray(pos, float), rot), encoding="utf-8"
+    )
     if isinstance(pose_at, PolylineTrajectory):
         (out / "path.yaml").write_text(path_yaml(pose_at.waypoints), encoding="utf-8")
     else:  # a path.yaml left by an earlier render into the same folder would not belong to this one
@@ -429,8 +544,13 @@ def render_experiment(
 
     frames = _run_jobs(job_list, jobs, progress)
     log.info("rendered %s into %s", frames, out)
-    return RenderResult(out, out / "experiment.yaml", out / "truth.csv",
-                        {j.name: Path(j.path) for j in job_list}, frames)
+    return RenderResult(
+        out,
+        out / "experiment.yaml",
+        out / "truth.csv",
+        {j.name: Path(j.path) for j in job_list},
+        frames,
+    )
 
 
 def _run_jobs(job_list: list[CameraJob], jobs: int, progress: Progress | None) -> dict[str, int]:

@@ -22,7 +22,9 @@ MIN_FACING_COS = 0.2  # seen more obliquely than ~78 degrees: skipped
 
 def square_corners(half: float) -> np.ndarray:
     """Marker-frame corners in ArUco order: top-left, top-right, bottom-right, bottom-left."""
-    return np.array([[-half, half, 0.0], [half, half, 0.0], [half, -half, 0.0], [-half, -half, 0.0]])
+    return np.array(
+        [[-half, half, 0.0], [half, half, 0.0], [half, -half, 0.0], [-half, -half, 0.0]]
+    )
 
 
 @dataclass(frozen=True)
@@ -55,7 +57,9 @@ def find_pillar_faces(markers: list[PlacedMarker]) -> dict[int, PillarFace]:
     for m in markers:
         if m.id in faces:
             continue
-        group = [o for o in markers if np.linalg.norm(o.centre[:2] - m.centre[:2]) < 2 * PILLAR_MAX_HALF]
+        group = [
+            o for o in markers if np.linalg.norm(o.centre[:2] - m.centre[:2]) < 2 * PILLAR_MAX_HALF
+        ]
         if len(group) != 4:
             continue
         axis = np.mean([o.centre[:2] for o in group], axis=0)
@@ -68,11 +72,18 @@ def find_pillar_faces(markers: list[PlacedMarker]) -> dict[int, PillarFace]:
             along = np.array([-n[1], n[0], 0.0])  # horizontal, in the face
             base = np.array([o.centre[0], o.centre[1], 0.0])
             up = np.array([0.0, 0.0, PILLAR_HEIGHT])
-            corners = np.array([base - half * along, base + half * along,
-                                base + half * along + up, base - half * along + up])
+            corners = np.array(
+                [
+                    base - half * along,
+                    base + half * along,
+                    base + half * along + up,
+                    base - half * along + up,
+                ]
+            )
             normal = np.array([n[0], n[1], 0.0])
-            faces[o.id] = PillarFace(o.id, corners, normal, corners.mean(axis=0),
-                                     int(100 + 45 * abs(n[0])))
+            faces[o.id] = PillarFace(
+                o.id, corners, normal, corners.mean(axis=0), int(100 + 45 * abs(n[0]))
+            )
     return faces
 
 
@@ -98,9 +109,12 @@ class MarkerScene:
     def __init__(self, markers: dict[int, MarkerPose], length: float) -> None:
         self.length = float(length)
         self.markers = [
-            PlacedMarker(m.id, Rotation.from_euler("xyz", m.euler_xyz).as_matrix(),
-                         np.array(m.position, float),
-                         float(np.random.default_rng(1000 + m.id).uniform(0.75, 1.0)))
+            PlacedMarker(
+                m.id,
+                Rotation.from_euler("xyz", m.euler_xyz).as_matrix(),
+                np.array(m.position, float),
+                float(np.random.default_rng(1000 + m.id).uniform(0.75, 1.0)),
+            )
             for m in sorted(markers.values(), key=lambda m: m.id)
         ]
         cell = self.length / MARKER_CELLS
@@ -114,8 +128,9 @@ class MarkerScene:
         dist = float(np.linalg.norm(view))
         return dist > 1e-9 and float(m.rotation[:, 2] @ view) > MIN_FACING_COS * dist
 
-    def corners_camera(self, m: PlacedMarker, r_wc: np.ndarray, c_w: np.ndarray,
-                       corners: np.ndarray) -> np.ndarray:
+    def corners_camera(
+        self, m: PlacedMarker, r_wc: np.ndarray, c_w: np.ndarray, corners: np.ndarray
+    ) -> np.ndarray:
         """Marker-frame points -> camera frame."""
         world = m.centre + corners @ m.rotation.T
         return (world - c_w) @ r_wc
@@ -131,7 +146,9 @@ class MarkerScene:
                 out.append(m)
         return sorted(out, key=lambda m: -float(np.linalg.norm(m.centre - c_w)))
 
-    def paint_order(self, r_wc: np.ndarray, c_w: np.ndarray) -> list[PlacedMarker | tuple[PillarFace, np.ndarray]]:
+    def paint_order(
+        self, r_wc: np.ndarray, c_w: np.ndarray
+    ) -> list[PlacedMarker | tuple[PillarFace, np.ndarray]]:
         """Markers and (pillar face, its camera-frame polygon cut at the near plane), farthest
         first; a marker on a pillar comes right after its face."""
         items: list[tuple[float, int, PlacedMarker | tuple[PillarFace, np.ndarray]]] = []
@@ -148,9 +165,15 @@ class MarkerScene:
         items.sort(key=lambda it: (-it[0], it[1]))
         return [it[2] for it in items]
 
-    def draw(self, canvas: np.ndarray, canvas_k: np.ndarray, r_wc: np.ndarray, c_w: np.ndarray,
-             textures: MarkerTextures,
-             order: list[PlacedMarker | tuple[PillarFace, np.ndarray]] | None = None) -> list[int]:
+    def draw(
+        self,
+        canvas: np.ndarray,
+        canvas_k: np.ndarray,
+        r_wc: np.ndarray,
+        c_w: np.ndarray,
+        textures: MarkerTextures,
+        order: list[PlacedMarker | tuple[PillarFace, np.ndarray]] | None = None,
+    ) -> list[int]:
         """Paste every visible marker onto the gray canvas in place; returns the ids drawn.
 
         `order` (from `paint_order` at a nearby pose) saves working out visibility again: the
@@ -166,8 +189,13 @@ class MarkerScene:
                 if len(poly) < 3:
                     continue
                 uv = (poly @ canvas_k.T)[:, :2] / poly[:, 2:3]
-                cv2.fillConvexPoly(canvas, np.round(uv * 16).astype(np.int32), face.shade,
-                                   lineType=cv2.LINE_AA, shift=4)
+                cv2.fillConvexPoly(
+                    canvas,
+                    np.round(uv * 16).astype(np.int32),
+                    face.shade,
+                    lineType=cv2.LINE_AA,
+                    shift=4,
+                )
                 continue
             m = item
             outer_c = self.corners_camera(m, r_wc, c_w, self.outer)
@@ -183,38 +211,60 @@ class MarkerScene:
             size = tex.shape[0]
             # texture pixel (u, v) -> marker plane (x, y): pixel centres at integers, edges at -0.5.
             s = 2 * self.half_outer / size
-            tex_to_plane = np.array([[s, 0.0, -self.half_outer + 0.5 * s],
-                                     [0.0, -s, self.half_outer - 0.5 * s], [0.0, 0.0, 1.0]])
+            tex_to_plane = np.array(
+                [
+                    [s, 0.0, -self.half_outer + 0.5 * s],
+                    [0.0, -s, self.half_outer - 0.5 * s],
+                    [0.0, 0.0, 1.0],
+                ]
+            )
             r_cm = r_wc.T @ m.rotation
             t_cm = r_wc.T @ (m.centre - c_w)
             plane_to_img = canvas_k @ np.column_stack([r_cm[:, 0], r_cm[:, 1], t_cm])
             shift = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
             h = shift @ plane_to_img @ tex_to_plane
             roi = np.ascontiguousarray(canvas[y0:y1, x0:x1])
-            cv2.warpPerspective(tex, h, (x1 - x0, y1 - y0), dst=roi, flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_TRANSPARENT)
+            cv2.warpPerspective(
+                tex,
+                h,
+                (x1 - x0, y1 - y0),
+                dst=roi,
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_TRANSPARENT,
+            )
             canvas[y0:y1, x0:x1] = roi
             drawn.append(m.id)
         return drawn
 
-    def expected_corners(self, cam: CameraModel, r_wc: np.ndarray, c_w: np.ndarray,
-                         margin: float = 2.0) -> dict[int, np.ndarray]:
+    def expected_corners(
+        self, cam: CameraModel, r_wc: np.ndarray, c_w: np.ndarray, margin: float = 2.0
+    ) -> dict[int, np.ndarray]:
         """Distorted pixel corners (4,2) of each drawn marker lying wholly inside the image and
         not overlapped by a nearer marker's sheet."""
         out = {}
         order = self.paint_order(r_wc, c_w)
-        sheets = [cam.project(self.corners_camera(it, r_wc, c_w, self.outer) if isinstance(it, PlacedMarker)
-                              else it[1]).astype(np.float32) for it in order]
+        sheets = [
+            cam.project(
+                self.corners_camera(it, r_wc, c_w, self.outer)
+                if isinstance(it, PlacedMarker)
+                else it[1]
+            ).astype(np.float32)
+            for it in order
+        ]
         for i, m in enumerate(order):
             if not isinstance(m, PlacedMarker):
                 continue
             outer = sheets[i]
-            inside = ((outer[:, 0] >= margin) & (outer[:, 0] <= cam.width - 1 - margin)
-                      & (outer[:, 1] >= margin) & (outer[:, 1] <= cam.height - 1 - margin))
+            inside = (
+                (outer[:, 0] >= margin)
+                & (outer[:, 0] <= cam.width - 1 - margin)
+                & (outer[:, 1] >= margin)
+                & (outer[:, 1] <= cam.height - 1 - margin)
+            )
             if not inside.all():
                 continue
             # Farthest first: everything later is painted over this marker.
-            if any(cv2.intersectConvexConvex(outer, nearer)[0] > 0 for nearer in sheets[i + 1:]):
+            if any(cv2.intersectConvexConvex(outer, nearer)[0] > 0 for nearer in sheets[i + 1 :]):
                 continue
             out[m.id] = cam.project(self.corners_camera(m, r_wc, c_w, self.inner))
         return out

@@ -49,7 +49,9 @@ class MarkerTextures:
                 # stands in for the lens' low-pass: no aliasing on small, distant markers.
                 img = cv2.resize(img, (side, side), interpolation=cv2.INTER_AREA)
             lo, hi = self.black * g / 100.0, self.white * g / 100.0
-            tex = np.clip(lo + img.astype(np.float32) * ((hi - lo) / 255.0), 0, 255).astype(np.uint8)
+            tex = np.clip(lo + img.astype(np.float32) * ((hi - lo) / 255.0), 0, 255).astype(
+                np.uint8
+            )
             self._cache[key] = tex
         return tex
 
@@ -70,7 +72,9 @@ def background_panorama(height: int, focal: float, rng: np.random.Generator) -> 
     blend = max(16, width // 8)
     raw_w = width + blend
     small = rng.normal(0.0, 1.0, (max(8, height // 16), max(16, raw_w // 16))).astype(np.float32)
-    base = cv2.resize(cv2.GaussianBlur(small, (0, 0), 1.5), (raw_w, height), interpolation=cv2.INTER_CUBIC)
+    base = cv2.resize(
+        cv2.GaussianBlur(small, (0, 0), 1.5), (raw_w, height), interpolation=cv2.INTER_CUBIC
+    )
     fine = cv2.GaussianBlur(rng.standard_normal((height, raw_w), dtype=np.float32), (0, 0), 1.0)
     tex = 22.0 * base + 12.0 * fine
     # Cross-fade the overhang into the start so the panorama wraps around without a seam.
@@ -85,8 +89,9 @@ def background_panorama(height: int, focal: float, rng: np.random.Generator) -> 
 
 def skin_texture(height: int, width: int, rng: np.random.Generator) -> np.ndarray:
     """A dark, skin-toned BGR image with soft shading: a hand pressed over the lens."""
-    shade = cv2.GaussianBlur(rng.normal(0.0, 1.0, (height // 8 + 1, width // 8 + 1)).astype(np.float32),
-                             (0, 0), 2.0)
+    shade = cv2.GaussianBlur(
+        rng.normal(0.0, 1.0, (height // 8 + 1, width // 8 + 1)).astype(np.float32), (0, 0), 2.0
+    )
     shade = cv2.resize(shade, (width, height), interpolation=cv2.INTER_CUBIC)[..., None]
     tone = np.array([38.0, 52.0, 82.0], np.float32)  # BGR: dim reddish-brown
     return np.clip(tone * (1.0 + 0.15 * shade), 0, 255).astype(np.uint8)

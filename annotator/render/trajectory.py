@@ -46,7 +46,9 @@ class LoopTrajectory:
             heads.append(np.full(n, np.arctan2(d[1], d[0])))
             if centre is not None:
                 th = ang + np.linspace(0, np.pi / 2, int(r * np.pi / 2 / 0.01), endpoint=False)
-                pts.append(np.column_stack([centre[0] + r * np.cos(th), centre[1] + r * np.sin(th)]))
+                pts.append(
+                    np.column_stack([centre[0] + r * np.cos(th), centre[1] + r * np.sin(th)])
+                )
                 heads.append(th + np.pi / 2)
         xy = np.vstack(pts + [pts[0][:1]])
         heading = np.unwrap(np.concatenate(heads + [heads[0][:1] + 2 * np.pi]))
@@ -63,7 +65,9 @@ class LoopTrajectory:
         y = np.interp(s, length, xy[:, 1])
         tau = t - self.t0
         z = _height(tau, self.height, self.height_swing)
-        rot = _wobbly_rotation(np.interp(s, length, heading) + 2 * np.pi * laps, tau, self.wobble_deg)
+        rot = _wobbly_rotation(
+            np.interp(s, length, heading) + 2 * np.pi * laps, tau, self.wobble_deg
+        )
         return np.column_stack([x, y, z]), rot
 
 
@@ -71,7 +75,9 @@ def _height(tau: np.ndarray, height: float, swing: float) -> np.ndarray:
     return height + swing * np.sin(2 * np.pi * tau / 11.0)
 
 
-def _wobbly_rotation(heading: np.ndarray, tau: np.ndarray, wobble_deg: tuple[float, float, float]) -> Rotation:
+def _wobbly_rotation(
+    heading: np.ndarray, tau: np.ndarray, wobble_deg: tuple[float, float, float]
+) -> Rotation:
     """R_world_bundle with the bundle's x along ``heading`` plus a slow yaw/pitch/roll wobble."""
     wy, wp, wr = np.radians(wobble_deg)
     yaw = heading + wy * np.sin(2 * np.pi * 0.17 * tau)
@@ -150,7 +156,9 @@ class PolylineTrajectory:
             k = j // 2
             frac = np.clip((tp - phase_start[j]) / np.maximum(phase_len[j], 1e-12), 0.0, 1.0)
             walking = j % 2 == 0
-            xy = np.where(walking[:, None], tour[k] + frac[:, None] * (tour[k + 1] - tour[k]), tour[k + 1])
+            xy = np.where(
+                walking[:, None], tour[k] + frac[:, None] * (tour[k + 1] - tour[k]), tour[k + 1]
+            )
             change = np.mod(heading[(k + 1) % n] - heading[k] + np.pi, 2 * np.pi) - np.pi
             ease = (1 - np.cos(np.pi * frac)) / 2  # start and end the turn gently
             yaw = heading[k] + np.where(walking, 0.0, ease * change)

@@ -30,7 +30,9 @@ class DetectorSettings:
     # Detect on a frame scaled by this (0 < s <= 1), corners refined at full resolution.
     # None: halve the frame while it is wider than AUTO_MAX_WIDTH (1080p -> 960x540).
     downscale: float | None = None
-    board_refine: bool = True  # recover missed markers by projecting the room (refineDetectedMarkers)
+    board_refine: bool = (
+        True  # recover missed markers by projecting the room (refineDetectedMarkers)
+    )
     # Adaptive-threshold window sizes (min, max, step) in detection pixels. One window (7 px) is
     # ~2-3x faster than OpenCV's three (3, 13, 23) and finds ~98-99 % of the markers on our
     # renders with the same pose accuracy; frames where it finds fewer than `retry_below` known
@@ -71,7 +73,9 @@ class Detections:
 class MarkerDetector:
     """Holds the OpenCV detector and the room board for one camera (not thread-safe)."""
 
-    def __init__(self, settings: DetectorSettings, room: MarkerRoom, calibration: CameraCalibration) -> None:
+    def __init__(
+        self, settings: DetectorSettings, room: MarkerRoom, calibration: CameraCalibration
+    ) -> None:
         if settings.corner_refine not in _REFINE:
             raise ValueError(f"corner_refine must be one of {sorted(_REFINE)}")
         s = auto_downscale(calibration.width) if settings.downscale is None else settings.downscale
@@ -85,10 +89,17 @@ class MarkerDetector:
         # When corners are refined at full resolution afterwards, skip the detector's own refinement.
         refine = _REFINE["none" if s < 1 else settings.corner_refine]
         self._detector = _aruco_detector(dictionary, refine, settings.threshold_windows)
-        self._retry = None if settings.retry_windows is None or settings.retry_windows == settings.threshold_windows \
+        self._retry = (
+            None
+            if settings.retry_windows is None
+            or settings.retry_windows == settings.threshold_windows
             else _aruco_detector(dictionary, refine, settings.retry_windows)
-        self._board = cv2.aruco.Board([c.astype(np.float32) for c in room.corners_world], dictionary,
-                                      room.ids.astype(np.int32).reshape(-1, 1))
+        )
+        self._board = cv2.aruco.Board(
+            [c.astype(np.float32) for c in room.corners_world],
+            dictionary,
+            room.ids.astype(np.int32).reshape(-1, 1),
+        )
         K = calibration.camera_matrix.copy()
         K[:2] *= s  # the intrinsics of the downscaled image (pixel centres ignored: sub-pixel only)
         self._K_small = K
@@ -118,7 +129,8 @@ class MarkerDetector:
         few = self.settings.board_refine_below <= 0 or len(ids) < self.settings.board_refine_below
         if self.settings.board_refine and few and len(ids) > 0 and rejected:
             corners, ids, _, _ = self._detector.refineDetectedMarkers(
-                small, self._board, corners, ids, rejected, self._K_small, self._dist)
+                small, self._board, corners, ids, rejected, self._K_small, self._dist
+            )
         if ids is None or len(ids) == 0:
             return Detections.empty()
         ids = np.asarray(ids).reshape(-1)
@@ -136,12 +148,17 @@ class MarkerDetector:
         return Detections(ids[first].astype(int), pts[first].astype(np.float64))
 
 
-def _aruco_detector(dictionary: cv2.aruco.Dictionary, refine: int,
-                    windows: tuple[int, int, int]) -> cv2.aruco.ArucoDetector:
+def _aruco_detector(
+    dictionary: cv2.aruco.Dictionary, refine: int, windows: tuple[int, int, int]
+) -> cv2.aruco.ArucoDetector:
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = refine
     params.cornerRefinementWinSize = 5
     params.cornerRefinementMaxIterations = 50
     params.cornerRefinementMinAccuracy = 0.01
-    params.adaptiveThreshWinSizeMin, params.adaptiveThreshWinSizeMax, params.adaptiveThreshWinSizeStep = windows
+    (
+        params.adaptiveThreshWinSizeMin,
+        params.adaptiveThreshWinSizeMax,
+        params.adaptiveThreshWinSizeStep,
+    ) = windows
     return cv2.aruco.ArucoDetector(dictionary, params, cv2.aruco.RefineParameters())

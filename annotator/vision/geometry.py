@@ -43,8 +43,9 @@ class MarkerRoom:
         return np.where(self.ids[pos] == ids, pos, -1)
 
 
-def camera_to_bundle(R_wc: np.ndarray, c_w: np.ndarray, R_bc: np.ndarray,
-                     t_bc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def camera_to_bundle(
+    R_wc: np.ndarray, c_w: np.ndarray, R_bc: np.ndarray, t_bc: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Bundle pose in the world from a camera pose (R_world_camera, camera centre) and the rig."""
     R_wb = R_wc @ R_bc.T
     return R_wb, c_w - R_wb @ t_bc
@@ -59,8 +60,12 @@ def pnp_to_camera(rvec: np.ndarray, tvec: np.ndarray) -> tuple[np.ndarray, np.nd
 _RZ_PI = np.diag([-1.0, -1.0, 1.0])
 
 
-def ippe_square(image_points: np.ndarray, length: float, camera_matrix: np.ndarray,
-                dist_coeffs: np.ndarray | None) -> list[tuple[np.ndarray, np.ndarray, float]]:
+def ippe_square(
+    image_points: np.ndarray,
+    length: float,
+    camera_matrix: np.ndarray,
+    dist_coeffs: np.ndarray | None,
+) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """Both IPPE poses (R_camera_marker, t_camera_marker, reprojection error) of one square, best first.
 
     OpenCV's IPPE_SQUARE breaks down numerically when R_camera_marker is close to a half turn
@@ -72,11 +77,19 @@ def ippe_square(image_points: np.ndarray, length: float, camera_matrix: np.ndarr
     pts = np.asarray(image_points, dtype=np.float64).reshape(4, 2)
     out: list[tuple[np.ndarray, np.ndarray, float]] = []
     for shift, fix in ((0, np.eye(3)), (2, _RZ_PI)):
-        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(local, np.roll(pts, -shift, axis=0).reshape(-1, 1, 2),
-                                                    camera_matrix, dist_coeffs, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
+            local,
+            np.roll(pts, -shift, axis=0).reshape(-1, 1, 2),
+            camera_matrix,
+            dist_coeffs,
+            flags=cv2.SOLVEPNP_IPPE_SQUARE,
+        )
         for rv, tv, e in zip(rvecs[:n], tvecs[:n], np.ravel(errs)[:n], strict=True):
             rv, tv = np.ravel(rv), np.ravel(tv)
-            if not (np.all(np.isfinite(rv)) and np.all(np.isfinite(tv)) and np.linalg.norm(rv) < 7) or tv[2] <= 0:
+            if (
+                not (np.all(np.isfinite(rv)) and np.all(np.isfinite(tv)) and np.linalg.norm(rv) < 7)
+                or tv[2] <= 0
+            ):
                 continue
             # The relabelled square is the real one turned half a turn about its normal.
             R = cv2.Rodrigues(rv)[0] @ fix.T

@@ -24,8 +24,9 @@ def undistort_points(cal: CameraCalibration, pixels: np.ndarray) -> np.ndarray:
         return np.zeros(shape)
     flat = pts.reshape(-1, 1, 2)
     if cal.model == "fisheye":
-        xn = cv2.fisheye.undistortPoints(flat, cal.camera_matrix, cal.dist_coeffs.reshape(4, 1),
-                                         criteria=_CRITERIA)
+        xn = cv2.fisheye.undistortPoints(
+            flat, cal.camera_matrix, cal.dist_coeffs.reshape(4, 1), criteria=_CRITERIA
+        )
     else:
         xn = cv2.undistortPoints(flat, cal.camera_matrix, cal.dist_coeffs, criteria=_CRITERIA)
     return np.asarray(xn, dtype=float).reshape(shape)
@@ -40,7 +41,9 @@ def project_points(cal: CameraCalibration, points_cam: np.ndarray) -> np.ndarray
     flat = pts.reshape(-1, 1, 3)
     zero = np.zeros(3)
     if cal.model == "fisheye":
-        uv, _ = cv2.fisheye.projectPoints(flat, zero, zero, cal.camera_matrix, cal.dist_coeffs.reshape(4, 1))
+        uv, _ = cv2.fisheye.projectPoints(
+            flat, zero, zero, cal.camera_matrix, cal.dist_coeffs.reshape(4, 1)
+        )
     else:
         uv, _ = cv2.projectPoints(flat, zero, zero, cal.camera_matrix, cal.dist_coeffs)
     return np.asarray(uv, dtype=float).reshape(out_shape)

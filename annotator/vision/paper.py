@@ -48,14 +48,18 @@ def marker_poses(det: Detections, room: MarkerRoom, cam: RigCamera) -> MarkerPos
     pos, rot, dist = [], [], []
     for mid, corners in zip(det.ids, det.corners, strict=True):
         k = room.index(np.array([mid]))[0]
-        sols = ippe_square(corners, room.length, cal.camera_matrix, cal.dist_coeffs) if k >= 0 else []
+        sols = (
+            ippe_square(corners, room.length, cal.camera_matrix, cal.dist_coeffs) if k >= 0 else []
+        )
         if not sols:
             continue
         R_cm, t_cm, _ = sols[0]  # the paper keeps the better-fitting of the two
         R_wm, t_wm = room.R_world_marker[k], room.t_world_marker[k]
         # t_wc = t_wm - R_wm R_cm^T t_cm ; R_wc = R_wm R_cm^T
         R_wc = R_wm @ R_cm.T
-        R_wb, t_wb = camera_to_bundle(R_wc, t_wm - R_wc @ t_cm, cam.R_bundle_camera, cam.t_bundle_camera)
+        R_wb, t_wb = camera_to_bundle(
+            R_wc, t_wm - R_wc @ t_cm, cam.R_bundle_camera, cam.t_bundle_camera
+        )
         pos.append(t_wb)
         rot.append(R_wb)
         dist.append(float(np.linalg.norm(t_cm)))
@@ -107,8 +111,9 @@ def random_walk_filter(z: np.ndarray, q: float, process: float) -> np.ndarray:
     return out
 
 
-def paper_track(t: np.ndarray, poses: list[MarkerPoses],
-                settings: PaperSettings | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def paper_track(
+    t: np.ndarray, poses: list[MarkerPoses], settings: PaperSettings | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Batch times (B,), filtered positions (B, 3), rotations (B, 3, 3) and poses used (B,).
 
     ``t`` (N,) are the frame times of all cameras, ``poses`` each frame's marker poses. Frames

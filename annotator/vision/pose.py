@@ -52,12 +52,19 @@ class BundlePose:
     cov: np.ndarray  # (6, 6): world-frame rotation perturbation (rad), then position (m)
     rms_px: float
     n_markers: int
-    alternatives: tuple[BundlePose, ...] = field(default=())  # other poses that fit as well (one marker)
+    alternatives: tuple[BundlePose, ...] = field(
+        default=()
+    )  # other poses that fit as well (one marker)
 
 
-def observe(det: Detections, room: MarkerRoom, cal: CameraCalibration, R_bc: np.ndarray,
-            t_bc: np.ndarray, motion: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
-            ) -> CameraObservation:
+def observe(
+    det: Detections,
+    room: MarkerRoom,
+    cal: CameraCalibration,
+    R_bc: np.ndarray,
+    t_bc: np.ndarray,
+    motion: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> CameraObservation:
     """Undistort one frame's detections and attach their world corners.
 
     With a rolling shutter (``cal.readout_s`` > 0) and the bundle's ``motion`` at the frame time,
@@ -73,7 +80,9 @@ def observe(det: Detections, room: MarkerRoom, cal: CameraCalibration, R_bc: np.
         # The detector's corner bias (estimated by the refinement): move each corner back along
         # its square's diagonal.
         d = corners - corners.mean(axis=1, keepdims=True)
-        corners = corners - cal.corner_bias_px * d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-9)
+        corners = corners - cal.corner_bias_px * d / np.maximum(
+            np.linalg.norm(d, axis=2, keepdims=True), 1e-9
+        )
     xn = undistort_points(cal, corners.reshape(-1, 4, 2)) if len(ids) else np.zeros((0, 4, 2))
     focal = float(np.sqrt(cal.camera_matrix[0, 0] * cal.camera_matrix[1, 1]))
     world = room.corners_world[idx]
@@ -82,8 +91,15 @@ def observe(det: Detections, room: MarkerRoom, cal: CameraCalibration, R_bc: np.
     return CameraObservation(ids, xn, world, R_bc, t_bc, focal)
 
 
-def rolling_shutter_points(world: np.ndarray, pixels: np.ndarray, cal: CameraCalibration, R_wb: np.ndarray,
-                           p_wb: np.ndarray, omega: np.ndarray, vel: np.ndarray) -> np.ndarray:
+def rolling_shutter_points(
+    world: np.ndarray,
+    pixels: np.ndarray,
+    cal: CameraCalibration,
+    R_wb: np.ndarray,
+    p_wb: np.ndarray,
+    omega: np.ndarray,
+    vel: np.ndarray,
+) -> np.ndarray:
     """World points (..., 3) moved by the bundle's motion over each pixel's readout delay.
 
     Bundle at t + tau: R(tau) = exp(omega tau) R_wb, p(tau) = p_wb + vel tau. A point X seen at
@@ -97,13 +113,17 @@ def rolling_shutter_points(world: np.ndarray, pixels: np.ndarray, cal: CameraCal
 
 
 def _subset(obs: CameraObservation, keep: np.ndarray) -> CameraObservation:
-    return CameraObservation(obs.ids[keep], obs.xn[keep], obs.world[keep], obs.R_bc, obs.t_bc, obs.focal)
+    return CameraObservation(
+        obs.ids[keep], obs.xn[keep], obs.world[keep], obs.R_bc, obs.t_bc, obs.focal
+    )
 
 
 _EYE = np.eye(3)
 
 
-def camera_pose_candidates(obs: CameraObservation, room: MarkerRoom) -> list[tuple[np.ndarray, np.ndarray]]:
+def camera_pose_candidates(
+    obs: CameraObservation, room: MarkerRoom
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Camera poses (R_world_camera, centre) from one camera: one for several markers, two for one."""
     n = len(obs.ids)
     if n == 0:
@@ -114,18 +134,27 @@ def camera_pose_candidates(obs: CameraObservation, room: MarkerRoom) -> list[tup
         out = []
         for R_cm, t_cm, _ in ippe_square(obs.xn[0], room.length, _EYE, None):
             R_mc, c_m = R_cm.T, -R_cm.T @ t_cm  # camera in the marker frame
-            out.append((room.R_world_marker[k] @ R_mc, room.R_world_marker[k] @ c_m + room.t_world_marker[k]))
+            out.append(
+                (
+                    room.R_world_marker[k] @ R_mc,
+                    room.R_world_marker[k] @ c_m + room.t_world_marker[k],
+                )
+            )
         return out
-    ok, rv, tv = cv2.solvePnP(obs.world.reshape(-1, 3), obs.xn.reshape(-1, 1, 2), _EYE, None,
-                              flags=cv2.SOLVEPNP_SQPNP)
+    ok, rv, tv = cv2.solvePnP(
+        obs.world.reshape(-1, 3), obs.xn.reshape(-1, 1, 2), _EYE, None, flags=cv2.SOLVEPNP_SQPNP
+    )
     if not ok:
         return []
-    rv, tv = cv2.solvePnPRefineLM(obs.world.reshape(-1, 3), obs.xn.reshape(-1, 1, 2), _EYE, None, rv, tv)
+    rv, tv = cv2.solvePnPRefineLM(
+        obs.world.reshape(-1, 3), obs.xn.reshape(-1, 1, 2), _EYE, None, rv, tv
+    )
     return [pnp_to_camera(rv, tv)]
 
 
-def _residuals(R_wb: np.ndarray, t_wb: np.ndarray, obs: list[CameraObservation],
-               jacobian: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+def _residuals(
+    R_wb: np.ndarray, t_wb: np.ndarray, obs: list[CameraObservation], jacobian: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Stacked pixel residuals (m, 2), Jacobian (m, 2, 6) and depth (m,) for all corners."""
     res, jac, depth = [], [], []
     for o in obs:
@@ -150,17 +179,23 @@ def _residuals(R_wb: np.ndarray, t_wb: np.ndarray, obs: list[CameraObservation],
             # R_wb = exp(w) R_wb0 moves the corner in the bundle frame by R_wb^T (d x w), so the
             # rotation columns are a . (d x w) = (a x d) . w for each Jacobian row a.
             dd = d[:, None, :]
-            axd = np.stack([a[..., 1] * dd[..., 2] - a[..., 2] * dd[..., 1],
-                            a[..., 2] * dd[..., 0] - a[..., 0] * dd[..., 2],
-                            a[..., 0] * dd[..., 1] - a[..., 1] * dd[..., 0]], axis=-1)
+            axd = np.stack(
+                [
+                    a[..., 1] * dd[..., 2] - a[..., 2] * dd[..., 1],
+                    a[..., 2] * dd[..., 0] - a[..., 0] * dd[..., 2],
+                    a[..., 0] * dd[..., 1] - a[..., 1] * dd[..., 0],
+                ],
+                axis=-1,
+            )
             jac.append(np.concatenate([axd, -a], axis=2))
     r = np.concatenate(res) if res else np.zeros((0, 2))
     J = np.concatenate(jac) if jacobian and jac else None
     return r, J, np.concatenate(depth) if depth else np.zeros(0)
 
 
-def refine_bundle_pose(obs: list[CameraObservation], R_wb: np.ndarray, t_wb: np.ndarray,
-                       settings: SolverSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+def refine_bundle_pose(
+    obs: list[CameraObservation], R_wb: np.ndarray, t_wb: np.ndarray, settings: SolverSettings
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """Robust Gauss-Newton from a start pose; returns (R, t, cov 6x6, rms px) or None if degenerate."""
     R, t = R_wb.copy(), np.asarray(t_wb, dtype=float).copy()
     k = settings.huber_px
@@ -189,14 +224,14 @@ def refine_bundle_pose(obs: list[CameraObservation], R_wb: np.ndarray, t_wb: np.
     w = np.where(norm <= k, 1.0, k / np.maximum(norm, 1e-12))
     Jf, wf = J.reshape(-1, 6), np.repeat(w, 2)
     dof = max(r.size - 6, 1)
-    sigma2 = max(float(np.sum(wf * r.ravel() ** 2)) / dof, settings.min_sigma_px ** 2)
+    sigma2 = max(float(np.sum(wf * r.ravel() ** 2)) / dof, settings.min_sigma_px**2)
     try:
         cov = sigma2 * np.linalg.inv(Jf.T @ (Jf * wf[:, None]))
     except np.linalg.LinAlgError:
         return None
     # Re-orthonormalise so accumulated steps never leave SO(3).
     R = Rotation.from_matrix(R).as_matrix()
-    return R, t, cov, float(np.sqrt(np.mean(norm ** 2)))
+    return R, t, cov, float(np.sqrt(np.mean(norm**2)))
 
 
 def _marker_rms(R: np.ndarray, t: np.ndarray, obs: list[CameraObservation]) -> list[np.ndarray]:
@@ -210,8 +245,9 @@ def _marker_rms(R: np.ndarray, t: np.ndarray, obs: list[CameraObservation]) -> l
     return out
 
 
-def _starts(obs: list[CameraObservation], room: MarkerRoom,
-            prior: tuple[np.ndarray, np.ndarray] | None) -> list[tuple[np.ndarray, np.ndarray]]:
+def _starts(
+    obs: list[CameraObservation], room: MarkerRoom, prior: tuple[np.ndarray, np.ndarray] | None
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Start poses: per-camera PnP through the rig, best-observed camera first, then any prior."""
     order = sorted(range(len(obs)), key=lambda i: -len(obs[i].ids))
     starts = []
@@ -226,9 +262,13 @@ def _starts(obs: list[CameraObservation], room: MarkerRoom,
     return starts
 
 
-def solve_bundle_pose(obs: list[CameraObservation], room: MarkerRoom, settings: SolverSettings | None = None,
-                      prior: tuple[np.ndarray, np.ndarray] | None = None,
-                      prior_first: bool = False) -> BundlePose | None:
+def solve_bundle_pose(
+    obs: list[CameraObservation],
+    room: MarkerRoom,
+    settings: SolverSettings | None = None,
+    prior: tuple[np.ndarray, np.ndarray] | None = None,
+    prior_first: bool = False,
+) -> BundlePose | None:
     """Joint robust pose of the bundle from all cameras' corners; None when nothing fits.
 
     Markers whose own residual is far above the rest are dropped and the pose re-solved. With a
@@ -252,7 +292,12 @@ def solve_bundle_pose(obs: list[CameraObservation], room: MarkerRoom, settings: 
             if prior is not None:
                 starts.append(prior)
             for i, (R0, t0) in enumerate(starts):
-                if prior is not None and i == len(starts) - 1 and sols and min(s[3] for s in sols) < settings.huber_px:
+                if (
+                    prior is not None
+                    and i == len(starts) - 1
+                    and sols
+                    and min(s[3] for s in sols) < settings.huber_px
+                ):
                     break  # the prior is only a fallback for when PnP found nothing that fits
                 fit = refine_bundle_pose(obs, R0, t0, settings)
                 if fit is not None:
@@ -278,7 +323,10 @@ def solve_bundle_pose(obs: list[CameraObservation], room: MarkerRoom, settings: 
     if n == 1:
         k = settings.single_marker_cov_scale
         cov = cov * k
-        distinct = [s for s in sols[1:]
-                    if np.linalg.norm(Rotation.from_matrix(s[0].T @ R).as_rotvec()) > 1e-3]
+        distinct = [
+            s
+            for s in sols[1:]
+            if np.linalg.norm(Rotation.from_matrix(s[0].T @ R).as_rotvec()) > 1e-3
+        ]
         alternatives = tuple(BundlePose(s[0], s[1], s[2] * k, s[3], 1) for s in distinct[:1])
     return BundlePose(R, t, cov, rms, n, alternatives)

@@ -28,12 +28,14 @@ _BRACKETS = re.compile(r"[\[\]{}()]")
 _STRINGS = re.compile(r"\"(?:[^\"\\]|\\.)*\"|'(?:[^'\\]|\\.)*'")
 
 
-def not_utf8(data: bytes, e: UnicodeDecodeError, source: str, first_line: int = 1,
-             offset: int = 0) -> str:
+def not_utf8(
+    data: bytes, e: UnicodeDecodeError, source: str, first_line: int = 1, offset: int = 0
+) -> str:
     """The message for undecodable bytes: ``<file>:<line>: not UTF-8 text (byte 0xff at offset N)``."""
     line = first_line + data.count(b"\n", 0, e.start)
-    return (f"{source}:{line}: not UTF-8 text (byte {data[e.start]:#04x} at offset "
-            f"{offset + e.start})")
+    return (
+        f"{source}:{line}: not UTF-8 text (byte {data[e.start]:#04x} at offset {offset + e.start})"
+    )
 
 
 def read_text(path: str | Path, error: type[Exception], what: str = "") -> str:

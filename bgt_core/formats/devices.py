@@ -49,7 +49,9 @@ def _devices(obj: object, what: str) -> dict[str, Device]:
             position = tuple(finite(v, "position") for v in pos)
             out[normalize_mac(mac)] = Device(normalize_mac(mac), position, int(colour), str(alias))
         except (TypeError, ValueError, WireError, OverflowError) as e:
-            raise SiteConfigError(f"{what} entry {mac!r:.40}: expected [[x, y, z], colour, alias] ({e})") from None
+            raise SiteConfigError(
+                f"{what} entry {mac!r:.40}: expected [[x, y, z], colour, alias] ({e})"
+            ) from None
     return out
 
 
@@ -64,11 +66,15 @@ def parse_dev(text: str, source: str = "<dev>") -> Devices:
         try:
             fields[key.strip()] = json_loads(value)
         except ValueError as e:
-            raise SiteConfigError(f"{source}:{lineno}: {key.strip()[:40]} is not valid JSON ({e})") from None
+            raise SiteConfigError(
+                f"{source}:{lineno}: {key.strip()[:40]} is not valid JSON ({e})"
+            ) from None
     if "Dongles" not in fields:
         raise SiteConfigError(f"{source}: no 'Dongles:' line")
-    return Devices(_devices(fields["Dongles"], f"{source}: Dongles"),
-                   _devices(fields.get("Beacons", {}), f"{source}: Beacons"))
+    return Devices(
+        _devices(fields["Dongles"], f"{source}: Dongles"),
+        _devices(fields.get("Beacons", {}), f"{source}: Beacons"),
+    )
 
 
 def read_dev(path: str | Path) -> Devices:
@@ -97,8 +103,9 @@ class MapParams:
     @overload
     def world_to_pixel(self, x: float, y: float) -> tuple[float, float]: ...
     @overload
-    def world_to_pixel(self, x: NDArray[np.float64],
-                       y: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+    def world_to_pixel(
+        self, x: NDArray[np.float64], y: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
 
     def world_to_pixel(self, x: Any, y: Any) -> tuple[Any, Any]:
         """World metres -> map pixels (works on numbers or numpy arrays)."""
@@ -115,11 +122,20 @@ def parse_par(text: str, source: str = "<par>") -> MapParams:
         a, b, sx, sy = (int(v) for v in d["direction"])
         p = MapParams((ox, oy), (x0, y0, x1, y1), (a, b, sx, sy), finite(d["parity"], "parity"))
     except (ValueError, KeyError, TypeError, OverflowError) as e:
-        raise SiteConfigError(f"{source}: expected origin, limits, direction, parity ({e})") from None
-    if (len(p.origin) != 2 or len(p.limits) != 4 or len(p.direction) != 4 or not p.parity > 0
-            or not set(p.direction[:2]) <= {0, 1}):
-        raise SiteConfigError(f"{source}: expected origin [u, v], limits [x0, y0, x1, y1], "
-                              "direction [a, b, sx, sy] (a, b: 0 or 1) and parity > 0")
+        raise SiteConfigError(
+            f"{source}: expected origin, limits, direction, parity ({e})"
+        ) from None
+    if (
+        len(p.origin) != 2
+        or len(p.limits) != 4
+        or len(p.direction) != 4
+        or not p.parity > 0
+        or not set(p.direction[:2]) <= {0, 1}
+    ):
+        raise SiteConfigError(
+            f"{source}: expected origin [u, v], limits [x0, y0, x1, y1], "
+            "direction [a, b, sx, sy] (a, b: 0 or 1) and parity > 0"
+        )
     return p
 
 
@@ -129,8 +145,17 @@ def read_par(path: str | Path) -> MapParams:
 
 
 def format_par(p: MapParams) -> str:
-    return json.dumps({"origin": list(p.origin), "limits": list(p.limits),
-                       "direction": list(p.direction), "parity": p.parity}) + "\n"
+    return (
+        json.dumps(
+            {
+                "origin": list(p.origin),
+                "limits": list(p.limits),
+                "direction": list(p.direction),
+                "parity": p.parity,
+            }
+        )
+        + "\n"
+    )
 
 
 def devices_from_obj(dongles: object, beacons: object, source: str = "<devices>") -> Devices:
@@ -140,6 +165,7 @@ def devices_from_obj(dongles: object, beacons: object, source: str = "<devices>"
 
 def devices_to_obj(devices: Devices) -> tuple[dict[str, list[Any]], dict[str, list[Any]]]:
     """The inverse of :func:`devices_from_obj`: ``{mac: [[x, y, z], colour, alias]}`` per kind."""
+
     def kind(ds: dict[str, Device]) -> dict[str, list[Any]]:
         return {d.mac: [list(d.position), d.colour, d.alias] for d in ds.values()}
 

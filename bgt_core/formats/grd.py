@@ -41,8 +41,10 @@ class RadioMapGrid:
 def _floats(text: str, n: int | None, what: str) -> tuple[float, ...]:
     v = json_loads(text)
     if not isinstance(v, list) or (n is not None and len(v) != n):
-        raise ValueError(f"{what}: expected a list of {n if n is not None else 'numbers'}, "
-                         f"got {len(v) if isinstance(v, list) else type(v).__name__}")
+        raise ValueError(
+            f"{what}: expected a list of {n if n is not None else 'numbers'}, "
+            f"got {len(v) if isinstance(v, list) else type(v).__name__}"
+        )
     return tuple(finite(x, what) for x in v)
 
 
@@ -50,11 +52,15 @@ def _histogram(text: str, n_edges: int) -> tuple[float, ...]:
     v = _floats(text, None, "histogram")
     if len(v) == n_edges:
         if v[-1] != 0.0:
-            raise ValueError(f"the value after the last bin (number {n_edges}) must be 0, got {v[-1]}")
+            raise ValueError(
+                f"the value after the last bin (number {n_edges}) must be 0, got {v[-1]}"
+            )
         return v[:-1]
     if len(v) != n_edges - 1:
-        raise ValueError(f"histogram: expected {n_edges} values (one per bin edge, the last 0) or "
-                         f"{n_edges - 1}, got {len(v)}")
+        raise ValueError(
+            f"histogram: expected {n_edges} values (one per bin edge, the last 0) or "
+            f"{n_edges - 1}, got {len(v)}"
+        )
     return v
 
 
@@ -69,10 +75,12 @@ def parse_grd(text: str, source: str = "<grd>") -> RadioMapGrid:
         bins = check_edges(json_loads(bins_text))
         cell = check_cell(cell)
     except (ValueError, TypeError, WireError, OverflowError) as e:
-        raise GridFormatError(f"{source}:{header_no + 1}: expected "
-                              f"'<sensor>::[[x0, y0], [x1, y1]]::<cell>::[bins]' ({e})") from None
+        raise GridFormatError(
+            f"{source}:{header_no + 1}: expected "
+            f"'<sensor>::[[x0, y0], [x1, y1]]::<cell>::[bins]' ({e})"
+        ) from None
     cells: dict[Cell, dict[str, tuple[float, ...]]] = {}
-    for lineno, line in enumerate(lines[header_no + 1:], header_no + 2):
+    for lineno, line in enumerate(lines[header_no + 1 :], header_no + 2):
         if not line.strip():
             continue
         try:
@@ -81,10 +89,14 @@ def parse_grd(text: str, source: str = "<grd>") -> RadioMapGrid:
             beacon = normalize_mac(beacon)
             hist = _histogram(hist_text, len(bins))
         except (ValueError, TypeError, WireError) as e:
-            raise GridFormatError(f"{source}:{lineno}: expected '[gx, gy]::<beacon>::[p, ...]' ({e})") from None
+            raise GridFormatError(
+                f"{source}:{lineno}: expected '[gx, gy]::<beacon>::[p, ...]' ({e})"
+            ) from None
         per_cell = cells.setdefault(key, {})
         if beacon in per_cell:
-            raise GridFormatError(f"{source}:{lineno}: cell {list(key)} beacon {beacon} listed twice")
+            raise GridFormatError(
+                f"{source}:{lineno}: cell {list(key)} beacon {beacon} listed twice"
+            )
         per_cell[beacon] = hist
     return RadioMapGrid(sensor, limits, cell, bins, cells)
 

@@ -44,7 +44,8 @@ def check_edges(obj: object) -> tuple[float, ...]:
         raise ValueError("expected a list of at least two bin edges")
     edges = tuple(float(v) for v in obj)
     if not all(math.isfinite(v) for v in edges) or any(
-            b <= a for a, b in zip(edges, edges[1:], strict=False)):
+        b <= a for a, b in zip(edges, edges[1:], strict=False)
+    ):
         raise ValueError("bin edges must be finite and increase")
     return edges
 
@@ -102,8 +103,10 @@ def _fingerprints(obj: object, n: int) -> FingerprintTable:
             if not isinstance(beacons, dict):
                 raise TypeError(f"{key} {sensor}: expected {{beacon: [...]}}")
             smac = normalize_mac(sensor)
-            per_sensor[smac] = {normalize_mac(b): _histogram(h, n, f"{key} {sensor} {b}")
-                                for b, h in beacons.items()}
+            per_sensor[smac] = {
+                normalize_mac(b): _histogram(h, n, f"{key} {sensor} {b}")
+                for b, h in beacons.items()
+            }
         if pos in table:
             raise ValueError(f"position {key} listed twice")
         table[pos] = per_sensor
@@ -123,9 +126,13 @@ def parse_hst(text: str, source: str = "<hst>") -> FingerprintHistograms:
         except ValueError as e:
             if str(e).startswith("nested deeper"):
                 raise HstError(f"{source}:{lineno}: {key.strip()[:40]}: {e}") from None
-            raise HstError(f"{source}:{lineno}: {key.strip()[:40]} is not a valid literal") from None
+            raise HstError(
+                f"{source}:{lineno}: {key.strip()[:40]} is not a valid literal"
+            ) from None
         except (SyntaxError, MemoryError, RecursionError, TypeError):
-            raise HstError(f"{source}:{lineno}: {key.strip()[:40]} is not a valid literal") from None
+            raise HstError(
+                f"{source}:{lineno}: {key.strip()[:40]} is not a valid literal"
+            ) from None
     for required in ("Bins", "Dongles", "Fingerprints"):
         if required not in fields:
             raise HstError(f"{source}: no '{required}:' line")
@@ -137,8 +144,10 @@ def parse_hst(text: str, source: str = "<hst>") -> FingerprintHistograms:
     d_line, dongles = fields["Dongles"]
     b_line, beacons = fields.get("Beacons", (d_line, {}))
     try:  # each part checked on its own, so the message names its line
-        devices = Devices(devices_from_obj(dongles, {}, f"{source}:{d_line}").dongles,
-                          devices_from_obj({}, beacons, f"{source}:{b_line}").beacons)
+        devices = Devices(
+            devices_from_obj(dongles, {}, f"{source}:{d_line}").dongles,
+            devices_from_obj({}, beacons, f"{source}:{b_line}").beacons,
+        )
     except SiteConfigError as e:
         raise HstError(str(e)) from None
     lineno, fp_obj = fields["Fingerprints"]
@@ -159,13 +168,17 @@ def format_hst(h: FingerprintHistograms) -> str:
     dongles, beacons = devices_to_obj(h.devices)
     entries = []
     for pos, sensors in h.fingerprints.items():
-        body = {s: {b: [float(v) for v in p] for b, p in beacons_.items()}
-                for s, beacons_ in sensors.items()}
+        body = {
+            s: {b: [float(v) for v in p] for b, p in beacons_.items()}
+            for s, beacons_ in sensors.items()
+        }
         entries.append(f"{json.dumps(position_key(pos))}: {json.dumps(body)}")
-    return (f"Bins:{json.dumps([float(b) for b in h.bins])}\n"
-            f"Dongles:{json.dumps(dongles)}\n"
-            f"Beacons:{json.dumps(beacons)}\n"
-            f"Fingerprints:{{ {', '.join(entries)}}}\n")
+    return (
+        f"Bins:{json.dumps([float(b) for b in h.bins])}\n"
+        f"Dongles:{json.dumps(dongles)}\n"
+        f"Beacons:{json.dumps(beacons)}\n"
+        f"Fingerprints:{{ {', '.join(entries)}}}\n"
+    )
 
 
 def write_hst(h: FingerprintHistograms, path: str | Path) -> None:
@@ -173,9 +186,11 @@ def write_hst(h: FingerprintHistograms, path: str | Path) -> None:
     write_text_atomic(Path(path), format_hst(h))
 
 
-def histograms_from_mapping(bins: Iterable[float], devices: Devices,
-                            table: Mapping[Iterable[float], Mapping[str, Mapping[str, Iterable[float]]]],
-                            ) -> FingerprintHistograms:
+def histograms_from_mapping(
+    bins: Iterable[float],
+    devices: Devices,
+    table: Mapping[Iterable[float], Mapping[str, Mapping[str, Iterable[float]]]],
+) -> FingerprintHistograms:
     """Build the record from any nested mapping (numpy arrays welcome), converting to floats."""
     bins_t = tuple(float(b) for b in bins)
     out: FingerprintTable = {}
@@ -183,6 +198,11 @@ def histograms_from_mapping(bins: Iterable[float], devices: Devices,
         key = tuple(float(v) for v in pos)
         if len(key) != 3:
             raise ValueError(f"position {pos!r} is not (x, y, z)")
-        out[key] = {s: {b: _histogram([float(v) for v in p], len(bins_t) - 1, f"{key} {s} {b}")
-                        for b, p in beacons.items()} for s, beacons in sensors.items()}
+        out[key] = {
+            s: {
+                b: _histogram([float(v) for v in p], len(bins_t) - 1, f"{key} {s} {b}")
+                for b, p in beacons.items()
+            }
+            for s, beacons in sensors.items()
+        }
     return FingerprintHistograms(bins_t, devices, out)

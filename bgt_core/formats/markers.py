@@ -25,8 +25,9 @@ class MarkerPose:
     euler_xyz: tuple[float, float, float]  # rx, ry, rz radians (R = Rz Ry Rx)
 
     @classmethod
-    def from_values(cls, mid: int, position: Iterable[float],
-                    euler_xyz: Iterable[float]) -> MarkerPose:
+    def from_values(
+        cls, mid: int, position: Iterable[float], euler_xyz: Iterable[float]
+    ) -> MarkerPose:
         """From any three numbers each (numpy rows, lists) as floats; ValueError unless three."""
         x, y, z = (float(v) for v in position)
         rx, ry, rz = (float(v) for v in euler_xyz)
@@ -61,8 +62,9 @@ def _triple(value: object, what: str, limit: float) -> tuple[float, float, float
 
 
 def _pose(mid: int, position: object, rotation: object, rotation_name: str) -> MarkerPose:
-    return MarkerPose(mid, _triple(position, "position", MAX_COORDINATE_M),
-                      _triple(rotation, rotation_name, 1e6))
+    return MarkerPose(
+        mid, _triple(position, "position", MAX_COORDINATE_M), _triple(rotation, rotation_name, 1e6)
+    )
 
 
 def parse_dat(text: str, source: str = "<markers>") -> dict[int, MarkerPose]:
@@ -90,7 +92,8 @@ def format_dat(markers: dict[int, MarkerPose]) -> str:
     return "".join(
         f"{m.id}: [{m.position[0]!r}, {m.position[1]!r}, {m.position[2]!r}]:"
         f"[{m.euler_xyz[0]!r}, {m.euler_xyz[1]!r}, {m.euler_xyz[2]!r}]\n"
-        for m in sorted(markers.values(), key=lambda m: m.id))
+        for m in sorted(markers.values(), key=lambda m: m.id)
+    )
 
 
 def parse_yaml_obj(obj: object, source: str = "<markers.yaml>") -> dict[int, MarkerPose]:
@@ -104,7 +107,9 @@ def parse_yaml_obj(obj: object, source: str = "<markers.yaml>") -> dict[int, Mar
             mid = _marker_id(it["id"])
             pose = _pose(mid, it["position"], it["rotation_xyz"], "rotation_xyz")
         except (KeyError, TypeError, ValueError) as e:
-            raise MarkerMapError(f"{source}: markers[{i}]: needs id, position [x,y,z], rotation_xyz [rx,ry,rz] ({e})") from None
+            raise MarkerMapError(
+                f"{source}: markers[{i}]: needs id, position [x,y,z], rotation_xyz [rx,ry,rz] ({e})"
+            ) from None
         if mid in out:
             raise MarkerMapError(f"{source}: marker {mid} listed twice")
         out[mid] = pose

@@ -35,8 +35,13 @@ def parse_line(line: str) -> MbdRow:
     if len(parts) < 4:
         raise ValueError(f"expected at least 4 comma-separated fields, got {len(parts)}")
     try:
-        row = MbdRow(parse_ts(parts[0]), normalize_mac(parts[1]), normalize_mac(parts[2]),
-                     int(parts[3]), tuple(p.strip() for p in parts[4:]))
+        row = MbdRow(
+            parse_ts(parts[0]),
+            normalize_mac(parts[1]),
+            normalize_mac(parts[2]),
+            int(parts[3]),
+            tuple(p.strip() for p in parts[4:]),
+        )
     except WireError as e:
         raise ValueError(str(e)) from None
     except ValueError:
@@ -72,5 +77,21 @@ def read_rows(paths: Iterable[str | Path]) -> list[MbdRow]:
     return rows
 
 
-TRACK_COLUMNS = ["ts", "sensor", "beacon", "rssi", "x", "y", "z",
-                 "r11", "r12", "r13", "r21", "r22", "r23", "r31", "r32", "r33"]
+TRACK_COLUMNS = [
+    "ts",
+    "sensor",
+    "beacon",
+    "rssi",
+    "x",
+    "y",
+    "z",
+    "r11",
+    "r12",
+    "r13",
+    "r21",
+    "r22",
+    "r23",
+    "r31",
+    "r32",
+    "r33",
+]

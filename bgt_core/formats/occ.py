@@ -88,9 +88,11 @@ def parse_occ(text: str, source: str = "<occ>") -> Occupancy:
         lim_text, cell_text = lines[header_no].split("::")
         limits, cell = parse_limits(lim_text), check_cell(float(cell_text))
     except (ValueError, TypeError, OverflowError) as e:
-        raise GridFormatError(f"{source}:{header_no + 1}: expected '[[x0, y0], [x1, y1]]::<cell>' ({e})") from None
+        raise GridFormatError(
+            f"{source}:{header_no + 1}: expected '[[x0, y0], [x1, y1]]::<cell>' ({e})"
+        ) from None
     cells: dict[Cell, int] = {}
-    for lineno, line in enumerate(lines[header_no + 1:], header_no + 2):
+    for lineno, line in enumerate(lines[header_no + 1 :], header_no + 2):
         if not line.strip():
             continue
         try:

@@ -61,8 +61,10 @@ def load_mbd(paths: str | Path | Iterable[str | Path]) -> pd.DataFrame:
                     poses.append(None)
                     continue
                 if len(row.rest) != len(POSE_COLUMNS):
-                    raise MbdError(f"{path}: row {n}: expected 4 or {len(TRACK_COLUMNS)} fields, "
-                                   f"got {4 + len(row.rest)}")
+                    raise MbdError(
+                        f"{path}: row {n}: expected 4 or {len(TRACK_COLUMNS)} fields, "
+                        f"got {4 + len(row.rest)}"
+                    )
                 try:
                     pose = tuple(float(v) for v in row.rest)
                 except ValueError:
@@ -75,13 +77,15 @@ def load_mbd(paths: str | Path | Iterable[str | Path]) -> pd.DataFrame:
         except OSError as e:
             raise MbdError(f"cannot read {path}: {e.strerror}") from None
     t = np.array(t_ns, dtype=np.int64)
-    df = pd.DataFrame({
-        "ts": t / 1e9,
-        "t_ns": t,
-        "sensor": pd.Series(sensor, dtype=object),
-        "beacon": pd.Series(beacon, dtype=object),
-        "rssi": np.array(rssi, dtype=np.int64),
-    })
+    df = pd.DataFrame(
+        {
+            "ts": t / 1e9,
+            "t_ns": t,
+            "sensor": pd.Series(sensor, dtype=object),
+            "beacon": pd.Series(beacon, dtype=object),
+            "rssi": np.array(rssi, dtype=np.int64),
+        }
+    )
     if any_pose:
         nan_row = (math.nan,) * len(POSE_COLUMNS)
         pose_arr = np.array([p if p is not None else nan_row for p in poses], dtype=float)
@@ -107,8 +111,12 @@ def rotation_problems(r: np.ndarray, tol: float = ROTATION_TOLERANCE) -> np.ndar
     return ~ok
 
 
-def write_track_mbd(df: pd.DataFrame, path: str | Path, *,
-                    rotations: Literal["require", "project", "keep"] = "require") -> int:
+def write_track_mbd(
+    df: pd.DataFrame,
+    path: str | Path,
+    *,
+    rotations: Literal["require", "project", "keep"] = "require",
+) -> int:
     """Write track rows ``ts,sensor,beacon,rssi,x,y,z,r11..r33``; returns the number written.
 
     ``rotations``: ``"require"`` (default) refuses to write a matrix that is not a rotation
@@ -119,7 +127,9 @@ def write_track_mbd(df: pd.DataFrame, path: str | Path, *,
     """
     import numpy as np
 
-    missing = [c for c in ("t_ns", "sensor", "beacon", "rssi", *POSE_COLUMNS) if c not in df.columns]
+    missing = [
+        c for c in ("t_ns", "sensor", "beacon", "rssi", *POSE_COLUMNS) if c not in df.columns
+    ]
     if missing:
         raise ValueError(f"{path}: cannot write a track file without columns {missing}")
     pose = df[POSE_COLUMNS].to_numpy(dtype=float)
@@ -132,22 +142,27 @@ def write_track_mbd(df: pd.DataFrame, path: str | Path, *,
         bad_det = np.linalg.det(rot) <= 0
         if bad_det.any():
             first = int(np.flatnonzero(keep)[np.argmax(bad_det)])
-            raise ValueError(f"{path}: row {first}: orientation has det <= 0, no rotation is near it")
+            raise ValueError(
+                f"{path}: row {first}: orientation has det <= 0, no rotation is near it"
+            )
         rot = Rotation.from_matrix(rot).as_matrix()
         pose[:, 3:] = rot.reshape(-1, 9)
     elif rotations == "require":
         bad = rotation_problems(rot)
         if bad.any():
             first = int(np.flatnonzero(keep)[np.argmax(bad)])
-            raise ValueError(f"{path}: row {first}: orientation is not a rotation matrix "
-                             f"(use rotations='project' to replace it by the nearest one)")
+            raise ValueError(
+                f"{path}: row {first}: orientation is not a rotation matrix "
+                f"(use rotations='project' to replace it by the nearest one)"
+            )
     elif rotations not in ("keep", "project"):
         raise ValueError(f"rotations must be 'require', 'project' or 'keep', not {rotations!r}")
     sub = df.loc[keep]
     lines = [
         f"{_ts_text(t)},{s},{b},{int(r)}," + ",".join(repr(float(v)) for v in p) + "\n"
-        for t, s, b, r, p in zip(sub["t_ns"], sub["sensor"], sub["beacon"], sub["rssi"], pose,
-                                 strict=True)
+        for t, s, b, r, p in zip(
+            sub["t_ns"], sub["sensor"], sub["beacon"], sub["rssi"], pose, strict=True
+        )
     ]
     write_text_atomic(Path(path), "".join(lines))
     return len(lines)
@@ -156,8 +171,10 @@ def write_track_mbd(df: pd.DataFrame, path: str | Path, *,
 def write_mbd(df: pd.DataFrame, path: str | Path) -> int:
     """Write fingerprint-style rows ``ts,sensor,beacon,rssi`` (pose columns, if any, are dropped).
     Timestamps get nine decimals, as in the published fpt/ files and the collector's output."""
-    lines = [f"{format_ts(int(t))},{s},{b},{int(r)}\n"
-             for t, s, b, r in zip(df["t_ns"], df["sensor"], df["beacon"], df["rssi"], strict=True)]
+    lines = [
+        f"{format_ts(int(t))},{s},{b},{int(r)}\n"
+        for t, s, b, r in zip(df["t_ns"], df["sensor"], df["beacon"], df["rssi"], strict=True)
+    ]
     write_text_atomic(Path(path), "".join(lines))
     return len(lines)
 
@@ -177,17 +194,33 @@ def hst_to_frame(h: FingerprintHistograms) -> pd.DataFrame:
     for (x, y, z), sensors in h.fingerprints.items():
         for s, beacons in sensors.items():
             for b, p in beacons.items():
-                parts.append(pd.DataFrame({"x": x, "y": y, "z": z, "sensor": s, "beacon": b,
-                                           "rssi_lo": lo, "rssi_hi": hi, "p": np.asarray(p)}))
+                parts.append(
+                    pd.DataFrame(
+                        {
+                            "x": x,
+                            "y": y,
+                            "z": z,
+                            "sensor": s,
+                            "beacon": b,
+                            "rssi_lo": lo,
+                            "rssi_hi": hi,
+                            "p": np.asarray(p),
+                        }
+                    )
+                )
     cols = ["x", "y", "z", "sensor", "beacon", "rssi_lo", "rssi_hi", "p"]
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=cols)
 
 
-def hst_from_frame(df: pd.DataFrame, bins: Iterable[float], devices: Devices) -> FingerprintHistograms:
+def hst_from_frame(
+    df: pd.DataFrame, bins: Iterable[float], devices: Devices
+) -> FingerprintHistograms:
     """Inverse of :func:`hst_to_frame` (rows of one histogram must be in bin order)."""
     table: dict[Iterable[float], dict[str, dict[str, Iterable[float]]]] = {}
     for (x, y, z, s, b), g in df.groupby(["x", "y", "z", "sensor", "beacon"], sort=False):
-        table.setdefault((x, y, z), {}).setdefault(s, {})[b] = g.sort_values("rssi_lo")["p"].to_numpy()
+        table.setdefault((x, y, z), {}).setdefault(s, {})[b] = g.sort_values("rssi_lo")[
+            "p"
+        ].to_numpy()
     return histograms_from_mapping(bins, devices, table)
 
 
@@ -215,9 +248,13 @@ def grd_to_frame(g: RadioMapGrid) -> pd.DataFrame:
     import pandas as pd
 
     lo, hi = np.asarray(g.bins[:-1]), np.asarray(g.bins[1:])
-    parts = [pd.DataFrame({"gx": gx, "gy": gy, "beacon": b, "rssi_lo": lo, "rssi_hi": hi,
-                           "p": np.asarray(p)})
-             for (gx, gy), beacons in g.cells.items() for b, p in beacons.items()]
+    parts = [
+        pd.DataFrame(
+            {"gx": gx, "gy": gy, "beacon": b, "rssi_lo": lo, "rssi_hi": hi, "p": np.asarray(p)}
+        )
+        for (gx, gy), beacons in g.cells.items()
+        for b, p in beacons.items()
+    ]
     cols = ["gx", "gy", "beacon", "rssi_lo", "rssi_hi", "p"]
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=cols)
 
@@ -225,8 +262,13 @@ def grd_to_frame(g: RadioMapGrid) -> pd.DataFrame:
 def occ_to_frame(occ: Occupancy) -> pd.DataFrame:
     import pandas as pd
 
-    return pd.DataFrame({"gx": [c[0] for c in occ.cells], "gy": [c[1] for c in occ.cells],
-                         "value": list(occ.cells.values())})
+    return pd.DataFrame(
+        {
+            "gx": [c[0] for c in occ.cells],
+            "gy": [c[1] for c in occ.cells],
+            "value": list(occ.cells.values()),
+        }
+    )
 
 
 def occ_to_mask(occ: Occupancy, value: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -241,15 +283,24 @@ def occ_to_mask(occ: Occupancy, value: int = 1) -> tuple[np.ndarray, np.ndarray,
     for (gx, gy), v in occ.cells.items():
         i, j = ix.get(round(gx, 6)), iy.get(round(gy, 6))
         if i is None or j is None:
-            raise ValueError(f"occupancy cell [{gx}, {gy}] is not on the {occ.cell} m grid of "
-                             f"its own limits")
+            raise ValueError(
+                f"occupancy cell [{gx}, {gy}] is not on the {occ.cell} m grid of its own limits"
+            )
         mask[j, i] = v == value
     return np.asarray(xs), np.asarray(ys), mask
 
 
-def mask_to_occ(xs: Iterable[float], ys: Iterable[float], mask: np.ndarray,
-                limits: tuple[tuple[float, float], tuple[float, float]], cell: float) -> Occupancy:
+def mask_to_occ(
+    xs: Iterable[float],
+    ys: Iterable[float],
+    mask: np.ndarray,
+    limits: tuple[tuple[float, float], tuple[float, float]],
+    cell: float,
+) -> Occupancy:
     """Inverse of :func:`occ_to_mask` with ``value=1`` (row-major: x fastest, then y)."""
-    cells = {(float(x), float(y)): int(bool(mask[j, i]))
-             for j, y in enumerate(ys) for i, x in enumerate(xs)}
+    cells = {
+        (float(x), float(y)): int(bool(mask[j, i]))
+        for j, y in enumerate(ys)
+        for i, x in enumerate(xs)
+    }
     return Occupancy(limits, float(cell), cells)

@@ -48,8 +48,17 @@ SUITE = "bookworm"
 # for its modules (python3-apt for the apt module), and the packages the role installs, so the
 # role finds them present (the hosts have no route to any mirror).
 PACKAGES = (
-    "systemd", "systemd-sysv", "dbus", "openssh-server", "python3", "python3-venv",
-    "python3-apt", "chrony", "bluez", "iproute2", "procps",
+    "systemd",
+    "systemd-sysv",
+    "dbus",
+    "openssh-server",
+    "python3",
+    "python3-venv",
+    "python3-apt",
+    "chrony",
+    "bluez",
+    "iproute2",
+    "procps",
 )
 # Bump when the post-debootstrap setup below changes: it is part of the cache key.
 RECIPE = 3
@@ -87,13 +96,22 @@ class TestbedError(RuntimeError):
     """Something this machine cannot do, or a step that failed; one line for the user."""
 
 
-def run(argv: list[str], *, check: bool = True, capture: bool = False,
-        timeout: float | None = None, **kw) -> subprocess.CompletedProcess[str]:
+def run(
+    argv: list[str],
+    *,
+    check: bool = True,
+    capture: bool = False,
+    timeout: float | None = None,
+    **kw,
+) -> subprocess.CompletedProcess[str]:
     log.debug("$ %s", " ".join(argv))
-    res = subprocess.run(argv, text=True, capture_output=capture, timeout=timeout, check=False,
-                         **kw)
+    res = subprocess.run(
+        argv, text=True, capture_output=capture, timeout=timeout, check=False, **kw
+    )
     if check and res.returncode != 0:
-        tail = ((res.stderr or "") + (res.stdout or "")).strip().splitlines()[-3:] if capture else []
+        tail = (
+            ((res.stderr or "") + (res.stdout or "")).strip().splitlines()[-3:] if capture else []
+        )
         raise TestbedError(f"{argv[0]} failed (exit {res.returncode}): {' | '.join(tail)}")
     return res
 
@@ -107,14 +125,20 @@ def host(name: str) -> Host:
 
 # --- probe ----------------------------------------------------------------------------------
 
+
 def missing_capability() -> str | None:
     """None if this machine can boot the test bed, else one line naming what is missing."""
     if sys.platform != "linux":
         return "not Linux"
     if os.geteuid() != 0:
         return "not root (network namespaces, mounts and systemd-nspawn need root)"
-    for tool, pkg in (("debootstrap", "debootstrap"), ("systemd-nspawn", "systemd-container"),
-                      ("ip", "iproute2"), ("ssh", "openssh-client"), ("ssh-keygen", "openssh-client")):
+    for tool, pkg in (
+        ("debootstrap", "debootstrap"),
+        ("systemd-nspawn", "systemd-container"),
+        ("ip", "iproute2"),
+        ("ssh", "openssh-client"),
+        ("ssh-keygen", "openssh-client"),
+    ):
         if shutil.which(tool) is None:
             return f"no {tool} (Debian package {pkg})"
     if "overlay" not in Path("/proc/filesystems").read_text():
@@ -126,12 +150,16 @@ def missing_capability() -> str | None:
     if res.returncode != 0:
         return f"cannot create a network namespace: {res.stderr.strip()}"
     try:
-        res = run(["ip", "-n", ns, "link", "add", "p0", "type", "veth", "peer", "name", "p1"],
-                  check=False, capture=True)
+        res = run(
+            ["ip", "-n", ns, "link", "add", "p0", "type", "veth", "peer", "name", "p1"],
+            check=False,
+            capture=True,
+        )
         if res.returncode != 0:
             return f"cannot create a veth pair: {res.stderr.strip()}"
-        res = run(["ip", "-n", ns, "link", "add", "b0", "type", "bridge"], check=False,
-                  capture=True)
+        res = run(
+            ["ip", "-n", ns, "link", "add", "b0", "type", "bridge"], check=False, capture=True
+        )
         if res.returncode != 0:
             return f"cannot create a bridge: {res.stderr.strip()}"
     finally:
@@ -144,6 +172,7 @@ def missing_capability() -> str | None:
 
 
 # --- rootfs ---------------------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class AptSource:
@@ -169,16 +198,24 @@ def _sources_entries() -> list[dict[str, str]]:
                     m = re.match(r"^([A-Za-z-]+):\s*(.*)$", line)
                     if m and not line.startswith("#"):
                         fields[m[1].lower()] = m[2].strip()
-                if "deb" in fields.get("types", "").split() and \
-                        fields.get("enabled", "yes").lower() != "no":
+                if (
+                    "deb" in fields.get("types", "").split()
+                    and fields.get("enabled", "yes").lower() != "no"
+                ):
                     out.append(fields)
         else:
             for line in text.splitlines():
                 m = re.match(r"^\s*deb\s+(\[[^\]]*\]\s+)?(\S+)\s+(\S+)\s+(.*)$", line)
                 if m:
                     opts = dict(re.findall(r"([\w-]+)=(\S+)", m[1] or ""))
-                    out.append({"uris": m[2], "suites": m[3], "components": m[4],
-                                "signed-by": opts.get("signed-by", "")})
+                    out.append(
+                        {
+                            "uris": m[2],
+                            "suites": m[3],
+                            "components": m[4],
+                            "signed-by": opts.get("signed-by", ""),
+                        }
+                    )
     return out
 
 
@@ -191,7 +228,9 @@ def apt_source() -> AptSource:
         if SUITE in e.get("suites", "").split() and "main" in e.get("components", "").split():
             key = e.get("signed-by") or None
             return AptSource(e["uris"].split()[0], key if key and Path(key).is_file() else None)
-    raise TestbedError(f"no apt source for Debian {SUITE} main in /etc/apt (set BGT_TESTBED_MIRROR)")
+    raise TestbedError(
+        f"no apt source for Debian {SUITE} main in /etc/apt (set BGT_TESTBED_MIRROR)"
+    )
 
 
 def rootfs_key() -> str:
@@ -215,17 +254,25 @@ def _customise(root: Path) -> None:
     # chronyd cannot set the clock in a container: -x keeps it serving and measuring without
     # touching the clock, and the capability condition would otherwise skip the unit.
     _write(root / "etc/default/chrony", 'DAEMON_OPTS="-F 1 -x"\n')
-    _write(root / "etc/systemd/system/chrony.service.d/container.conf",
-           "[Unit]\nConditionCapability=\n")
+    _write(
+        root / "etc/systemd/system/chrony.service.d/container.conf",
+        "[Unit]\nConditionCapability=\n",
+    )
     # Each host gets its own host keys and machine id when it is created.
     for k in (root / "etc/ssh").glob("ssh_host_*"):
         k.unlink()
     _write(root / "etc/machine-id", "")
-    _write(root / "etc/ssh/sshd_config.d/testbed.conf",
-           "PasswordAuthentication no\nPermitRootLogin prohibit-password\nUseDNS no\n")
+    _write(
+        root / "etc/ssh/sshd_config.d/testbed.conf",
+        "PasswordAuthentication no\nPermitRootLogin prohibit-password\nUseDNS no\n",
+    )
     # No periodic apt work or consoles to wait for in the test bed.
-    for unit in ("apt-daily.timer", "apt-daily-upgrade.timer", "getty@tty1.service",
-                 "systemd-networkd-wait-online.service"):
+    for unit in (
+        "apt-daily.timer",
+        "apt-daily-upgrade.timer",
+        "getty@tty1.service",
+        "systemd-networkd-wait-online.service",
+    ):
         link = root / "etc/systemd/system" / unit
         link.unlink(missing_ok=True)
         link.symlink_to("/dev/null")
@@ -244,8 +291,14 @@ def build_rootfs(force: bool = False) -> tuple[Path, float, bool]:
     CACHE.mkdir(parents=True, exist_ok=True)
     tmp = CACHE / f"{dest.name}.tmp{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
-    argv = ["debootstrap", "--variant=minbase", f"--include={','.join(PACKAGES)}", SUITE,
-            str(tmp), src.uri]
+    argv = [
+        "debootstrap",
+        "--variant=minbase",
+        f"--include={','.join(PACKAGES)}",
+        SUITE,
+        str(tmp),
+        src.uri,
+    ]
     if src.keyring:
         argv.insert(1, f"--keyring={src.keyring}")
     log.info("debootstrap %s (a few minutes the first time)", SUITE)
@@ -270,6 +323,7 @@ def build_rootfs(force: bool = False) -> tuple[Path, float, bool]:
 
 
 # --- up / down ------------------------------------------------------------------------------
+
 
 def hostdir(h: Host) -> Path:
     return STATE / "hosts" / h.name
@@ -299,8 +353,21 @@ def _setup_network() -> None:
         hip = ["ip", "-n", h.netns]
         run([*hip, "link", "set", "lo", "up"])
         if run([*hip, "link", "show", "host0"], check=False, capture=True).returncode != 0:
-            run([*hip, "link", "add", "host0", "type", "veth", "peer", "name", h.veth,
-                 "netns", CONTROL_NS])
+            run(
+                [
+                    *hip,
+                    "link",
+                    "add",
+                    "host0",
+                    "type",
+                    "veth",
+                    "peer",
+                    "name",
+                    h.veth,
+                    "netns",
+                    CONTROL_NS,
+                ]
+            )
             run([*hip, "addr", "add", f"{h.address}/24", "dev", "host0"])
             run([*ip, "link", "set", h.veth, "master", BRIDGE])
         run([*hip, "link", "set", "host0", "up"])
@@ -313,25 +380,57 @@ def _prepare_host(h: Host, lower: Path) -> None:
         (d / sub).mkdir(parents=True, exist_ok=True)
     root = merged(h)
     if not os.path.ismount(root):
-        run(["mount", "-t", "overlay", "overlay", "-o",
-             f"lowerdir={lower},upperdir={d / 'upper'},workdir={d / 'work'}", str(root)])
+        run(
+            [
+                "mount",
+                "-t",
+                "overlay",
+                "overlay",
+                "-o",
+                f"lowerdir={lower},upperdir={d / 'upper'},workdir={d / 'work'}",
+                str(root),
+            ]
+        )
     _write(root / "etc/hostname", h.name + "\n")
     hosts = "127.0.0.1 localhost\n" + "".join(f"{x.address} {x.name}\n" for x in HOSTS)
     _write(root / "etc/hosts", hosts)
     if not (root / "etc/machine-id").read_text().strip():
         _write(root / "etc/machine-id", uuid.uuid4().hex + "\n", 0o444)
     if not (root / "etc/ssh/ssh_host_ed25519_key").exists():
-        run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", h.name,
-             "-f", str(root / "etc/ssh/ssh_host_ed25519_key")])
+        run(
+            [
+                "ssh-keygen",
+                "-q",
+                "-t",
+                "ed25519",
+                "-N",
+                "",
+                "-C",
+                h.name,
+                "-f",
+                str(root / "etc/ssh/ssh_host_ed25519_key"),
+            ]
+        )
     ak = root / "root/.ssh/authorized_keys"
     _write(ak, (STATE / "id_ed25519.pub").read_text(), 0o600)
     ak.parent.chmod(0o700)
 
 
 def _ssh_args() -> list[str]:
-    return ["-i", str(STATE / "id_ed25519"), "-o", f"UserKnownHostsFile={STATE / 'known_hosts'}",
-            "-o", "StrictHostKeyChecking=yes", "-o", "BatchMode=yes", "-o", "ConnectTimeout=5",
-            "-o", "LogLevel=ERROR"]
+    return [
+        "-i",
+        str(STATE / "id_ed25519"),
+        "-o",
+        f"UserKnownHostsFile={STATE / 'known_hosts'}",
+        "-o",
+        "StrictHostKeyChecking=yes",
+        "-o",
+        "BatchMode=yes",
+        "-o",
+        "ConnectTimeout=5",
+        "-o",
+        "LogLevel=ERROR",
+    ]
 
 
 def _write_inventory() -> Path:
@@ -341,8 +440,8 @@ def _write_inventory() -> Path:
         "  vars:",
         "    ansible_user: root",
         f"    ansible_ssh_private_key_file: {STATE / 'id_ed25519'}",
-        f"    ansible_ssh_common_args: \"-o UserKnownHostsFile={STATE / 'known_hosts'}"
-        " -o StrictHostKeyChecking=yes -o ConnectTimeout=10\"",
+        f'    ansible_ssh_common_args: "-o UserKnownHostsFile={STATE / "known_hosts"}'
+        ' -o StrictHostKeyChecking=yes -o ConnectTimeout=10"',
         "    ansible_python_interpreter: /usr/bin/python3",
         "    bgt_site: testbed",
         f"    bgt_lan_cidr: {NET}.0/24",
@@ -354,13 +453,22 @@ def _write_inventory() -> Path:
     for h in HOSTS:
         if h.role == "collector":
             lines += [f"        {h.name}:", f"          ansible_host: {h.address}"]
-    lines += ["    agents:", "      vars:", "        bgt_backend: simulated",
-              "        bgt_sim_site: tetam", "      hosts:"]
+    lines += [
+        "    agents:",
+        "      vars:",
+        "        bgt_backend: simulated",
+        "        bgt_sim_site: tetam",
+        "      hosts:",
+    ]
     for h in HOSTS:
         if h.role == "agent":
-            lines += [f"        {h.name}:", f"          ansible_host: {h.address}",
-                      f"          agent_id: {h.agent_id}", "          adapters: []",
-                      f"          bgt_sim_sensors: {json.dumps(SIM_SENSORS[h.agent_id])}"]
+            lines += [
+                f"        {h.name}:",
+                f"          ansible_host: {h.address}",
+                f"          agent_id: {h.agent_id}",
+                "          adapters: []",
+                f"          bgt_sim_sensors: {json.dumps(SIM_SENSORS[h.agent_id])}",
+            ]
     inv = STATE / "inventory.yml"
     _write(inv, "\n".join(lines) + "\n")
     return inv
@@ -391,12 +499,22 @@ def _running(h: Host) -> int | None:
 
 
 def nspawn_argv(h: Host) -> list[str]:
-    return ["systemd-nspawn", "--boot", "--register=no", "--keep-unit", "--quiet",
-            f"--machine={h.name}", f"--directory={merged(h)}",
-            f"--network-namespace-path=/run/netns/{h.netns}",
-            # zenoh's runtime locks memory; nspawn's default filter refuses mlock.
-            "--system-call-filter=@memlock",
-            "--resolv-conf=off", "--timezone=off", "--link-journal=no", "--console=read-only"]
+    return [
+        "systemd-nspawn",
+        "--boot",
+        "--register=no",
+        "--keep-unit",
+        "--quiet",
+        f"--machine={h.name}",
+        f"--directory={merged(h)}",
+        f"--network-namespace-path=/run/netns/{h.netns}",
+        # zenoh's runtime locks memory; nspawn's default filter refuses mlock.
+        "--system-call-filter=@memlock",
+        "--resolv-conf=off",
+        "--timezone=off",
+        "--link-journal=no",
+        "--console=read-only",
+    ]
 
 
 def supervise(name: str) -> int:
@@ -415,8 +533,9 @@ def supervise(name: str) -> int:
     signal.signal(signal.SIGINT, on_term)
     with open(hostdir(h) / "console.log", "ab") as out:
         while True:
-            child = subprocess.Popen(nspawn_argv(h), stdin=subprocess.DEVNULL, stdout=out,
-                                     stderr=subprocess.STDOUT)
+            child = subprocess.Popen(
+                nspawn_argv(h), stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT
+            )
             rc = child.wait()
             log.info("%s: container exited %d", name, rc)
             if stopping or rc != 133:
@@ -431,8 +550,9 @@ def wait_ssh(h: Host, timeout: float = 180.0) -> None:
         if res.returncode == 0 or res.stdout.strip() in ("running", "degraded"):
             return
         if time.monotonic() > end:
-            raise TestbedError(f"{h.name} did not come up in {timeout:.0f} s "
-                               f"(see {hostdir(h) / 'console.log'})")
+            raise TestbedError(
+                f"{h.name} did not come up in {timeout:.0f} s (see {hostdir(h) / 'console.log'})"
+            )
         if _running(h) is None:
             raise TestbedError(f"{h.name}: container exited (see {hostdir(h) / 'console.log'})")
         time.sleep(1.0)
@@ -444,8 +564,12 @@ def start_host(h: Host) -> None:
     with open(hostdir(h) / "supervisor.log", "ab") as out:
         proc = subprocess.Popen(
             [sys.executable, str(Path(__file__).resolve()), "_supervise", h.name],
-            stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-            start_new_session=True, env={**os.environ, "BGT_TESTBED_STATE": str(STATE)})
+            stdin=subprocess.DEVNULL,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env={**os.environ, "BGT_TESTBED_STATE": str(STATE)},
+        )
     _SUPERVISORS[proc.pid] = proc
     _write(pidfile(h), f"{proc.pid}\n")
 
@@ -479,8 +603,20 @@ def up() -> dict[str, float]:
     lower, _took, _built = build_rootfs()
     STATE.mkdir(parents=True, exist_ok=True)
     if not (STATE / "id_ed25519").exists():
-        run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", "bgt-testbed",
-             "-f", str(STATE / "id_ed25519")])
+        run(
+            [
+                "ssh-keygen",
+                "-q",
+                "-t",
+                "ed25519",
+                "-N",
+                "",
+                "-C",
+                "bgt-testbed",
+                "-f",
+                str(STATE / "id_ed25519"),
+            ]
+        )
     _setup_network()
     known = []
     for h in HOSTS:
@@ -495,8 +631,12 @@ def up() -> dict[str, float]:
         wait_ssh(h)
     inv = _write_inventory()
     figures = {"prepare_s": t1 - t0, "boot_s": time.monotonic() - t1}
-    log.info("up: %s booted in %.0f s; inventory %s", ", ".join(h.name for h in HOSTS),
-             figures["boot_s"], inv)
+    log.info(
+        "up: %s booted in %.0f s; inventory %s",
+        ", ".join(h.name for h in HOSTS),
+        figures["boot_s"],
+        inv,
+    )
     return figures
 
 
@@ -517,20 +657,30 @@ def down() -> None:
 
 # --- use ------------------------------------------------------------------------------------
 
+
 def in_control_ns(argv: list[str]) -> list[str]:
     """Prefix argv so that it runs on the test bed's network (the control address)."""
     return ["ip", "netns", "exec", CONTROL_NS, *argv]
 
 
-def ssh(h: Host, argv: list[str], *, check: bool = True, timeout: float = 120,
-        input_text: str | None = None) -> subprocess.CompletedProcess[str]:
+def ssh(
+    h: Host,
+    argv: list[str],
+    *,
+    check: bool = True,
+    timeout: float = 120,
+    input_text: str | None = None,
+) -> subprocess.CompletedProcess[str]:
     # ssh hands the remote shell one string: quote, so that argv arrives as it is here.
     cmd = in_control_ns(["ssh", *_ssh_args(), f"root@{h.address}", "--", shlex.join(argv)])
-    res = subprocess.run(cmd, text=True, capture_output=True, timeout=timeout, check=False,
-                         input=input_text)
+    res = subprocess.run(
+        cmd, text=True, capture_output=True, timeout=timeout, check=False, input=input_text
+    )
     if check and res.returncode != 0:
-        raise TestbedError(f"{h.name}: {' '.join(argv)} exited {res.returncode}: "
-                           f"{(res.stderr or res.stdout).strip()[-400:]}")
+        raise TestbedError(
+            f"{h.name}: {' '.join(argv)} exited {res.returncode}: "
+            f"{(res.stderr or res.stdout).strip()[-400:]}"
+        )
     return res
 
 
@@ -564,38 +714,76 @@ def prebuild_wheelhouse(inventory: Path) -> None:
     tools = inventory.parent / "build" / "build-tools"
     if not (tools.is_dir() and any(tools.glob("setuptools-*.whl"))):
         # What pip's isolated build of the project wheel installs (pyproject's build-system).
-        run([sys.executable, "-m", "pip", "download", "-q", "-d", str(tools),
-             "setuptools>=70.1", "wheel"], capture=True)
+        run(
+            [
+                sys.executable,
+                "-m",
+                "pip",
+                "download",
+                "-q",
+                "-d",
+                str(tools),
+                "setuptools>=70.1",
+                "wheel",
+            ],
+            capture=True,
+        )
     if out.is_dir() and any(out.glob("*.whl")):
         return
     log.info("building the wheelhouse %s (package index of this machine)", out)
-    run([sys.executable, "-m", "deploy", "wheelhouse", "--src", str(REPO),
-         "--out", str(out), "--extras", "agent,collector"], capture=True)
+    run(
+        [
+            sys.executable,
+            "-m",
+            "deploy",
+            "wheelhouse",
+            "--src",
+            str(REPO),
+            "--out",
+            str(out),
+            "--extras",
+            "agent,collector",
+        ],
+        capture=True,
+    )
 
 
-def deploy(extra: list[str], inventory: Path | None = None,
-           playbook: str = "site.yml") -> PlaybookResult:
+def deploy(
+    extra: list[str], inventory: Path | None = None, playbook: str = "site.yml"
+) -> PlaybookResult:
     """`ansible-playbook -i <inventory> site.yml` from deploy/, as the README runs it."""
     inv = inventory or STATE / "inventory.yml"
     prebuild_wheelhouse(inv)
-    env = {**os.environ, "ANSIBLE_CONFIG": str(REPO / "deploy/ansible.cfg"),
-           "ANSIBLE_NOCOLOR": "1", "ANSIBLE_FORCE_COLOR": "0",
-           "PATH": f"{Path(sys.executable).parent}:{os.environ.get('PATH', '')}",
-           # The control namespace has no route to any package index: pip uses local files only.
-           "PIP_NO_INDEX": "1",
-           "PIP_FIND_LINKS": f"{inv.parent / 'build/build-tools'} {inv.parent / 'build/wheelhouse'}"}
+    env = {
+        **os.environ,
+        "ANSIBLE_CONFIG": str(REPO / "deploy/ansible.cfg"),
+        "ANSIBLE_NOCOLOR": "1",
+        "ANSIBLE_FORCE_COLOR": "0",
+        "PATH": f"{Path(sys.executable).parent}:{os.environ.get('PATH', '')}",
+        # The control namespace has no route to any package index: pip uses local files only.
+        "PIP_NO_INDEX": "1",
+        "PIP_FIND_LINKS": f"{inv.parent / 'build/build-tools'} {inv.parent / 'build/wheelhouse'}",
+    }
     argv = in_control_ns([ansible_playbook(), "-i", str(inv), playbook, *extra])
     t0 = time.monotonic()
-    res = subprocess.run(argv, cwd=REPO / "deploy", env=env, text=True, capture_output=True,
-                         check=False, timeout=1800)
+    res = subprocess.run(
+        argv,
+        cwd=REPO / "deploy",
+        env=env,
+        text=True,
+        capture_output=True,
+        check=False,
+        timeout=1800,
+    )
     took = time.monotonic() - t0
     out = res.stdout + res.stderr
     return PlaybookResult(res.returncode, took, out, parse_recap(out))
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="cmd", required=True)
     sub.add_parser("probe", help="say whether this machine can boot the test bed")
@@ -611,8 +799,11 @@ def main(argv: list[str] | None = None) -> int:
     sv = sub.add_parser("_supervise", help=argparse.SUPPRESS)
     sv.add_argument("host")
     a = p.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if a.verbose else logging.INFO,
-                        format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
+    logging.basicConfig(
+        level=logging.DEBUG if a.verbose else logging.INFO,
+        format="%(asctime)s %(name)s: %(message)s",
+        datefmt="%H:%M:%S",
+    )
     try:
         if a.cmd == "probe":
             why = missing_capability()
@@ -647,8 +838,21 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["HOSTS", "Host", "PlaybookResult", "TestbedError", "asdict", "build_rootfs",
-           "deploy", "down", "host", "merged", "missing_capability", "ssh", "up"]
+__all__ = [
+    "HOSTS",
+    "Host",
+    "PlaybookResult",
+    "TestbedError",
+    "asdict",
+    "build_rootfs",
+    "deploy",
+    "down",
+    "host",
+    "merged",
+    "missing_capability",
+    "ssh",
+    "up",
+]
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -12,8 +12,22 @@ IBEACON_PREFIX = b"\x02\x15"  # type 0x02, length 0x15 (21 bytes follow)
 EDDYSTONE_UUID128 = "0000feaa-0000-1000-8000-00805f9b34fb"
 
 _URL_SCHEMES = ("http://www.", "https://www.", "http://", "https://")
-_URL_CODES = (".com/", ".org/", ".edu/", ".net/", ".info/", ".biz/", ".gov/",
-              ".com", ".org", ".edu", ".net", ".info", ".biz", ".gov")
+_URL_CODES = (
+    ".com/",
+    ".org/",
+    ".edu/",
+    ".net/",
+    ".info/",
+    ".biz/",
+    ".gov/",
+    ".com",
+    ".org",
+    ".edu",
+    ".net",
+    ".info",
+    ".biz",
+    ".gov",
+)
 
 
 def _int8(b: int) -> int:
@@ -26,10 +40,12 @@ def parse_ibeacon(manufacturer_data: Mapping[int, bytes]) -> IBeacon | None:
     if data is None or len(data) < 23 or not bytes(data).startswith(IBEACON_PREFIX):
         return None
     data = bytes(data)
-    return IBeacon(uuid=data[2:18].hex(),
-                   major=int.from_bytes(data[18:20], "big"),
-                   minor=int.from_bytes(data[20:22], "big"),
-                   tx_power=_int8(data[22]))
+    return IBeacon(
+        uuid=data[2:18].hex(),
+        major=int.from_bytes(data[18:20], "big"),
+        minor=int.from_bytes(data[20:22], "big"),
+        tx_power=_int8(data[22]),
+    )
 
 
 def parse_eddystone_frame(data: bytes) -> Eddystone | None:
@@ -41,8 +57,9 @@ def parse_eddystone_frame(data: bytes) -> Eddystone | None:
     if kind == 0x00:  # UID: tx power, 10-byte namespace, 6-byte instance (+2 reserved)
         if len(data) < 18:
             return None
-        return Eddystone("uid", namespace=data[2:12].hex(), instance=data[12:18].hex(),
-                         tx_power=_int8(data[1]))
+        return Eddystone(
+            "uid", namespace=data[2:12].hex(), instance=data[12:18].hex(), tx_power=_int8(data[1])
+        )
     if kind == 0x10:  # URL: tx power, scheme prefix, compressed URL
         if len(data) < 3 or data[2] >= len(_URL_SCHEMES):
             return None

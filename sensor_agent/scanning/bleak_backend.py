@@ -53,8 +53,9 @@ WATCHDOG_CHECK_S = 5.0
 POWER_CYCLE_AFTER = 2  # scanner restarts without an advert before the adapter is power-cycled
 PROPERTIES_IFACE = "org.freedesktop.DBus.Properties"
 # BlueZ answers these while an adapter is busy changing state; they clear by themselves.
-RECOVERABLE_ERRORS = frozenset({"org.bluez.Error.InProgress", "org.bluez.Error.NotReady",
-                                "org.bluez.Error.Busy"})
+RECOVERABLE_ERRORS = frozenset(
+    {"org.bluez.Error.InProgress", "org.bluez.Error.NotReady", "org.bluez.Error.Busy"}
+)
 POWER_RETRIES = 5
 POWER_BACKOFF_S = 0.25
 
@@ -75,13 +76,21 @@ async def _managed_objects() -> dict:
     except (OSError, ValueError, DBusError) as e:
         raise BackendError(f"cannot connect to the D-Bus system bus ({e}); is dbus running?") from e
     try:
-        reply = await bus.call(Message(destination=BLUEZ, path="/", interface=OBJECT_MANAGER_IFACE,
-                                       member="GetManagedObjects"))
+        reply = await bus.call(
+            Message(
+                destination=BLUEZ,
+                path="/",
+                interface=OBJECT_MANAGER_IFACE,
+                member="GetManagedObjects",
+            )
+        )
     finally:
         bus.disconnect()
     if reply.message_type == MessageType.ERROR:
-        if reply.error_name in ("org.freedesktop.DBus.Error.ServiceUnknown",
-                                "org.freedesktop.DBus.Error.NameHasNoOwner"):
+        if reply.error_name in (
+            "org.freedesktop.DBus.Error.ServiceUnknown",
+            "org.freedesktop.DBus.Error.NameHasNoOwner",
+        ):
             raise BackendError(NO_BLUEZ)
         detail = reply.body[0] if reply.body else ""
         raise BackendError(f"BlueZ refused GetManagedObjects: {reply.error_name} {detail}".strip())
@@ -100,11 +109,16 @@ async def list_adapters() -> list[BluezAdapter]:
         except (KeyError, WireError):
             log.warning("adapter %s reports no usable Address; skipped", path)
             continue
-        out.append(BluezAdapter(
-            name=path.rsplit("/", 1)[-1], path=path, address=address,
-            powered=bool(props["Powered"].value) if "Powered" in props else False,
-            alias=str(props["Alias"].value) if "Alias" in props else "",
-            passive_capable=MONITOR_MANAGER_IFACE in ifaces))
+        out.append(
+            BluezAdapter(
+                name=path.rsplit("/", 1)[-1],
+                path=path,
+                address=address,
+                powered=bool(props["Powered"].value) if "Powered" in props else False,
+                alias=str(props["Alias"].value) if "Alias" in props else "",
+                passive_capable=MONITOR_MANAGER_IFACE in ifaces,
+            )
+        )
     return sorted(out, key=lambda a: a.name)
 
 
@@ -157,8 +171,10 @@ class _AdapterScanner:
             await self.scanner.start()
         except BleakError as e:
             self.scanner = None
-            raise BackendError(f"adapter {self.adapter.name} ({self.adapter.address}): "
-                               f"cannot start {self.mode} scanning: {e}") from e
+            raise BackendError(
+                f"adapter {self.adapter.name} ({self.adapter.address}): "
+                f"cannot start {self.mode} scanning: {e}"
+            ) from e
 
     async def stop(self) -> None:
         scanner, self.scanner = self.scanner, None
@@ -172,9 +188,14 @@ class _AdapterScanner:
 class BleakBackend(ScannerBackend):
     name = "bleak"
 
-    def __init__(self, adapters: Sequence[str] = (), scan_mode: str = "active",
-                 clocks: Clocks | None = None, watchdog_silence_s: float = WATCHDOG_SILENCE_S,
-                 power_cycle_after: int = POWER_CYCLE_AFTER) -> None:
+    def __init__(
+        self,
+        adapters: Sequence[str] = (),
+        scan_mode: str = "active",
+        clocks: Clocks | None = None,
+        watchdog_silence_s: float = WATCHDOG_SILENCE_S,
+        power_cycle_after: int = POWER_CYCLE_AFTER,
+    ) -> None:
         if scan_mode not in ("active", "passive"):
             raise BackendError(f"scan mode must be active or passive, got {scan_mode!r}")
         self.wanted = tuple(adapters)
@@ -188,8 +209,9 @@ class BleakBackend(ScannerBackend):
 
     @property
     def adapters(self) -> tuple[AdapterInfo, ...]:
-        return tuple(AdapterInfo(s.adapter.name, s.adapter.address, "bleak", s.mode)
-                     for s in self._scanners)
+        return tuple(
+            AdapterInfo(s.adapter.name, s.adapter.address, "bleak", s.mode) for s in self._scanners
+        )
 
     def restarts(self, adapter_mac: str) -> int:
         return next((s.restarts for s in self._scanners if s.adapter.address == adapter_mac), 0)
@@ -206,10 +228,13 @@ class BleakBackend(ScannerBackend):
                 raise BackendError(
                     f"passive scanning needs BlueZ's AdvertisementMonitorManager1, which "
                     f"{', '.join(lacking)} lacks (BlueZ >= 5.56 started with --experimental); "
-                    "use scan_mode: active")
+                    "use scan_mode: active"
+                )
         for a in chosen:
             if not a.powered:
-                log.warning("adapter %s (%s) is powered off; it will hear nothing", a.name, a.address)
+                log.warning(
+                    "adapter %s (%s) is powered off; it will hear nothing", a.name, a.address
+                )
             s = _AdapterScanner(a, self.scan_mode, None)
             s.callback = functools.partial(self._on_advert, s)
             self._scanners.append(s)
@@ -234,8 +259,14 @@ class BleakBackend(ScannerBackend):
             return  # not a MAC-shaped address (should not happen with BlueZ)
         # Passed on as BlueZ reports it: the agent skips and counts an implausible value (BlueZ
         # says 127 for "unknown") instead of a clamp turning it into a plausible-looking one.
-        reading = Reading(t_ns, beacon, int(adv.rssi), mono, parse_ibeacon(adv.manufacturer_data),
-                          parse_eddystone(adv.service_data))
+        reading = Reading(
+            t_ns,
+            beacon,
+            int(adv.rssi),
+            mono,
+            parse_ibeacon(adv.manufacturer_data),
+            parse_eddystone(adv.service_data),
+        )
         if self._sink is not None:
             self._sink(s.adapter.address, reading)
 
@@ -252,9 +283,13 @@ class BleakBackend(ScannerBackend):
                 silent_s = (now - s.last_mono_ns) / 1e9
                 await s.stop()
                 if s.silent_restarts >= self.power_cycle_after:
-                    log.warning("adapter %s (%s) still silent after %d scanner restart(s); "
-                                "power-cycling it", s.adapter.name, s.adapter.address,
-                                s.silent_restarts)
+                    log.warning(
+                        "adapter %s (%s) still silent after %d scanner restart(s); "
+                        "power-cycling it",
+                        s.adapter.name,
+                        s.adapter.address,
+                        s.silent_restarts,
+                    )
                     s.power_cycles += 1
                     s.silent_restarts = 0
                     try:
@@ -262,8 +297,11 @@ class BleakBackend(ScannerBackend):
                     except BackendError as e:
                         log.warning("%s; will retry", e)
                 else:
-                    log.warning("adapter %s silent for %.0f s; restarting its scanner",
-                                s.adapter.name, silent_s)
+                    log.warning(
+                        "adapter %s silent for %.0f s; restarting its scanner",
+                        s.adapter.name,
+                        silent_s,
+                    )
                     s.restarts += 1
                     s.silent_restarts += 1
                 try:
@@ -291,17 +329,31 @@ async def _set_powered(bus: MessageBus, path: str, on: bool, clocks: Clocks) -> 
     """Properties.Set(Adapter1.Powered), retrying (with backoff) while BlueZ says it is busy."""
     delay = POWER_BACKOFF_S
     for attempt in range(POWER_RETRIES):
-        reply = await bus.call(Message(
-            destination=BLUEZ, path=path, interface=PROPERTIES_IFACE, member="Set",
-            signature="ssv", body=[ADAPTER_IFACE, "Powered", Variant("b", on)]))
+        reply = await bus.call(
+            Message(
+                destination=BLUEZ,
+                path=path,
+                interface=PROPERTIES_IFACE,
+                member="Set",
+                signature="ssv",
+                body=[ADAPTER_IFACE, "Powered", Variant("b", on)],
+            )
+        )
         if reply.message_type != MessageType.ERROR:
             return
         if reply.error_name not in RECOVERABLE_ERRORS or attempt == POWER_RETRIES - 1:
             detail = reply.body[0] if reply.body else ""
-            raise BackendError(f"cannot power {'on' if on else 'off'} adapter {path}: "
-                               f"{reply.error_name} {detail}".strip())
-        log.debug("adapter %s: %s while powering %s; retrying in %.2f s", path,
-                  reply.error_name, "on" if on else "off", delay)
+            raise BackendError(
+                f"cannot power {'on' if on else 'off'} adapter {path}: "
+                f"{reply.error_name} {detail}".strip()
+            )
+        log.debug(
+            "adapter %s: %s while powering %s; retrying in %.2f s",
+            path,
+            reply.error_name,
+            "on" if on else "off",
+            delay,
+        )
         await clocks.sleep(delay)
         delay *= 2
 

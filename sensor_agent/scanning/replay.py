@@ -61,7 +61,9 @@ def _rows(path: Path, skipped: _Skipped | None = None) -> Iterator[_Row]:
             if not RSSI_MIN <= r.rssi <= RSSI_MAX:
                 if skipped is not None:
                     skipped.count += 1
-                    skipped.first = skipped.first or f"{path}:{lineno}: RSSI {r.rssi} dBm out of range"
+                    skipped.first = (
+                        skipped.first or f"{path}:{lineno}: RSSI {r.rssi} dBm out of range"
+                    )
                 continue
             yield _Row(r.t_ns, r.sensor, r.beacon, r.rssi)
 
@@ -69,9 +71,15 @@ def _rows(path: Path, skipped: _Skipped | None = None) -> Iterator[_Row]:
 class ReplayBackend(ScannerBackend):
     name = "replay"
 
-    def __init__(self, paths: Sequence[str | Path], speed: float = 1.0, keep_time: bool = False,
-                 clocks: Clocks | None = None, yield_every: int = 200,
-                 granule_s: float = GRANULE_S) -> None:
+    def __init__(
+        self,
+        paths: Sequence[str | Path],
+        speed: float = 1.0,
+        keep_time: bool = False,
+        clocks: Clocks | None = None,
+        yield_every: int = 200,
+        granule_s: float = GRANULE_S,
+    ) -> None:
         if not paths:
             raise BackendError("the replay backend needs at least one .mbd file")
         if speed < 0:
@@ -107,19 +115,32 @@ class ReplayBackend(ScannerBackend):
                 sensors.setdefault(r.sensor, None)
                 total += 1
                 if self.keep_time and not T_NS_MIN <= r.t_ns <= T_NS_MAX:
-                    raise BackendError(f"{p}: timestamp {r.t_ns} ns is not a plausible Unix time "
-                                       "(use shifted time, not --replay-keep-time)")
+                    raise BackendError(
+                        f"{p}: timestamp {r.t_ns} ns is not a plausible Unix time "
+                        "(use shifted time, not --replay-keep-time)"
+                    )
             if skipped.count:
-                log.warning("replay: skipped %d implausible reading(s) of %s (first: %s); "
-                            "the rest are replayed", skipped.count, p.name, skipped.first)
+                log.warning(
+                    "replay: skipped %d implausible reading(s) of %s (first: %s); "
+                    "the rest are replayed",
+                    skipped.count,
+                    p.name,
+                    skipped.first,
+                )
             skipped_total += skipped.count
         self.rows_total = total
         self.rows_skipped = skipped_total
         self._checked = True
-        self._adapters = tuple(AdapterInfo(f"replay-{mac}", mac, "replay", "replay")
-                               for mac in sensors)
-        log.info("replay: %d rows from %d file(s), %d sensor(s)%s", total, len(self.paths),
-                 len(sensors), f", {skipped_total} implausible skipped" if skipped_total else "")
+        self._adapters = tuple(
+            AdapterInfo(f"replay-{mac}", mac, "replay", "replay") for mac in sensors
+        )
+        log.info(
+            "replay: %d rows from %d file(s), %d sensor(s)%s",
+            total,
+            len(self.paths),
+            len(sensors),
+            f", {skipped_total} implausible skipped" if skipped_total else "",
+        )
 
     async def start(self, sink: AdvertSink) -> None:
         if not self._checked:

@@ -64,7 +64,9 @@ def load_site(site: str) -> Devices:
         d = site_dir(site)
         return read_dev(d / f"{site}.dev")
     except FileNotFoundError:
-        raise BackendError(f"simulated.site: no built-in site or .dev file named {site!r}") from None
+        raise BackendError(
+            f"simulated.site: no built-in site or .dev file named {site!r}"
+        ) from None
     except SiteConfigError as e:
         raise BackendError(str(e)) from None
 
@@ -80,8 +82,9 @@ def pick_sensors(devices: Devices, wanted: Sequence[str]) -> tuple[Sensor, ...]:
         flat = w.replace(":", "").replace("-", "").lower()
         s = all_.get(flat) or by_alias.get(w)
         if s is None:
-            raise BackendError(f"simulated.sensors: {w!r} is neither a sensor MAC nor an alias "
-                               "in the site's .dev")
+            raise BackendError(
+                f"simulated.sensors: {w!r} is neither a sensor MAC nor an alias in the site's .dev"
+            )
         out.append(s)
     return tuple(out)
 
@@ -95,9 +98,18 @@ def _xyz(pos: Sequence[float], mac: str) -> tuple[float, float, float]:
 class Simulation:
     """Deterministic advert generator. Call ``generate(until_s)`` with increasing times."""
 
-    def __init__(self, sensors: Sequence[Sensor], beacons: Sequence[str], path: PathModel,
-                 t0_ns: int, *, seed: int = 0, rate_hz: float = 10.0,
-                 radio: RadioModel | None = None, events: Sequence[CoverEvent] = ()) -> None:
+    def __init__(
+        self,
+        sensors: Sequence[Sensor],
+        beacons: Sequence[str],
+        path: PathModel,
+        t0_ns: int,
+        *,
+        seed: int = 0,
+        rate_hz: float = 10.0,
+        radio: RadioModel | None = None,
+        events: Sequence[CoverEvent] = (),
+    ) -> None:
         if not sensors:
             raise BackendError("the simulation has no sensors")
         if not beacons:
@@ -155,8 +167,13 @@ class Simulation:
 class SimulatedBackend(ScannerBackend):
     name = "simulated"
 
-    def __init__(self, simulation_factory, sensors: Sequence[Sensor], clocks: Clocks | None = None,
-                 t0_ns: int | None = None) -> None:
+    def __init__(
+        self,
+        simulation_factory,
+        sensors: Sequence[Sensor],
+        clocks: Clocks | None = None,
+        t0_ns: int | None = None,
+    ) -> None:
         self._factory = simulation_factory  # t0_ns -> Simulation; t0 may be known only at start
         self._sensors = tuple(sensors)
         self.clocks = clocks or Clocks()
@@ -169,20 +186,31 @@ class SimulatedBackend(ScannerBackend):
         devices = load_site(cfg.site)
         sensors = pick_sensors(devices, cfg.sensors)
         beacons = cfg.beacons or tuple(devices.beacons) or ("e78f135624ce",)
-        radio = RadioModel(cfg.tx_1m, cfg.path_loss_exponent, cfg.sigma_db, cfg.drop_prob,
-                           cfg.floor_dbm)
+        radio = RadioModel(
+            cfg.tx_1m, cfg.path_loss_exponent, cfg.sigma_db, cfg.drop_prob, cfg.floor_dbm
+        )
 
         def factory(t0_ns: int) -> Simulation:
-            return Simulation(sensors, beacons, cfg.path, t0_ns, seed=cfg.seed,
-                              rate_hz=cfg.rate_hz, radio=radio, events=cfg.events)
+            return Simulation(
+                sensors,
+                beacons,
+                cfg.path,
+                t0_ns,
+                seed=cfg.seed,
+                rate_hz=cfg.rate_hz,
+                radio=radio,
+                events=cfg.events,
+            )
 
         t0 = None if cfg.t0 is None else round(cfg.t0 * 1e9)
         return cls(factory, sensors, clocks, t0)
 
     @property
     def adapters(self) -> tuple[AdapterInfo, ...]:
-        return tuple(AdapterInfo(s.alias or f"sim-{s.mac}", s.mac, "simulated", "simulated")
-                     for s in self._sensors)
+        return tuple(
+            AdapterInfo(s.alias or f"sim-{s.mac}", s.mac, "simulated", "simulated")
+            for s in self._sensors
+        )
 
     async def start(self, sink: AdvertSink) -> None:
         now_wall = self.clocks.wall_ns()
@@ -202,8 +230,7 @@ class SimulatedBackend(ScannerBackend):
             mono = self.clocks.mono_ns()
             for mac, r in sim.generate(offset_s + (mono - start_mono) / 1e9):
                 # The reading was "received" at its advert time; monotonic follows the same offset.
-                sink(mac, Reading(r.t_ns, r.beacon, r.rssi,
-                                  start_mono + (r.t_ns - start_wall_ns)))
+                sink(mac, Reading(r.t_ns, r.beacon, r.rssi, start_mono + (r.t_ns - start_wall_ns)))
 
     async def stop(self) -> None:
         if self._task is not None and not self._task.done():

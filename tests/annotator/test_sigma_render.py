@@ -21,11 +21,26 @@ PARTS = ("sigma_smoother_m", "sigma_params_m", "sigma_blur_m", "sigma_unmodelled
 @pytest.fixture(scope="module", params=[0, 2])
 def field_track(request, tmp_path_factory) -> tuple[Path, Path]:
     out = tmp_path_factory.mktemp(f"field{request.param}")
-    res = CliRunner().invoke(app, ["simulate", "--out", str(out), "--duration", "5", "--seed", str(request.param),
-                                   "--errors", "field", "--jobs", "2"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "simulate",
+            "--out",
+            str(out),
+            "--duration",
+            "5",
+            "--seed",
+            str(request.param),
+            "--errors",
+            "field",
+            "--jobs",
+            "2",
+        ],
+    )
     assert res.exit_code == 0, res.output
-    res = CliRunner().invoke(app, ["track", str(out / "experiment.yaml"), "--out", str(out / "track"),
-                                   "--jobs", "2"])
+    res = CliRunner().invoke(
+        app, ["track", str(out / "experiment.yaml"), "--out", str(out / "track"), "--jobs", "2"]
+    )
     assert res.exit_code == 0, res.output
     return out / "track" / "trajectory.csv", out / "truth.csv"
 
@@ -33,12 +48,16 @@ def field_track(request, tmp_path_factory) -> tuple[Path, Path]:
 def test_sigma_covers_field_errors_without_being_useless(field_track):
     traj, truth = read_trajectory(field_track[0]), read_trajectory(field_track[1])
     pos, _ = errors_against_truth(traj, truth)
-    cmp = compare_to_truth(traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation)
+    cmp = compare_to_truth(
+        traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation
+    )
     ok = np.isfinite(cmp.position_error)
     sigma = traj.quality["sigma_m"][ok]
     z = cmp.position_error[ok] / sigma
-    print(f"error median {100 * np.median(pos):.2f} cm, sigma median {100 * np.median(sigma):.2f} cm, "
-          f"within 2.8 sigma {100 * np.mean(z < 2.8):.1f} %, median error/sigma {np.median(z):.2f}")
+    print(
+        f"error median {100 * np.median(pos):.2f} cm, sigma median {100 * np.median(sigma):.2f} cm, "
+        f"within 2.8 sigma {100 * np.mean(z < 2.8):.1f} %, median error/sigma {np.median(z):.2f}"
+    )
     # The smoother's noise alone claims far too little for these errors (it covered 0 % before).
     assert np.mean(cmp.position_error[ok] < 2.8 * traj.quality["sigma_smoother_m"][ok]) < 0.5
     assert np.mean(z < 2.8) >= 0.8
@@ -49,8 +68,8 @@ def test_sigma_covers_field_errors_without_being_useless(field_track):
 def test_sigma_columns_add_up_and_keep_the_format(field_track):
     traj = read_trajectory(field_track[0])
     header = field_track[0].read_text(encoding="utf-8").splitlines()[0].split(",")
-    assert tuple(header[:len(POSE_COLUMNS)]) == POSE_COLUMNS
-    assert header[len(POSE_COLUMNS):len(POSE_COLUMNS) + 3] == ["markers", "rms_px", "sigma_m"]
+    assert tuple(header[: len(POSE_COLUMNS)]) == POSE_COLUMNS
+    assert header[len(POSE_COLUMNS) : len(POSE_COLUMNS) + 3] == ["markers", "rms_px", "sigma_m"]
     assert set(PARTS) | {"smear_px"} <= set(traj.quality)
     ok = traj.valid
     total = np.sqrt(sum(np.nan_to_num(traj.quality[p][ok]) ** 2 for p in PARTS))

@@ -25,8 +25,15 @@ def _readings(seed: int):
     devices = load_site("tetam")
     ts, rs, ss = [], [], []
     for i, sensors in enumerate(demo.split_sensors()):
-        sim = Simulation(pick_sensors(devices, sensors), tuple(devices.beacons), demo.demo_path(),
-                         round(T0 * 1e9), seed=seed * 10 + i, rate_hz=10, events=demo.rssi_events(settings))
+        sim = Simulation(
+            pick_sensors(devices, sensors),
+            tuple(devices.beacons),
+            demo.demo_path(),
+            round(T0 * 1e9),
+            seed=seed * 10 + i,
+            rate_hz=10,
+            events=demo.rssi_events(settings),
+        )
         sim.skip_to(-5.0)
         for mac, r in sim.generate(DURATION + 1.0):
             ts.append(r.t_ns / 1e9)
@@ -40,8 +47,17 @@ def front_events(tmp_path_factory: pytest.TempPathFactory):
     """Cover events of the demo walk's front camera (starts at T0), rendered small."""
     settings = demo.DemoSettings(out=None, duration_s=DURATION)  # type: ignore[arg-type]
     out = tmp_path_factory.mktemp("walk")
-    render_experiment(out, demo.bundle_pose_at(demo.demo_path(), T0), (T0, T0 + DURATION), width=320,
-                      height=180, start_offset=settings.start_offset_s, covers=settings.covers(), seed=0, jobs=1)
+    render_experiment(
+        out,
+        demo.bundle_pose_at(demo.demo_path(), T0),
+        (T0, T0 + DURATION),
+        width=320,
+        height=180,
+        start_offset=settings.start_offset_s,
+        covers=settings.covers(),
+        seed=0,
+        jobs=1,
+    )
     events = detect_video_events(*brightness_series(out / "front.mp4"), name="front")
     assert len(events) == 2
     return events
@@ -55,11 +71,17 @@ def test_video_start_has_no_systematic_error_over_seeds(front_events) -> None:
         err.append(cm.video_start - T0)
         sig.append(cm.video_start_sigma)
         # The same readings stamped 13 ms late: what a detector or clock lag of the demo's size does.
-        lagged.append(fit_clock_map(front_events, detect_rssi_events(t + 0.013, r, s)).video_start - T0)
+        lagged.append(
+            fit_clock_map(front_events, detect_rssi_events(t + 0.013, r, s)).video_start - T0
+        )
     err, sig, lagged = np.array(err), np.array(sig), np.array(lagged)
-    print(f"video-start error over {len(err)} seeds: mean {1e3 * err.mean():+.2f} ms, sd {1e3 * err.std():.2f} ms; "
-          f"with a 13 ms lag: mean {1e3 * lagged.mean():+.2f} ms")
-    assert abs(err.mean()) < TOLERANCE, f"mean video-start error {1e3 * err.mean():+.1f} ms over {len(err)} seeds"
+    print(
+        f"video-start error over {len(err)} seeds: mean {1e3 * err.mean():+.2f} ms, sd {1e3 * err.std():.2f} ms; "
+        f"with a 13 ms lag: mean {1e3 * lagged.mean():+.2f} ms"
+    )
+    assert abs(err.mean()) < TOLERANCE, (
+        f"mean video-start error {1e3 * err.mean():+.1f} ms over {len(err)} seeds"
+    )
     # The check can fail: a 13 ms lag of every reading shows as a mean error outside the tolerance.
     assert lagged.mean() > TOLERANCE
     assert lagged.mean() - err.mean() == pytest.approx(0.013, abs=0.004)
@@ -67,13 +89,24 @@ def test_video_start_has_no_systematic_error_over_seeds(front_events) -> None:
     assert np.all(np.abs(err) < 2.5 * sig), np.abs(err) / sig
 
 
-def _two_events(rng: np.random.Generator, span: float, drift: float, start: float = 5.0,
-                sigma: float = 0.017) -> tuple[list[CoverEvent], list[CoverEvent]]:
+def _two_events(
+    rng: np.random.Generator, span: float, drift: float, start: float = 5.0, sigma: float = 0.017
+) -> tuple[list[CoverEvent], list[CoverEvent]]:
     """Video events 2 s and 2 s + span into the video; their RSSI edges with ``sigma`` of noise
     (the demo's RSSI edges scatter by ~17 ms) and the video's +-20 ms symmetric widening."""
-    video = [CoverEvent(2.0, 3.5, 0.0056, 0.0056), CoverEvent(2.0 + span, 3.5 + span, 0.0056, 0.0056)]
-    rssi = [CoverEvent(start + e.cover * (1 + drift) + rng.normal(0, sigma) + 0.02,
-                       start + e.release * (1 + drift) + rng.normal(0, sigma) - 0.02, sigma, sigma) for e in video]
+    video = [
+        CoverEvent(2.0, 3.5, 0.0056, 0.0056),
+        CoverEvent(2.0 + span, 3.5 + span, 0.0056, 0.0056),
+    ]
+    rssi = [
+        CoverEvent(
+            start + e.cover * (1 + drift) + rng.normal(0, sigma) + 0.02,
+            start + e.release * (1 + drift) + rng.normal(0, sigma) - 0.02,
+            sigma,
+            sigma,
+        )
+        for e in video
+    ]
     return video, rssi
 
 
@@ -90,10 +123,14 @@ def test_drift_prior_keeps_the_noise_of_two_close_events_out_of_the_clock_map(dr
             cm = fit_clock_map(video, rssi)
             err.append(float(cm.to_rssi(pts)) - truth)
             sig.append(float(cm.sigma_at(pts)))
-            err_flat.append(float(fit_clock_map(video, rssi, drift_prior=None).to_rssi(pts)) - truth)
+            err_flat.append(
+                float(fit_clock_map(video, rssi, drift_prior=None).to_rssi(pts)) - truth
+            )
     err, sig, err_flat = np.array(err), np.array(sig), np.array(err_flat)
     rms, rms_flat = np.sqrt(np.mean(err**2)), np.sqrt(np.mean(err_flat**2))
-    print(f"drift {drift * 1e6:g} ppm: rms {1e3 * rms:.1f} ms with the prior, {1e3 * rms_flat:.1f} ms flat")
+    print(
+        f"drift {drift * 1e6:g} ppm: rms {1e3 * rms:.1f} ms with the prior, {1e3 * rms_flat:.1f} ms flat"
+    )
     assert rms < 0.8 * rms_flat
     assert np.mean(np.abs(err) <= 2 * sig) >= 0.92
 

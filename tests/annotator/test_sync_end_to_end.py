@@ -34,8 +34,14 @@ COVERED = (T0 + COVER[0] + RAMP / 2, T0 + COVER[0] + COVER[1] + RAMP / 2)
 BEACON = "e78f135624ce"
 
 
-def simulate_rssi(folder: Path, pose_at: LoopTrajectory, rng: np.random.Generator, *,
-                  t_span: tuple[float, float], covered: tuple[float, float] | None) -> int:
+def simulate_rssi(
+    folder: Path,
+    pose_at: LoopTrajectory,
+    rng: np.random.Generator,
+    *,
+    t_span: tuple[float, float],
+    covered: tuple[float, float] | None,
+) -> int:
     """Per-sensor .mbd files of the bundle's beacon heard by the tetam sensors (log-distance path
     loss + noise); while ``covered`` the level drops 12 dB and most readings are lost."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -52,8 +58,10 @@ def simulate_rssi(folder: Path, pose_at: LoopTrajectory, rng: np.random.Generato
             inside = (t_ns >= covered[0] * 1e9) & (t_ns < covered[1] * 1e9)
             level[inside] -= 12.0
             keep = ~inside | (rng.random(n) < 0.3)
-        rows = [f"{s // 10**9}.{s % 10**9:09d},{mac},{BEACON},{int(round(v))}\n"
-                for s, v in zip(t_ns[keep].tolist(), level[keep], strict=True)]
+        rows = [
+            f"{s // 10**9}.{s % 10**9:09d},{mac},{BEACON},{int(round(v))}\n"
+            for s, v in zip(t_ns[keep].tolist(), level[keep], strict=True)
+        ]
         (folder / f"{mac}.mbd").write_text("".join(rows), encoding="utf-8")
         total += len(rows)
     return total
@@ -69,15 +77,23 @@ def set_sync(experiment: Path, sync: dict) -> None:
 def rendered(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("render")
     traj = LoopTrajectory(t0=T0)
-    render_experiment(out, traj, (T0, T0 + DURATION), start_offset=START_OFFSET, covers=[COVER],
-                      seed=3, jobs=2)
-    simulate_rssi(out / "rssi", traj, np.random.default_rng(0), t_span=(T0 - 2.0, T0 + DURATION + 2.0),
-                  covered=COVERED)
+    render_experiment(
+        out, traj, (T0, T0 + DURATION), start_offset=START_OFFSET, covers=[COVER], seed=3, jobs=2
+    )
+    simulate_rssi(
+        out / "rssi",
+        traj,
+        np.random.default_rng(0),
+        t_span=(T0 - 2.0, T0 + DURATION + 2.0),
+        covered=COVERED,
+    )
     set_sync(out / "experiment.yaml", {"mode": "auto"})
     return out
 
 
-def test_auto_sync_run_labels_readings_with_centimetre_error(rendered: Path, tmp_path: Path) -> None:
+def test_auto_sync_run_labels_readings_with_centimetre_error(
+    rendered: Path, tmp_path: Path
+) -> None:
     exp = load_experiment(rendered / "experiment.yaml")
     result = run_experiment(exp, RunSettings())
     write_run_outputs(tmp_path / "out", exp, result)
@@ -88,8 +104,10 @@ def test_auto_sync_run_labels_readings_with_centimetre_error(rendered: Path, tmp
     for name, true_start in truth_start.items():
         cam = rep["sync"]["cameras"][name]
         err = cam["video_start"] - true_start
-        print(f"{name}: sync offset error {err * 1000:+.1f} ms (reported sigma "
-              f"{cam['video_start_sigma_s'] * 1000:.1f} ms)")
+        print(
+            f"{name}: sync offset error {err * 1000:+.1f} ms (reported sigma "
+            f"{cam['video_start_sigma_s'] * 1000:.1f} ms)"
+        )
         assert abs(err) < 0.02
         assert 0 < cam["video_start_sigma_s"] < 0.05
         assert cam["method"].startswith("auto")
@@ -114,7 +132,9 @@ def test_auto_sync_run_labels_readings_with_centimetre_error(rendered: Path, tmp
     assert rep["counts"]["during_a_cover_event"] > 0
     truth_pos, truth_rot = LoopTrajectory(t0=T0)(table.t_ns[lab] / 1e9)
     err = np.linalg.norm(labels.positions[lab] - truth_pos, axis=1)
-    print(f"position error: median {np.median(err) * 100:.2f} cm, p95 {np.percentile(err, 95) * 100:.2f} cm")
+    print(
+        f"position error: median {np.median(err) * 100:.2f} cm, p95 {np.percentile(err, 95) * 100:.2f} cm"
+    )
     assert np.median(err) <= 0.02
     assert np.percentile(err, 95) <= 0.06
     ang = np.degrees((truth_rot.inv() * Rotation.from_matrix(labels.rotations[lab])).magnitude())
@@ -148,10 +168,13 @@ def test_cli_manual_mode_and_missing_event(rendered: Path, tmp_path: Path) -> No
     (manual / "rssi").symlink_to(rendered / "rssi")
     (manual / "experiment.yaml").unlink()
     (manual / "experiment.yaml").write_text((rendered / "experiment.yaml").read_text())
-    set_sync(manual / "experiment.yaml", {"mode": "manual",
-                                          "video_start": {"front": T0, "back": T0 + START_OFFSET}})
-    res = runner.invoke(app, ["run", str(manual / "experiment.yaml"), "--out", str(tmp_path / "o1"),
-                              "--no-plots"])
+    set_sync(
+        manual / "experiment.yaml",
+        {"mode": "manual", "video_start": {"front": T0, "back": T0 + START_OFFSET}},
+    )
+    res = runner.invoke(
+        app, ["run", str(manual / "experiment.yaml"), "--out", str(tmp_path / "o1"), "--no-plots"]
+    )
     assert res.exit_code == 0, res.output
     rep = json.loads((tmp_path / "o1" / "report.json").read_text())
     assert rep["sync"]["cameras"]["back"]["video_start"] == pytest.approx(T0 + START_OFFSET)
@@ -160,18 +183,27 @@ def test_cli_manual_mode_and_missing_event(rendered: Path, tmp_path: Path) -> No
     assert rep["counts"]["during_a_cover_event"] == 0
     assert rep["counts"]["inside_a_tracking_gap"] > 0
     assert rep["counts"]["labelled"] > 400
-    assert rep["counts"]["labelled"] == len(list(iter_rows(tmp_path / "o1" / "annotated" / "all_sensors.mbd")))
+    assert rep["counts"]["labelled"] == len(
+        list(iter_rows(tmp_path / "o1" / "annotated" / "all_sensors.mbd"))
+    )
     assert not (tmp_path / "o1" / "rssi_time.png").exists()
 
     # Auto sync on RSSI without a drop: one red line naming the RSSI, exit 1, before any video work.
     flat = tmp_path / "flat"
-    simulate_rssi(flat, LoopTrajectory(t0=T0), np.random.default_rng(1),
-                  t_span=(T0 - 2.0, T0 + DURATION + 2.0), covered=None)
+    simulate_rssi(
+        flat,
+        LoopTrajectory(t0=T0),
+        np.random.default_rng(1),
+        t_span=(T0 - 2.0, T0 + DURATION + 2.0),
+        covered=None,
+    )
     doc = yaml.safe_load((manual / "experiment.yaml").read_text())
     doc["rssi"] = str(flat)
     doc["sync"] = {"mode": "auto"}
     (manual / "experiment.yaml").write_text(yaml.safe_dump(doc))
-    res = runner.invoke(app, ["run", str(manual / "experiment.yaml"), "--out", str(tmp_path / "o2")])
+    res = runner.invoke(
+        app, ["run", str(manual / "experiment.yaml"), "--out", str(tmp_path / "o2")]
+    )
     assert res.exit_code == 1
     assert "no cover event found" in res.output
     assert f"RSSI of beacon {BEACON}" in res.output

@@ -23,8 +23,22 @@ COVER = (1.0, 1.0)  # hands over both lenses from 1 s to 2 s
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("render")
-    res = CliRunner().invoke(app, ["simulate", "--out", str(out), "--duration", "7", "--seed", "1",
-                                   "--cover", f"{COVER[0]}:{COVER[1]}", "--jobs", "2"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "simulate",
+            "--out",
+            str(out),
+            "--duration",
+            "7",
+            "--seed",
+            "1",
+            "--cover",
+            f"{COVER[0]}:{COVER[1]}",
+            "--jobs",
+            "2",
+        ],
+    )
     assert res.exit_code == 0, res.output
     return out
 
@@ -32,7 +46,9 @@ def rendered(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def rig_track(rendered) -> Path:
     out = rendered / "rig"
-    res = CliRunner().invoke(app, ["track", str(rendered / "experiment.yaml"), "--out", str(out), "--jobs", "2"])
+    res = CliRunner().invoke(
+        app, ["track", str(rendered / "experiment.yaml"), "--out", str(out), "--jobs", "2"]
+    )
     assert res.exit_code == 0, res.output
     return out / "trajectory.csv"
 
@@ -43,8 +59,10 @@ def test_rig_method_meets_the_accuracy_target(rendered, rig_track):
     assert len(traj) == len(truth)
     assert np.allclose(traj.t, truth.t, atol=1e-5)
     pos, rot = errors_against_truth(traj, truth)
-    print(f"rig: {len(pos)}/{len(traj)} rows posed, position median {100 * np.median(pos):.2f} cm, "
-          f"p95 {100 * np.percentile(pos, 95):.2f} cm, rotation median {np.median(rot):.3f} deg")
+    print(
+        f"rig: {len(pos)}/{len(traj)} rows posed, position median {100 * np.median(pos):.2f} cm, "
+        f"p95 {100 * np.percentile(pos, 95):.2f} cm, rotation median {np.median(rot):.3f} deg"
+    )
     assert len(pos) > 0.3 * len(traj), "too few frames got a pose"
     assert np.median(pos) <= 0.015
     assert np.percentile(pos, 95) <= 0.05
@@ -65,8 +83,19 @@ def test_covered_lenses_leave_nan_rows_not_invented_poses(rig_track):
 
 def test_paper_method_runs_on_the_same_videos(rendered):
     out = rendered / "paper"
-    res = CliRunner().invoke(app, ["track", str(rendered / "experiment.yaml"), "--out", str(out),
-                                   "--method", "paper", "--batch-frames", "10"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "track",
+            str(rendered / "experiment.yaml"),
+            "--out",
+            str(out),
+            "--method",
+            "paper",
+            "--batch-frames",
+            "10",
+        ],
+    )
     assert res.exit_code == 0, res.output
     traj = read_trajectory(out / "trajectory.csv")
     truth = read_trajectory(rendered / "truth.csv")
@@ -74,7 +103,7 @@ def test_paper_method_runs_on_the_same_videos(rendered):
     # truth.csv has a row per frame of either camera in time order: a batch is 10 of them
     # whatever the camera, stamped with the time of its 10th.
     assert len(traj) == len(truth) // 10
-    np.testing.assert_allclose(traj.t, truth.t[9::10][:len(traj)], atol=1e-5)
+    np.testing.assert_allclose(traj.t, truth.t[9::10][: len(traj)], atol=1e-5)
     pos, _ = errors_against_truth(traj, truth)
     print(f"paper: {len(pos)} batches, position median {100 * np.median(pos):.1f} cm")
     # The anchor method lags (random-walk filter); at 0.4 m/s that is tens of cm, not metres.
@@ -82,9 +111,13 @@ def test_paper_method_runs_on_the_same_videos(rendered):
 
 
 def test_bad_experiment_is_one_red_line_and_exit_1(tmp_path):
-    (tmp_path / "experiment.yaml").write_text("markers: {file: nope.dat, dictionary: DICT_6X6_50, length: 0.3}\n"
-                                              "rig: rig.yaml\nvideos: {}\n")
-    res = CliRunner().invoke(app, ["track", str(tmp_path / "experiment.yaml"), "--out", str(tmp_path / "o")])
+    (tmp_path / "experiment.yaml").write_text(
+        "markers: {file: nope.dat, dictionary: DICT_6X6_50, length: 0.3}\n"
+        "rig: rig.yaml\nvideos: {}\n"
+    )
+    res = CliRunner().invoke(
+        app, ["track", str(tmp_path / "experiment.yaml"), "--out", str(tmp_path / "o")]
+    )
     assert res.exit_code == 1
     assert "nope.dat" in res.output
     assert "Traceback" not in res.output
@@ -93,7 +126,9 @@ def test_bad_experiment_is_one_red_line_and_exit_1(tmp_path):
 
 def test_parallel_and_serial_runs_agree(rendered, rig_track):
     out = rendered / "serial"
-    res = CliRunner().invoke(app, ["track", str(rendered / "experiment.yaml"), "--out", str(out), "--jobs", "1"])
+    res = CliRunner().invoke(
+        app, ["track", str(rendered / "experiment.yaml"), "--out", str(out), "--jobs", "1"]
+    )
     assert res.exit_code == 0, res.output
     a, b = read_trajectory(rig_track), read_trajectory(out / "trajectory.csv")
     assert np.array_equal(a.valid, b.valid)

@@ -38,35 +38,56 @@ def test_clock_offset_is_the_four_timestamp_estimate() -> None:
     assert ClockSample.from_dict(s.to_dict()) == s
 
 
-@pytest.mark.parametrize("msg", [
-    ClockRequest(5),
-    ClockReply(1, 2, 3, None),
-    Ack("0123456789abcdef", {"b827eb4521b4": 7}),
-    StartRequest("walk", 50.0, True),
-    StartRequest(),
-    StopReply("r", "/d", 10, 1, 2, 3),
-])
+@pytest.mark.parametrize(
+    "msg",
+    [
+        ClockRequest(5),
+        ClockReply(1, 2, 3, None),
+        Ack("0123456789abcdef", {"b827eb4521b4": 7}),
+        StartRequest("walk", 50.0, True),
+        StartRequest(),
+        StopReply("r", "/d", 10, 1, 2, 3),
+    ],
+)
 def test_messages_round_trip_through_json(msg) -> None:
     assert type(msg).from_dict(wire.from_json(wire.to_json(msg.to_dict()))) == msg
 
 
-@pytest.mark.parametrize(("cls", "data", "message"), [
-    (ClockRequest, {"t1": "soon"}, "t1 must be an integer (ns), got 'soon'"),
-    (ClockReply, {"t1": 1, "t2": 2.5, "t3": 3}, "clock reply needs integer t1, t2 and t3 (ns)"),
-    (ClockReply, {"t1": 1, "t2": 2, "t3": 3, "chrony": 4}, "clock reply chrony must be an object"),
-    (Ack, {"boot": "b", "streams": []}, "ack: streams must be an object"),
-    (Ack, {"boot": "b", "streams": {"m": True}}, "ack: streams.m must be an integer, got True"),
-    (Ack, {"streams": {}}, "ack: boot is missing"),
-    (StartRequest, {"name": 3}, "start: name must be a string or null"),
-    (StartRequest, {"max_offset_ms": -1}, "start: max_offset_ms must be a non-negative number"),
-    (StartRequest, {"strict": "yes"}, "start: strict must be true or false"),
-    (AgentStatus, {"agent_id": "a", "now_ns": "x"}, "agent status: now_ns must be an integer"),
-    (AgentStatus, {"agent_id": "a", "adapters": [{"mac": 5}]},
-     "agent status: adapters[0]: mac must be a string, got 5"),
-    (StopReply, {"run_id": "r", "run_dir": "d"}, "stop reply: readings is missing"),
-    (CollectorStatus, {"agents": {"a": {"alive": "yes"}}}, "status: agents.a: alive must be true"),
-    (CollectorStatus, {"streams": {"total": "many"}}, "status: streams: total must be an integer"),
-])
+@pytest.mark.parametrize(
+    ("cls", "data", "message"),
+    [
+        (ClockRequest, {"t1": "soon"}, "t1 must be an integer (ns), got 'soon'"),
+        (ClockReply, {"t1": 1, "t2": 2.5, "t3": 3}, "clock reply needs integer t1, t2 and t3 (ns)"),
+        (
+            ClockReply,
+            {"t1": 1, "t2": 2, "t3": 3, "chrony": 4},
+            "clock reply chrony must be an object",
+        ),
+        (Ack, {"boot": "b", "streams": []}, "ack: streams must be an object"),
+        (Ack, {"boot": "b", "streams": {"m": True}}, "ack: streams.m must be an integer, got True"),
+        (Ack, {"streams": {}}, "ack: boot is missing"),
+        (StartRequest, {"name": 3}, "start: name must be a string or null"),
+        (StartRequest, {"max_offset_ms": -1}, "start: max_offset_ms must be a non-negative number"),
+        (StartRequest, {"strict": "yes"}, "start: strict must be true or false"),
+        (AgentStatus, {"agent_id": "a", "now_ns": "x"}, "agent status: now_ns must be an integer"),
+        (
+            AgentStatus,
+            {"agent_id": "a", "adapters": [{"mac": 5}]},
+            "agent status: adapters[0]: mac must be a string, got 5",
+        ),
+        (StopReply, {"run_id": "r", "run_dir": "d"}, "stop reply: readings is missing"),
+        (
+            CollectorStatus,
+            {"agents": {"a": {"alive": "yes"}}},
+            "status: agents.a: alive must be true",
+        ),
+        (
+            CollectorStatus,
+            {"streams": {"total": "many"}},
+            "status: streams: total must be an integer",
+        ),
+    ],
+)
 def test_bad_fields_are_named_in_one_line(cls, data, message) -> None:
     with pytest.raises(wire.InvalidField) as err:
         cls.from_dict(data)
@@ -75,8 +96,13 @@ def test_bad_fields_are_named_in_one_line(cls, data, message) -> None:
 
 
 def test_agent_status_keeps_what_older_agents_send() -> None:
-    st = AgentStatus.from_dict({"agent_id": "pi-01", "version": 1.0,
-                                "adapters": [{"name": "hci0", "mac": "B8:27:EB:45:21:B4"}]})
+    st = AgentStatus.from_dict(
+        {
+            "agent_id": "pi-01",
+            "version": 1.0,
+            "adapters": [{"name": "hci0", "mac": "B8:27:EB:45:21:B4"}],
+        }
+    )
     assert (st.version, st.hostname, st.resent) == ("1.0", None, 0)
     assert st.adapter("b827eb4521b4").name == "hci0"
     assert st.adapter("000000000000") is None

@@ -40,10 +40,16 @@ def reachable(endpoint: str) -> bool:
 def serve(tmp_path, endpoint):
     """`collector serve` in its own process; yields its data dir; SIGTERM at the end must exit 0."""
     data = tmp_path / "data"
-    proc = subprocess.Popen([*COLLECTOR, "serve", "--data-dir", str(data), "--listen", endpoint],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [*COLLECTOR, "serve", "--data-dir", str(data), "--listen", endpoint],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
-        wait_for(lambda: proc.poll() is not None or reachable(endpoint), 30, "collector serve to answer")
+        wait_for(
+            lambda: proc.poll() is not None or reachable(endpoint), 30, "collector serve to answer"
+        )
         assert proc.poll() is None, proc.stderr.read()
         yield data
     finally:
@@ -68,11 +74,28 @@ def test_two_replaying_agents_end_to_end(serve, endpoint, dataset_dir) -> None:
     started = cli("start", "--name", "e2e", "--connect", endpoint)
     assert started.returncode == 0, started.stderr
     run_id = started.stdout.strip()
-    agents = [subprocess.Popen([str(SENSOR_AGENT), "run", "--agent-id", f"pi-{i}", "--site", "default",
-                                "--connect", endpoint, "--replay-speed", "0", "--replay-keep-time",
-                                *[a for f in half for a in ("--replay", str(f))]],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-              for i, half in enumerate((files[:6], files[6:]))]
+    agents = [
+        subprocess.Popen(
+            [
+                str(SENSOR_AGENT),
+                "run",
+                "--agent-id",
+                f"pi-{i}",
+                "--site",
+                "default",
+                "--connect",
+                endpoint,
+                "--replay-speed",
+                "0",
+                "--replay-keep-time",
+                *[a for f in half for a in ("--replay", str(f))],
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i, half in enumerate((files[:6], files[6:]))
+    ]
     for a in agents:
         _out, err = a.communicate(timeout=120)
         assert a.returncode == 0, err  # 0 = every batch was acknowledged by the collector
@@ -121,7 +144,9 @@ def test_cli_start_status_stop_runs(serve, endpoint) -> None:
         stop = cli("stop", "--connect", endpoint)
         assert stop.returncode == 0
         run_dir = Path(stop.stdout.strip())
-        assert (run_dir / "rssi" / "pi-01" / f"{batches[0].sensor}.mbd").read_text().splitlines() == expected_lines(batches)
+        assert (
+            run_dir / "rssi" / "pi-01" / f"{batches[0].sensor}.mbd"
+        ).read_text().splitlines() == expected_lines(batches)
         runs = json.loads(cli("runs", "--json", "--connect", endpoint).stdout)
         assert [(r["run_id"], r["name"], r["readings"]) for r in runs] == [(run_id, "cli", 15)]
         assert "cli" in cli("runs", "--connect", endpoint).stdout
@@ -136,7 +161,9 @@ def test_cli_start_status_stop_runs(serve, endpoint) -> None:
 def test_unreachable_is_one_line_and_exit_1(endpoint, command) -> None:
     r = cli(*command, "--connect", endpoint)
     assert r.returncode == 1
-    assert r.stderr.strip() == f"no collector answered at {endpoint} (is `collector serve` running?)"
+    assert (
+        r.stderr.strip() == f"no collector answered at {endpoint} (is `collector serve` running?)"
+    )
 
 
 def test_serve_rejects_bad_config(tmp_path) -> None:
@@ -149,9 +176,23 @@ def test_serve_rejects_bad_config(tmp_path) -> None:
 
 
 def test_record_in_the_foreground(tmp_path, endpoint) -> None:
-    proc = subprocess.Popen([*COLLECTOR, "record", "--name", "fg", "--duration", "30",
-                             "--data-dir", str(tmp_path), "--listen", endpoint],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            *COLLECTOR,
+            "record",
+            "--name",
+            "fg",
+            "--duration",
+            "30",
+            "--data-dir",
+            str(tmp_path),
+            "--listen",
+            endpoint,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         wait_for(lambda: reachable(endpoint), 30, "record to come up")
         agent = FakeAgent(endpoint)
@@ -168,14 +209,20 @@ def test_record_in_the_foreground(tmp_path, endpoint) -> None:
             proc.kill()
     assert proc.returncode == 0, err
     (run,) = list(tmp_path.glob("*-fg"))
-    assert (run / "rssi" / "pi-01" / f"{b.sensor}.mbd").read_text().splitlines() == expected_lines([b])
+    assert (run / "rssi" / "pi-01" / f"{b.sensor}.mbd").read_text().splitlines() == expected_lines(
+        [b]
+    )
     assert yaml.safe_load((run / "run.yaml").read_text())["readings"] == 5
     assert "5 readings in" in out
 
 
 def test_sigterm_finalises_an_active_run(tmp_path, endpoint) -> None:
-    proc = subprocess.Popen([*COLLECTOR, "serve", "--data-dir", str(tmp_path), "--listen", endpoint],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [*COLLECTOR, "serve", "--data-dir", str(tmp_path), "--listen", endpoint],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         wait_for(lambda: reachable(endpoint), 30, "serve to come up")
         assert cli("start", "--name", "term", "--connect", endpoint).returncode == 0
@@ -212,17 +259,19 @@ def test_export_merges_per_agent_files_into_the_published_layout(tmp_path) -> No
     (run / "rssi" / "pi-01").mkdir(parents=True)
     (run / "rssi" / "pi-02").mkdir()
     (run / "rssi" / "pi-01" / f"{mac}.mbd").write_text(
-        f"1700000000.000000003,{mac},e78f135624ce,-50\n1700000000.200000000,{mac},e78f135624ce,-52\n")
-    (run / "rssi" / "pi-02" / f"{mac}.mbd").write_text(
-        f"1700000000.1,{mac},e78f135624ce,-60\n")
+        f"1700000000.000000003,{mac},e78f135624ce,-50\n1700000000.200000000,{mac},e78f135624ce,-52\n"
+    )
+    (run / "rssi" / "pi-02" / f"{mac}.mbd").write_text(f"1700000000.1,{mac},e78f135624ce,-60\n")
     (run / "rssi" / "pi-02" / f"{other}.mbd").write_text(f"1700000001.0,{other},e78f135624ce,-70\n")
     r = cli("export", str(run), "--out", str(tmp_path / "out"))
     assert r.returncode == 0, r.stderr
     assert "4 readings of 2 sensor(s)" in r.stdout
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [f"{mac}.mbd", f"{other}.mbd"]
     assert (tmp_path / "out" / f"{mac}.mbd").read_text().splitlines() == [
-        f"1700000000.000000003,{mac},e78f135624ce,-50", f"1700000000.1,{mac},e78f135624ce,-60",
-        f"1700000000.200000000,{mac},e78f135624ce,-52"]
+        f"1700000000.000000003,{mac},e78f135624ce,-50",
+        f"1700000000.1,{mac},e78f135624ce,-60",
+        f"1700000000.200000000,{mac},e78f135624ce,-52",
+    ]
     bad = cli("export", str(tmp_path / "nowhere"))
     assert bad.returncode == 1
     assert bad.stderr.strip().endswith("not a run directory (no rssi/ folder)")
@@ -251,7 +300,11 @@ def test_serve_wakes_on_a_signal_delivered_to_another_thread(seconds) -> None:
     Python code; an untimed wait never did, so the collector ignored SIGINT (it hung about once
     in 12 flood-test runs). The wait must end soon after the signal, long before `seconds`."""
     args = [] if seconds is None else [str(seconds)]
-    r = subprocess.run([sys.executable, "-c", WAIT_THEN_SIGINT_FROM_A_THREAD, *args],
-                       capture_output=True, text=True, timeout=20)
+    r = subprocess.run(
+        [sys.executable, "-c", WAIT_THEN_SIGINT_FROM_A_THREAD, *args],
+        capture_output=True,
+        text=True,
+        timeout=20,
+    )
     assert r.returncode == 0, r.stderr
     assert float(r.stdout) < 10, r.stdout  # 0.3 s plus at most one short wait; generous bound

@@ -63,7 +63,9 @@ def test_shutdown_drains_a_full_channel_at_once_while_the_queue_is_full(endpoint
     assert inbox.data.put("held", 1, timeout=0)  # full, and no writer will take it
     s = zenoh.open(build_config(SessionSpec(mode="peer", listen=[endpoint])))
     try:
-        sub = s.declare_subscriber(wire.data_selector("default"), zenoh.handlers.FifoChannel(SUB_CHANNEL))
+        sub = s.declare_subscriber(
+            wire.data_selector("default"), zenoh.handlers.FifoChannel(SUB_CHANNEL)
+        )
         n = 3 * SUB_CHANNEL
         payload = wire.to_wire(make_batch(0))
         sent = threading.Event()
@@ -85,7 +87,9 @@ def test_shutdown_drains_a_full_channel_at_once_while_the_queue_is_full(endpoint
         sub.undeclare()
         recv.join(10)
         took = time.monotonic() - t0
-        assert not recv.is_alive(), "the receive loop did not end when its subscriber was undeclared"
+        assert not recv.is_alive(), (
+            "the receive loop did not end when its subscriber was undeclared"
+        )
         assert inbox.dropped_at_shutdown == n  # every sample was taken from the channel, none kept
         assert inbox.data.qsize() == 1
         assert inbox.overflow == 0
@@ -110,7 +114,9 @@ def test_run_writer_keeps_at_most_open_files_descriptors(tmp_path) -> None:
     assert w.open_count <= 3
     w.close()
     for mac, bs in batches.items():
-        assert (w.dir / "rssi" / "pi-01" / f"{mac}.mbd").read_text().splitlines() == expected_lines(bs)
+        assert (w.dir / "rssi" / "pi-01" / f"{mac}.mbd").read_text().splitlines() == expected_lines(
+            bs
+        )
 
 
 def test_tracker_gives_up_a_gap_only_past_max_ahead() -> None:
@@ -147,7 +153,9 @@ def test_limits_in_the_config_file(tmp_path) -> None:
     f.write_text("limits: {streams_per_agent: 8, queue_mb: 16}\n")
     assert load_config(f).limits == Limits(streams_per_agent=8, queue_mb=16.0)
     f.write_text("limits: {open_files: 0}\n")
-    with pytest.raises(ConfigError, match=r"limits\.open_files must be an integer in \[1, 65536\], got 0"):
+    with pytest.raises(
+        ConfigError, match=r"limits\.open_files must be an integer in \[1, 65536\], got 0"
+    ):
         load_config(f)
     f.write_text("limits: {fds: 3}\n")
     with pytest.raises(ConfigError, match=r"unknown key limits\.fds"):
@@ -159,9 +167,15 @@ def test_limits_in_the_config_file(tmp_path) -> None:
 
 @pytest.fixture
 def collector(tmp_path, endpoint):
-    c = Collector(CollectorConfig(data_dir=tmp_path / "data", listen=(endpoint,), fsync_interval_s=0.1,
-                                  limits=Limits(streams_per_agent=4, streams_total=5)),
-                  drain_timeout_s=2.0).open()
+    c = Collector(
+        CollectorConfig(
+            data_dir=tmp_path / "data",
+            listen=(endpoint,),
+            fsync_interval_s=0.1,
+            limits=Limits(streams_per_agent=4, streams_total=5),
+        ),
+        drain_timeout_s=2.0,
+    ).open()
     yield c
     c.close()
 
@@ -171,12 +185,16 @@ def test_absurd_seq_is_refused_and_never_reaches_run_yaml(collector, endpoint) -
     try:
         run = collector.start_run("seq")
         a.put(with_floor(make_batch(0, sensor=A), 0))
-        bad = wire.Batch("pi-01", a.boot, A, 2**63 - 1, make_batch(1, sensor=A).readings, floor=2**63 - 1)
+        bad = wire.Batch(
+            "pi-01", a.boot, A, 2**63 - 1, make_batch(1, sensor=A).readings, floor=2**63 - 1
+        )
         a.put(bad)
         a.put(with_floor(make_batch(1, sensor=A), 0))
         wait_for(lambda: a.acked(A) == 1, what="acks of the honest seqs")
-        wait_for(lambda: collector.status()["rejected_payloads"].get("seq_out_of_range") == 1,
-                 what="the absurd seq counted")
+        wait_for(
+            lambda: collector.status()["rejected_payloads"].get("seq_out_of_range") == 1,
+            what="the absurd seq counted",
+        )
         collector.stop_run()
     finally:
         a.close()
@@ -205,7 +223,11 @@ def test_streams_over_the_caps_are_refused_counted_and_reported(collector, endpo
     finally:
         flooder.close()
         honest.close()
-    assert st["refused_streams"] == {"batches": 7, "streams": 7, "by_agent": {"pi-bad": 6, "pi-01": 1}}
+    assert st["refused_streams"] == {
+        "batches": 7,
+        "streams": 7,
+        "by_agent": {"pi-bad": 6, "pi-01": 1},
+    }
     assert st["streams"]["admitted"] == 5
     doc = run_yaml_doc(stopped["run_dir"])
     assert doc["refused_streams"]["batches"] == 7
@@ -213,7 +235,8 @@ def test_streams_over_the_caps_are_refused_counted_and_reported(collector, endpo
     rssi = Path(run["run_dir"]) / "rssi"
     assert len(list((rssi / "pi-bad").glob("*.mbd"))) == 4
     assert (rssi / "pi-01" / f"{A}.mbd").read_text().splitlines() == expected_lines(
-        [make_batch(0, agent="pi-01", sensor=A), make_batch(1, agent="pi-01", sensor=A)])
+        [make_batch(0, agent="pi-01", sensor=A), make_batch(1, agent="pi-01", sensor=A)]
+    )
 
 
 def test_oversized_message_is_refused_before_it_reaches_the_collector(collector, endpoint) -> None:
@@ -257,8 +280,10 @@ def _honest_complete(r: FloodOutcome) -> None:
     print(r.summary())  # the figures, with -s
     assert r.returncode == 0, r.stderr  # SIGINT after `stop`: a clean exit
     assert "Traceback" not in r.stderr
-    assert r.settled, (f"honest batches still unacknowledged {r.drain_s} s after the flood: "
-                       f"{r.honest}, status {r.status}")
+    assert r.settled, (
+        f"honest batches still unacknowledged {r.drain_s} s after the flood: "
+        f"{r.honest}, status {r.status}"
+    )
     assert set(r.honest) == {"pi-01", "pi-02"}
     for agent, h in r.honest.items():
         assert h.readings >= 50, (agent, h)  # it published throughout (10 readings every 0.1 s)
@@ -270,12 +295,20 @@ def _honest_complete(r: FloodOutcome) -> None:
 
 @pytest.mark.slow
 def test_5000_macs_under_1024_descriptors_honest_agents_complete_stop_works_excess_reported(
-        tmp_path, flood_pki) -> None:
+    tmp_path, flood_pki
+) -> None:
     """An authenticated agent publishes 5,000 distinct MACs to a collector whose RLIMIT_NOFILE is
     1,024 while two honest agents record. The caps admit 2,000 of its streams (more files than
     descriptors, so the writer must close idle files) and refuse the other 3,000."""
-    r = run_flood("macs", tmp_path, macs=5000, nofile=1024, pki_dir=flood_pki, drain_timeout_s=120,
-                  limits={"streams_per_agent": 2000, "streams_total": 2048})
+    r = run_flood(
+        "macs",
+        tmp_path,
+        macs=5000,
+        nofile=1024,
+        pki_dir=flood_pki,
+        drain_timeout_s=120,
+        limits={"streams_per_agent": 2000, "streams_total": 2048},
+    )
     _honest_complete(r)
     st = r.status
     # the excess is reported: every refused batch, distinct streams (counted up to 1,024), by agent
@@ -294,7 +327,8 @@ def test_5000_macs_under_1024_descriptors_honest_agents_complete_stop_works_exce
 
 @pytest.mark.slow
 def test_20_s_of_max_size_batches_keep_collector_rss_bounded_and_honest_data_complete(
-        tmp_path, flood_pki) -> None:
+    tmp_path, flood_pki
+) -> None:
     """An authenticated agent publishes maximum-size batches (100,000 readings) as fast as the
     collector takes them for 20 s while two honest agents record: the collector's RSS stays
     under the 512 MiB that docs/collector.md gives for the default limits, and the honest

@@ -81,8 +81,7 @@ def test_acks_cover_every_boot_of_an_agent() -> None:
     t.accept(("pi-01", BOOT_NEW, B), 1, floor=0)
     t.accept(("pi-02", BOOT_OLD, A), 0, floor=0)
     assert t.mark_durable() == {"pi-01", "pi-02"}
-    assert t.ack_messages("pi-01") == [Ack(BOOT_OLD, {A: 7}),
-                                       Ack(BOOT_NEW, {A: 0, B: 1})]
+    assert t.ack_messages("pi-01") == [Ack(BOOT_OLD, {A: 7}), Ack(BOOT_NEW, {A: 0, B: 1})]
 
 
 def test_tracker_state_round_trip_keeps_dedupe() -> None:
@@ -110,8 +109,9 @@ def test_clock_sample_arithmetic() -> None:
     t2 = t1 + 2_000_000 + 30_000_000
     t3 = t2 + 1_000_000
     t4 = t1 + 7_000_000
-    s = ClockSample.measure(ClockReply.from_dict({"t1": t1, "t2": t2, "t3": t3, "chrony": None}),
-                            t1, t4, "x")
+    s = ClockSample.measure(
+        ClockReply.from_dict({"t1": t1, "t2": t2, "t3": t3, "chrony": None}), t1, t4, "x"
+    )
     assert s.rtt_ms == 6.0
     assert s.offset_ms == 29.0  # asymmetric paths bias the estimate by half the difference
     with pytest.raises(wire.InvalidField, match="t1"):
@@ -138,7 +138,9 @@ def test_repair_cuts_to_recorded_size_and_last_whole_line(tmp_path) -> None:
     assert f.read_bytes() == b"1.000000001,a,b,-1\n2.000000002,a,b,-2\n"
     assert repair_file(f, 19) == 19  # the state covers the first line only
     assert f.read_bytes() == b"1.000000001,a,b,-1\n"
-    assert (tmp_path / "recovered" / "pi-01" / f"{A}.mbd.tail").read_bytes() == b"3.00002.000000002,a,b,-2\n"
+    assert (
+        tmp_path / "recovered" / "pi-01" / f"{A}.mbd.tail"
+    ).read_bytes() == b"3.00002.000000002,a,b,-2\n"
 
 
 def test_run_writer_resume_truncates_to_state(tmp_path) -> None:
@@ -149,7 +151,9 @@ def test_run_writer_resume_truncates_to_state(tmp_path) -> None:
     state = w.state({})
     w.append("pi-01", A, "\n".join(expected_lines([b1])) + "\n", 2)
     w.flush()  # written but never covered by a state: must not survive a crash
-    (w.dir / "rssi" / "pi-01" / f"{B}.mbd").write_text("1.0,")  # a file created after the last state
+    (w.dir / "rssi" / "pi-01" / f"{B}.mbd").write_text(
+        "1.0,"
+    )  # a file created after the last state
     r = RunWriter(tmp_path, "r1", "n", 1_795_318_500 * 10**9, {"site": "default"}, resume=state)
     assert lines(r.dir, A) == expected_lines([b0])
     assert (r.dir / "rssi" / "pi-01" / f"{B}.mbd").read_bytes() == b""
@@ -170,7 +174,9 @@ def make_collector(tmp_path, endpoint):
     def make(**kw) -> Collector:
         cfg_kw = {"data_dir": tmp_path / "data", "listen": (endpoint,), "fsync_interval_s": 0.1}
         cfg_kw.update(kw.pop("cfg", {}))
-        c = Collector(CollectorConfig(**cfg_kw), drain_timeout_s=kw.pop("drain_timeout_s", 2.0), **kw).open()
+        c = Collector(
+            CollectorConfig(**cfg_kw), drain_timeout_s=kw.pop("drain_timeout_s", 2.0), **kw
+        ).open()
         made.append(c)
         return c
 
@@ -198,13 +204,23 @@ def test_acks_reach_old_boots_and_floors_settle_gaps(make_collector, agent) -> N
     ag = agent(boot=BOOT_NEW)
     run = c.start_run("boots")
     old = [with_floor(make_batch(i, sensor=A, boot=BOOT_OLD), 3) for i in range(3, 6)]
-    new = [with_floor(make_batch(i, sensor=A, boot=BOOT_NEW, first=500 + 5 * i), 0) for i in range(3)]
-    gap = [with_floor(make_batch(i, sensor=B, boot=BOOT_NEW, first=900 + 5 * i), f)
-           for i, f in ((0, 0), (1, 0), (5, 4))]  # the agent dropped 2 and 3; 4 is still owed
+    new = [
+        with_floor(make_batch(i, sensor=A, boot=BOOT_NEW, first=500 + 5 * i), 0) for i in range(3)
+    ]
+    gap = [
+        with_floor(make_batch(i, sensor=B, boot=BOOT_NEW, first=900 + 5 * i), f)
+        for i, f in ((0, 0), (1, 0), (5, 4))
+    ]  # the agent dropped 2 and 3; 4 is still owed
     for b in old + new + gap:
         ag.put(b)
-    wait_for(lambda: ag.acked_boot(BOOT_OLD, A) == 5 and ag.acked_boot(BOOT_NEW, A) == 2
-             and ag.acked_boot(BOOT_NEW, B) == 3, what="acks for both boots")
+    wait_for(
+        lambda: (
+            ag.acked_boot(BOOT_OLD, A) == 5
+            and ag.acked_boot(BOOT_NEW, A) == 2
+            and ag.acked_boot(BOOT_NEW, B) == 3
+        ),
+        what="acks for both boots",
+    )
     assert c.status()["run"]["readings"] == 9 * 5
     ag.put(with_floor(make_batch(6, sensor=B, boot=BOOT_NEW, first=2000), 5))  # gives up on 4
     wait_for(lambda: ag.acked_boot(BOOT_NEW, B) == 6, what="ack over the given-up seqs")
@@ -220,7 +236,9 @@ def test_restart_resumes_the_same_run_without_loss_or_duplicates(tmp_path, endpo
     """A collector that was never closed (its state on disk is what a kill -9 leaves) is followed
     by a new one on the same data dir; the agent re-sends everything unacked."""
     data = tmp_path / "data"
-    first = Collector(CollectorConfig(data_dir=data, listen=(endpoint,), fsync_interval_s=0.1)).open()
+    first = Collector(
+        CollectorConfig(data_dir=data, listen=(endpoint,), fsync_interval_s=0.1)
+    ).open()
     ag = agent()
     run = first.start_run("crash")
     sent = [with_floor(make_batch(i, sensor=A), 0) for i in range(30)]
@@ -235,10 +253,12 @@ def test_restart_resumes_the_same_run_without_loss_or_duplicates(tmp_path, endpo
         f.write(b"1700000000.12345,b827eb4521b4,e78")
     state = json.loads((Path(run["run_dir"]) / STATE_FILE).read_text())
     assert state["active"] is True
-    second = Collector(CollectorConfig(data_dir=data, listen=(endpoint,), fsync_interval_s=0.1)).open()
+    second = Collector(
+        CollectorConfig(data_dir=data, listen=(endpoint,), fsync_interval_s=0.1)
+    ).open()
     try:
         assert second.status()["run"]["run_id"] == run["run_id"]
-        for b in sent[ag.acked(A) + 1 - 5:]:  # re-send from a bit before the ack: dropped as dups
+        for b in sent[ag.acked(A) + 1 - 5 :]:  # re-send from a bit before the ack: dropped as dups
             ag.put(b)
         resend_until_acked(ag, sent)
         stopped = second.stop_run()
@@ -280,7 +300,9 @@ def test_disk_full_holds_acks_and_resumes_without_loss(make_collector, agent) ->
     wait_for(lambda: c.status()["disk_full"], what="disk_full in status")
     for b in sent[20:40]:  # beyond what memory may hold (2000 bytes) while the disk is full
         ag.put(b)
-    wait_for(lambda: c.status()["deferred_batches"] > 0, what="batches refused beyond the memory bound")
+    wait_for(
+        lambda: c.status()["deferred_batches"] > 0, what="batches refused beyond the memory bound"
+    )
     assert ag.acked(A) == 9  # nothing written, nothing acknowledged
     mbd = Path(run["run_dir"]) / "rssi" / "pi-01" / f"{A}.mbd"
     assert mbd.read_text().splitlines() == expected_lines(sent[:10])  # no torn line left behind
@@ -302,24 +324,41 @@ def test_bad_payloads_are_quarantined_and_counted(make_collector, agent) -> None
     ag.put_raw(A, good[:-3])
     ag.put_raw(A, good.replace(b"BGTB", b"BGTX", 1))
     ag.put_raw(A, good[:4] + b"\x09\x00" + good[6:])  # schema version 9
-    reply = ag.session.get(wire.collector_control_key("default", "start"), payload=b"\xff{",
-                           timeout=5).recv()
+    reply = ag.session.get(
+        wire.collector_control_key("default", "start"), payload=b"\xff{", timeout=5
+    ).recv()
     answer = json.loads(reply.ok.payload.to_bytes())
     assert answer["ok"] is False
     assert answer["error"].startswith("start request is not valid UTF-8 JSON")
     ag.put(make_batch(0, sensor=A))
     wait_for(lambda: ag.acked(A) == 0, what="the valid batch")
-    wait_for(lambda: (Path(run["run_dir"]) / "rejected.jsonl").exists()
-             and len((Path(run["run_dir"]) / "rejected.jsonl").read_text().splitlines()) == 4,
-             what="quarantine lines")
-    recs = [json.loads(x) for x in (Path(run["run_dir"]) / "rejected.jsonl").read_text().splitlines()]
-    assert sorted(r["reason"] for r in recs) == ["bad_magic", "bad_request", "bad_version", "truncated"]
+    wait_for(
+        lambda: (
+            (Path(run["run_dir"]) / "rejected.jsonl").exists()
+            and len((Path(run["run_dir"]) / "rejected.jsonl").read_text().splitlines()) == 4
+        ),
+        what="quarantine lines",
+    )
+    recs = [
+        json.loads(x) for x in (Path(run["run_dir"]) / "rejected.jsonl").read_text().splitlines()
+    ]
+    assert sorted(r["reason"] for r in recs) == [
+        "bad_magic",
+        "bad_request",
+        "bad_version",
+        "truncated",
+    ]
     trunc = next(r for r in recs if r["reason"] == "truncated")
     assert base64.b64decode(trunc["payload_b64"]) == good[:-3]
     assert trunc["size"] == len(good) - 3
     assert trunc["key"] == wire.data_key("default", "pi-01", A)
     st = c.status()
-    assert st["rejected_payloads"] == {"bad_magic": 2, "truncated": 1, "bad_version": 1, "bad_request": 1}
+    assert st["rejected_payloads"] == {
+        "bad_magic": 2,
+        "truncated": 1,
+        "bad_version": 1,
+        "bad_request": 1,
+    }
     c.stop_run()
     assert lines(run["run_dir"], A) == expected_lines([make_batch(0, sensor=A)])
 
@@ -335,7 +374,9 @@ def test_unknown_agent_data_is_recorded_and_counted(make_collector, agent) -> No
     wait_for(lambda: known.acked(A) == 0 and stranger.acked(B) == 0, what="acks for both")
     assert c.status()["unknown_agents"] == {"pi-99": 1}
     c.stop_run()
-    assert lines(run["run_dir"], B, "pi-99") == expected_lines([make_batch(0, sensor=B, agent="pi-99")])
+    assert lines(run["run_dir"], B, "pi-99") == expected_lines(
+        [make_batch(0, sensor=B, agent="pi-99")]
+    )
 
 
 def test_clock_offsets_measured_warned_refused_and_stored(make_collector, agent, endpoint) -> None:
@@ -345,10 +386,14 @@ def test_clock_offsets_measured_warned_refused_and_stored(make_collector, agent,
     good.serve_clock(offset_ns=0)
     for a in (slow, good):
         a.declare_token()  # clocks are checked for the agents that are alive
-    wait_for(lambda: all(c.status()["agents"].get(a, {}).get("alive") for a in ("pi-01", "pi-02")),
-             what="both agents alive")
+    wait_for(
+        lambda: all(c.status()["agents"].get(a, {}).get("alive") for a in ("pi-01", "pi-02")),
+        what="both agents alive",
+    )
     with CollectorClient(endpoint) as cl:
-        with pytest.raises(CommandFailed, match=r"start: agent pi-01: clock offset (-[\d.]+) ms exceeds 50 ms") as err:
+        with pytest.raises(
+            CommandFailed, match=r"start: agent pi-01: clock offset (-[\d.]+) ms exceeds 50 ms"
+        ) as err:
             cl.start("strict", max_offset_ms=50, strict=True)
         # -80 ms up to half a round trip; a busy 2-core machine has measured -79.8 ms.
         measured = float(re.search(r"offset (-[\d.]+) ms", str(err.value)).group(1))
@@ -359,8 +404,13 @@ def test_clock_offsets_measured_warned_refused_and_stored(make_collector, agent,
     assert "pi-01" in started["clock_warnings"][0]
     off = started["clock"]["pi-01"]
     assert abs(off["offset_ms"] + 80) <= off["rtt_ms"] / 2 + 2  # exact up to half the round trip
-    wait_for(lambda: len(json.loads((Path(started["run_dir"]) / STATE_FILE).read_text())["clock"]["pi-02"]) >= 2,
-             what="a periodic clock check")
+    wait_for(
+        lambda: (
+            len(json.loads((Path(started["run_dir"]) / STATE_FILE).read_text())["clock"]["pi-02"])
+            >= 2
+        ),
+        what="a periodic clock check",
+    )
     stopped = c.stop_run()
     clock = run_yaml(stopped["run_dir"])["agents"]["pi-01"]["clock"]
     assert len(clock) >= 3  # start, at least one periodic, stop
@@ -374,7 +424,9 @@ def test_sd_notify_ready_watchdog_stopping(tmp_path, endpoint) -> None:
     sock.bind(path)
     sock.settimeout(10)
     notifier = Notifier({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "200000"})
-    c = Collector(CollectorConfig(data_dir=tmp_path / "d", listen=(endpoint,)), notifier=notifier).open()
+    c = Collector(
+        CollectorConfig(data_dir=tmp_path / "d", listen=(endpoint,)), notifier=notifier
+    ).open()
     try:
         msgs = [sock.recv(4096).decode()]
         assert msgs[0].startswith("READY=1\nSTATUS=serving site default")
@@ -394,8 +446,9 @@ def test_sd_notify_ready_watchdog_stopping(tmp_path, endpoint) -> None:
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "collector.cli", *args], capture_output=True,
-                          text=True, timeout=60)
+    return subprocess.run(
+        [sys.executable, "-m", "collector.cli", *args], capture_output=True, text=True, timeout=60
+    )
 
 
 def test_serve_check_prints_resolved_config_or_one_line_error(tmp_path) -> None:
@@ -405,10 +458,16 @@ def test_serve_check_prints_resolved_config_or_one_line_error(tmp_path) -> None:
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["data_dir"] == str(tmp_path / "runs")
-    assert (out["listen"], out["clock_interval_s"], out["tls"]) == (["tcp/127.0.0.1:7999"], 60.0, None)
+    assert (out["listen"], out["clock_interval_s"], out["tls"]) == (
+        ["tcp/127.0.0.1:7999"],
+        60.0,
+        None,
+    )
     for name in ("ca.pem", "cert.pem", "key.pem"):
         (tmp_path / name).write_text("not a pem\n")
-    cfg.write_text("listen: [tls/127.0.0.1:7999]\ntls: {root_ca: ca.pem, cert: cert.pem, key: key.pem}\n")
+    cfg.write_text(
+        "listen: [tls/127.0.0.1:7999]\ntls: {root_ca: ca.pem, cert: cert.pem, key: key.pem}\n"
+    )
     r = _cli("serve", "--config", str(cfg), "--check")
     assert r.returncode == 1
     assert r.stderr.strip().startswith("tls.root_ca: ")
@@ -421,7 +480,9 @@ def test_resume_refuses_a_corrupt_state_in_one_line(tmp_path, endpoint) -> None:
     run_dir = tmp_path / "data" / "20261122T031500Z-x"
     (run_dir / "rssi").mkdir(parents=True)
     (run_dir / "run.yaml").write_text("id: x\nstop: null\n")
-    (run_dir / STATE_FILE).write_text(json.dumps({"version": 2, "active": True, "run_id": run_dir.name}))
+    (run_dir / STATE_FILE).write_text(
+        json.dumps({"version": 2, "active": True, "run_id": run_dir.name})
+    )
     with pytest.raises(CollectorError, match=r"state\.json: cannot resume the run: KeyError") as e:
         Collector(CollectorConfig(data_dir=tmp_path / "data", listen=(endpoint,))).open()
     assert "\n" not in str(e.value)
@@ -431,13 +492,26 @@ def test_resume_refuses_an_older_state_version_in_one_line(tmp_path, endpoint) -
     # A run left active by a collector that keyed files by sensor alone (rssi/<mac>.mbd).
     run_dir = tmp_path / "data" / "20261122T031500Z-x"
     (run_dir / "rssi").mkdir(parents=True)
-    (run_dir / "rssi" / f"{A}.mbd").write_text("1700000000.000000001,b827eb4521b4,e78f135624ce,-40\n")
+    (run_dir / "rssi" / f"{A}.mbd").write_text(
+        "1700000000.000000001,b827eb4521b4,e78f135624ce,-40\n"
+    )
     (run_dir / "run.yaml").write_text("id: x\nstop: null\n")
-    (run_dir / STATE_FILE).write_text(json.dumps({
-        "version": 1, "active": True, "run_id": run_dir.name, "files": {A: 51},
-        "sensors": {A: {"agent": "pi-01", "readings": 1, "batches": 1}}}))
-    with pytest.raises(CollectorError, match=r"state\.json: version 1 state of an unfinished run, "
-                                             r"written by an older collector") as e:
+    (run_dir / STATE_FILE).write_text(
+        json.dumps(
+            {
+                "version": 1,
+                "active": True,
+                "run_id": run_dir.name,
+                "files": {A: 51},
+                "sensors": {A: {"agent": "pi-01", "readings": 1, "batches": 1}},
+            }
+        )
+    )
+    with pytest.raises(
+        CollectorError,
+        match=r"state\.json: version 1 state of an unfinished run, "
+        r"written by an older collector",
+    ) as e:
         Collector(CollectorConfig(data_dir=tmp_path / "data", listen=(endpoint,))).open()
     assert "\n" not in str(e.value)
     assert (run_dir / "rssi" / f"{A}.mbd").stat().st_size == 51  # nothing touched
@@ -468,8 +542,12 @@ def test_status_view_shows_disk_full_restarts_and_unknown_agents() -> None:
 
     from collector.live import render
 
-    status = {"run": {"run_id": "r", "readings": 1, "restarts": 2}, "agents": {},
-              "disk_full": True, "unknown_agents": {"pi-99": 3}}
+    status = {
+        "run": {"run_id": "r", "readings": 1, "restarts": 2},
+        "agents": {},
+        "disk_full": True,
+        "unknown_agents": {"pi-99": 3},
+    }
     console = Console(width=120, record=True)
     console.print(render(status))
     text = console.export_text()
@@ -498,5 +576,7 @@ def test_full_receive_queue_drops_unacknowledged_after_waiting(tmp_path, caplog)
         c.inbox.on_sample(_Sample(key, wire.to_wire(make_batch(i, sensor=A))))
     status = c.status_now()
     assert (status["queue"], status["queue_overflow"]) == (2, 2)
-    assert c.writer.tracker.streams == {}  # dropped before dedupe: nothing will be acknowledged for them
+    assert (
+        c.writer.tracker.streams == {}
+    )  # dropped before dedupe: nothing will be acknowledged for them
     assert sum("receive queue full" in r.message for r in caplog.records) == 1  # rate-limited

@@ -42,8 +42,12 @@ def _reachable(endpoint: str) -> bool:
 
 
 def _serve(cfg: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "collector.cli", "serve", "--config", str(cfg)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "collector.cli", "serve", "--config", str(cfg)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def test_kill_9_mid_run_then_restart_loses_and_duplicates_nothing(tmp_path, endpoint) -> None:
@@ -94,8 +98,12 @@ def small_fs(tmp_path):
     mnt.mkdir()
     if os.geteuid() != 0:
         pytest.skip("mounting a tmpfs needs root")
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mnt)],
-                       capture_output=True, text=True, check=False)
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mnt)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     if r.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
     try:
@@ -114,8 +122,10 @@ def _fill(path: Path) -> None:
 
 
 def test_really_full_disk_stops_cleanly_and_resumes(small_fs, endpoint) -> None:
-    c = Collector(CollectorConfig(data_dir=small_fs / "data", listen=(endpoint,), fsync_interval_s=0.1),
-                  drain_timeout_s=2.0).open()
+    c = Collector(
+        CollectorConfig(data_dir=small_fs / "data", listen=(endpoint,), fsync_interval_s=0.1),
+        drain_timeout_s=2.0,
+    ).open()
     agent = FakeAgent(endpoint)
     try:
         run = c.start_run("tmpfs")
@@ -131,7 +141,7 @@ def test_really_full_disk_stops_cleanly_and_resumes(small_fs, endpoint) -> None:
         mbd = Path(run["run_dir"]) / "rssi" / "pi-01" / f"{A}.mbd"
         on_disk = mbd.read_text()
         assert on_disk.endswith("\n")  # no torn line, even though the fs took part of a write
-        assert on_disk.splitlines() == expected_lines(sent)[:len(on_disk.splitlines())]
+        assert on_disk.splitlines() == expected_lines(sent)[: len(on_disk.splitlines())]
         state = json.loads((Path(run["run_dir"]) / STATE_FILE).read_text())
         assert state["files"][f"pi-01/{A}"] <= len(on_disk)
         assert not list(Path(run["run_dir"]).glob("*.tmp"))  # failed state writes left nothing

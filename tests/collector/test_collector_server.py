@@ -21,8 +21,10 @@ A, B = "b827eb4521b4", "000000000101"
 
 @pytest.fixture
 def collector(tmp_path, endpoint):
-    c = Collector(CollectorConfig(data_dir=tmp_path / "data", listen=(endpoint,), fsync_interval_s=0.1),
-                  drain_timeout_s=2.0).open()
+    c = Collector(
+        CollectorConfig(data_dir=tmp_path / "data", listen=(endpoint,), fsync_interval_s=0.1),
+        drain_timeout_s=2.0,
+    ).open()
     yield c
     c.close()
 
@@ -51,8 +53,10 @@ def run_yaml(run_dir) -> dict:
 def test_run_holds_exactly_the_published_rows(agent, client) -> None:
     started = client.start("walk 1")
     assert started["run_id"].endswith("-walk-1")
-    batches = {A: [make_batch(i, sensor=A) for i in range(20)],
-               B: [make_batch(i, sensor=B, first=1000 + 7 * i, n=7) for i in range(15)]}
+    batches = {
+        A: [make_batch(i, sensor=A) for i in range(20)],
+        B: [make_batch(i, sensor=B, first=1000 + 7 * i, n=7) for i in range(15)],
+    }
     for i in range(20):
         for s in (A, B):
             if i < len(batches[s]):
@@ -76,32 +80,45 @@ def test_run_holds_exactly_the_published_rows(agent, client) -> None:
 
 
 def _raw(sensor: str, rssis: list[int], seq: int = 99) -> bytes:
-    meta = (f'{{"agent":"pi-01","boot":"0123456789abcdef","sensor":"{sensor}","seq":{seq}}}').encode()
-    return (wire.BATCH_HEAD.pack(wire.MAGIC, 1, len(meta), len(rssis)) + meta
-            + b"".join(wire.BATCH_READING.pack(1_700_000_000 * 10**9 + i, 0, bytes(6), r)
-                       for i, r in enumerate(rssis)))
+    meta = (
+        f'{{"agent":"pi-01","boot":"0123456789abcdef","sensor":"{sensor}","seq":{seq}}}'
+    ).encode()
+    return (
+        wire.BATCH_HEAD.pack(wire.MAGIC, 1, len(meta), len(rssis))
+        + meta
+        + b"".join(
+            wire.BATCH_READING.pack(1_700_000_000 * 10**9 + i, 0, bytes(6), r)
+            for i, r in enumerate(rssis)
+        )
+    )
 
 
 def test_malformed_payloads_are_counted_never_written(agent, client, collector) -> None:
     client.start("bad")
     good = [make_batch(i, sensor=A) for i in range(3)]
     agent.put(good[0])
-    agent.put_raw(A, b"short")                                 # truncated
-    agent.put_raw(A, b"XXXX" + wire.to_wire(good[1])[4:])        # bad magic
-    agent.put_raw(A, wire.to_wire(good[1])[:-5])                  # truncated
-    agent.put_raw(B, wire.to_wire(good[1]))                       # sensor A's batch on B's key
-    agent.put_raw(A, wire.to_wire(good[1]), agent="pi-02")        # another agent's key
+    agent.put_raw(A, b"short")  # truncated
+    agent.put_raw(A, b"XXXX" + wire.to_wire(good[1])[4:])  # bad magic
+    agent.put_raw(A, wire.to_wire(good[1])[:-5])  # truncated
+    agent.put_raw(B, wire.to_wire(good[1]))  # sensor A's batch on B's key
+    agent.put_raw(A, wire.to_wire(good[1]), agent="pi-02")  # another agent's key
     agent.put(good[1])
     agent.put(good[2])
-    agent.put_raw(A, _raw(A, [-70, 42, -71, 99], seq=3))          # two impossible RSSIs of four
+    agent.put_raw(A, _raw(A, [-70, 42, -71, 99], seq=3))  # two impossible RSSIs of four
     wait_for(lambda: agent.acked(A) == 3, what="ack of the valid stream, bad readings and all")
     st = client.status()
-    assert st["rejected_payloads"] == {"truncated": 2, "bad_magic": 1, "key_mismatch": 2,
-                                       "bad_reading": 2}
+    assert st["rejected_payloads"] == {
+        "truncated": 2,
+        "bad_magic": 1,
+        "key_mismatch": 2,
+        "bad_reading": 2,
+    }
     stopped = client.stop()
     t0 = 1_700_000_000 * 10**9
     assert lines(stopped["run_dir"], A) == expected_lines(good) + [
-        f"{wire.format_ts(t0)},{A},000000000000,-70", f"{wire.format_ts(t0 + 2)},{A},000000000000,-71"]
+        f"{wire.format_ts(t0)},{A},000000000000,-70",
+        f"{wire.format_ts(t0 + 2)},{A},000000000000,-71",
+    ]
     rssi = collector.cfg.data_dir / stopped["run_id"] / "rssi"
     assert sorted(str(p.relative_to(rssi)) for p in rssi.rglob("*.mbd")) == [f"pi-01/{A}.mbd"]
     doc = run_yaml(stopped["run_dir"])
@@ -181,11 +198,27 @@ def test_liveliness_shows_agents_alive_then_gone(agent, client) -> None:
 
 
 def test_agent_status_goes_into_run_yaml(agent, client) -> None:
-    status = {"agent_id": "pi-01", "boot_id": agent.boot, "version": "9.9", "backend": "replay",
-              "hostname": "pi-kitchen", "started_ns": 1, "now_ns": 2,
-              "adapters": [{"name": "hci0", "mac": "B8:27:EB:45:21:B4", "backend": "replay",
-                            "mode": "passive", "adverts_per_s": 1.0, "last_advert_age_s": 0.1,
-                            "restarts": 0, "readings_total": 5}]}
+    status = {
+        "agent_id": "pi-01",
+        "boot_id": agent.boot,
+        "version": "9.9",
+        "backend": "replay",
+        "hostname": "pi-kitchen",
+        "started_ns": 1,
+        "now_ns": 2,
+        "adapters": [
+            {
+                "name": "hci0",
+                "mac": "B8:27:EB:45:21:B4",
+                "backend": "replay",
+                "mode": "passive",
+                "adverts_per_s": 1.0,
+                "last_advert_age_s": 0.1,
+                "restarts": 0,
+                "readings_total": 5,
+            }
+        ],
+    }
     key = wire.agent_status_key("default", "pi-01")
     q = agent.session.declare_queryable(key, lambda query: query.reply(key, wire.to_json(status)))
     try:
@@ -198,15 +231,30 @@ def test_agent_status_goes_into_run_yaml(agent, client) -> None:
         q.undeclare()
     doc = run_yaml(run["run_dir"])
     a = doc["agents"]["pi-01"]
-    assert (a["hostname"], a["version"], a["backend"], a["boot_ids"]) == ("pi-kitchen", "9.9", "replay", [agent.boot])
-    assert a["sensors"][A] == {"adapter": "hci0", "mac": A, "backend": "replay", "mode": "passive",
-                               "file": f"rssi/pi-01/{A}.mbd",
-                               "readings": 5, "batches": 1, "gaps": 0, "missing_batches": 0,
-                               "lost_batches": 0}
+    assert (a["hostname"], a["version"], a["backend"], a["boot_ids"]) == (
+        "pi-kitchen",
+        "9.9",
+        "replay",
+        [agent.boot],
+    )
+    assert a["sensors"][A] == {
+        "adapter": "hci0",
+        "mac": A,
+        "backend": "replay",
+        "mode": "passive",
+        "file": f"rssi/pi-01/{A}.mbd",
+        "readings": 5,
+        "batches": 1,
+        "gaps": 0,
+        "missing_batches": 0,
+        "lost_batches": 0,
+    }
 
 
 def test_close_finalises_the_active_run(tmp_path, endpoint) -> None:
-    c = Collector(CollectorConfig(data_dir=tmp_path, listen=(endpoint,), fsync_interval_s=0.1)).open()
+    c = Collector(
+        CollectorConfig(data_dir=tmp_path, listen=(endpoint,), fsync_interval_s=0.1)
+    ).open()
     a = FakeAgent(endpoint)
     try:
         run = c.start_run("shutdown")
@@ -252,7 +300,10 @@ def test_acl_file_is_applied_or_rejected_in_one_line(tmp_path, endpoint) -> None
     acl = tmp_path / "acl.json5"
     acl.write_text('{enabled: "maybe"}')
     cfg = CollectorConfig(data_dir=tmp_path, listen=(endpoint,), acl=acl)
-    with pytest.raises(CollectorError, match=r"acl\.json5: not a valid zenoh access_control section: .*expected a boolean") as e:
+    with pytest.raises(
+        CollectorError,
+        match=r"acl\.json5: not a valid zenoh access_control section: .*expected a boolean",
+    ) as e:
         Collector(cfg).open()
     assert "\n" not in str(e.value)
     assert ".rs:" not in str(e.value)

@@ -25,14 +25,20 @@ def test_decode_matches_wire_decoder() -> None:
     b = make_batch(3, n=20)
     got = decode(wire.to_wire(b))
     assert (got.agent_id, got.boot_id, got.sensor, got.seq) == (b.agent_id, b.boot_id, b.sensor, 3)
-    assert [(t, bytes(m).hex(), r) for t, _mono, m, r in got.rows] == \
-        [(r.t_ns, r.beacon, r.rssi) for r in b.readings]
+    assert [(t, bytes(m).hex(), r) for t, _mono, m, r in got.rows] == [
+        (r.t_ns, r.beacon, r.rssi) for r in b.readings
+    ]
 
 
 def test_decode_with_extras_takes_the_full_path() -> None:
     ib = wire.IBeacon("f7826da64fa24e988024bc5b71e0893e", 1, 2, -59)
-    b = wire.Batch("pi-01", "0123456789abcdef", "b827eb4521b4", 0,
-                   (wire.Reading(1_700_000_000 * 10**9, "e78f135624ce", -50, 5, ibeacon=ib),))
+    b = wire.Batch(
+        "pi-01",
+        "0123456789abcdef",
+        "b827eb4521b4",
+        0,
+        (wire.Reading(1_700_000_000 * 10**9, "e78f135624ce", -50, 5, ibeacon=ib),),
+    )
     got = decode(wire.to_wire(b))
     assert got.rows == [(1_700_000_000 * 10**9, 5, bytes.fromhex("e78f135624ce"), -50)]
 
@@ -43,14 +49,17 @@ def _corrupt(data: bytes, off: int, fmt: str, value) -> bytes:
     return bytes(out)
 
 
-@pytest.mark.parametrize("mutate", [
-    lambda d: b"NOPE" + d[4:],
-    lambda d: _corrupt(d, 4, "<H", 9),
-    lambda d: d[:-1],
-    lambda d: d + b"x",
-    lambda d: d.replace(b'"seq":0', b'"seq":-1'),
-    lambda d: d.replace(b"b827eb4521b4", b"b827eb4521bz"),
-])
+@pytest.mark.parametrize(
+    "mutate",
+    [
+        lambda d: b"NOPE" + d[4:],
+        lambda d: _corrupt(d, 4, "<H", 9),
+        lambda d: d[:-1],
+        lambda d: d + b"x",
+        lambda d: d.replace(b'"seq":0', b'"seq":-1'),
+        lambda d: d.replace(b"b827eb4521b4", b"b827eb4521bz"),
+    ],
+)
 def test_decode_raises_exactly_what_wire_raises(mutate) -> None:
     bad = mutate(wire.to_wire(make_batch(0, n=2)))
     with pytest.raises(wire.WireError) as expected:
@@ -61,11 +70,17 @@ def test_decode_raises_exactly_what_wire_raises(mutate) -> None:
     assert str(got.value) == str(expected.value)
 
 
-@pytest.mark.parametrize(("mutate", "why"), [
-    (lambda d: _corrupt(d, len(d) - 1, "<b", 100), "reading 1: RSSI 100 dBm out of range"),
-    (lambda d: _corrupt(d, len(d) - 23, "<q", 42), "reading 1: timestamp 42 ns is not a plausible"),
-    (lambda d: _corrupt(d, len(d) - 15, "<q", -1), "reading 1: negative monotonic time"),
-])
+@pytest.mark.parametrize(
+    ("mutate", "why"),
+    [
+        (lambda d: _corrupt(d, len(d) - 1, "<b", 100), "reading 1: RSSI 100 dBm out of range"),
+        (
+            lambda d: _corrupt(d, len(d) - 23, "<q", 42),
+            "reading 1: timestamp 42 ns is not a plausible",
+        ),
+        (lambda d: _corrupt(d, len(d) - 15, "<q", -1), "reading 1: negative monotonic time"),
+    ],
+)
 def test_decode_skips_an_implausible_reading_and_keeps_the_rest(mutate, why) -> None:
     b = make_batch(0, n=2)
     bad = mutate(wire.to_wire(b))
@@ -88,13 +103,18 @@ def test_reject_reasons() -> None:
 def test_format_rows_is_format_row_in_bulk() -> None:
     b = make_batch(0, n=30)
     rows = decode(wire.to_wire(b)).rows
-    assert format_rows(b.sensor, rows) == "".join(format_row(r.t_ns, b.sensor, r.beacon, r.rssi)
-                                                  for r in b.readings)
+    assert format_rows(b.sensor, rows) == "".join(
+        format_row(r.t_ns, b.sensor, r.beacon, r.rssi) for r in b.readings
+    )
     # ...including times with leading zeros in the fraction and whole seconds.
-    rows = [(1_600_000_000_000_000_007, 0, b"\x01" * 6, -5), (1_600_000_001_000_000_000, 0, b"\xff" * 6, 0)]
+    rows = [
+        (1_600_000_000_000_000_007, 0, b"\x01" * 6, -5),
+        (1_600_000_001_000_000_000, 0, b"\xff" * 6, 0),
+    ]
     assert format_rows("aabbccddeeff", rows) == (
         "1600000000.000000007,aabbccddeeff,010101010101,-5\n"
-        "1600000001.000000000,aabbccddeeff,ffffffffffff,0\n")
+        "1600000001.000000000,aabbccddeeff,ffffffffffff,0\n"
+    )
 
 
 # -- dedupe, gaps, watermarks --------------------------------------------------------------------
@@ -104,7 +124,15 @@ S = ("pi-01", "0123456789abcdef", "b827eb4521b4")
 
 def test_tracker_dedupes_and_keeps_contiguous_watermark() -> None:
     t = StreamTracker()
-    assert [t.accept(S, q) for q in (0, 1, 1, 0, 3, 4, 3)] == [True, True, False, False, True, True, False]
+    assert [t.accept(S, q) for q in (0, 1, 1, 0, 3, 4, 3)] == [
+        True,
+        True,
+        False,
+        False,
+        True,
+        True,
+        False,
+    ]
     assert t.duplicates == 3
     st = t.streams[S]
     assert st.done_upto == 1
@@ -176,16 +204,25 @@ def test_run_writer_files_and_yaml(tmp_path) -> None:
     w.append("pi-01", b.sensor, format_rows(b.sensor, rows), len(rows))
     w.close()
     w.write_yaml(stop_ns=1_795_318_560 * 10**9, agents={"pi-01": {}}, extra={"gaps": 0})
-    got = [(r.t_ns, r.sensor, r.beacon, r.rssi) for r in iter_rows(w.dir / "rssi" / "pi-01" / f"{b.sensor}.mbd")]
+    got = [
+        (r.t_ns, r.sensor, r.beacon, r.rssi)
+        for r in iter_rows(w.dir / "rssi" / "pi-01" / f"{b.sensor}.mbd")
+    ]
     assert got == [(r.t_ns, b.sensor, r.beacon, r.rssi) for r in b.readings]
     doc = yaml.safe_load((w.dir / "run.yaml").read_text())
     assert doc["start"] == "2026-11-22T03:35:00.000Z"
     assert doc["stop"] == "2026-11-22T03:36:00.000Z"
     assert doc["readings"] == 4
     assert doc["site"] == "default"
-    assert list_runs(tmp_path) == [{"run_id": "20261122T033500Z-x", "name": "x",
-                                    "start": "2026-11-22T03:35:00.000Z",
-                                    "stop": "2026-11-22T03:36:00.000Z", "readings": 4}]
+    assert list_runs(tmp_path) == [
+        {
+            "run_id": "20261122T033500Z-x",
+            "name": "x",
+            "start": "2026-11-22T03:35:00.000Z",
+            "stop": "2026-11-22T03:36:00.000Z",
+            "readings": 4,
+        }
+    ]
     with pytest.raises(CollectorError, match="already exists"):
         RunWriter(tmp_path, "20261122T033500Z-x", "x", 0, {})
 
@@ -201,7 +238,9 @@ def _write(tmp_path, text: str):
 
 def test_config_defaults_and_relative_paths(tmp_path) -> None:
     (tmp_path / "acl.json5").write_text("{enabled: false}")
-    cfg = load_config(_write(tmp_path, "site: lab\ndata_dir: runs\nacl: acl.json5\nfsync_interval_s: 2\n"))
+    cfg = load_config(
+        _write(tmp_path, "site: lab\ndata_dir: runs\nacl: acl.json5\nfsync_interval_s: 2\n")
+    )
     assert cfg.site == "lab"
     assert cfg.data_dir == tmp_path / "runs"
     assert cfg.acl == tmp_path / "acl.json5"
@@ -216,19 +255,25 @@ def test_config_overrides() -> None:
     assert cfg.site == "x"
 
 
-@pytest.mark.parametrize(("text", "message"), [
-    ("colour: red\n", "collector.yaml: unknown key 'colour'"),
-    ("fsync_interval_s: soon\n", "collector.yaml: fsync_interval_s must be a number"),
-    ("insecure: 1\n", "collector.yaml: insecure must be true or false"),
-    ("listen: [7447]\n", "collector.yaml: listen entries must look like tcp/HOST:PORT"),
-    ("listen: [tcp/192.168.1.10:7447]\n", "tcp/192.168.1.10:7447 is unencrypted beyond this machine"),
-    ("tls: {root_ca: ca.pem}\n", "tls must be null or a mapping with root_ca, cert and key"),
-    ("tls: {root_ca: a, cert: b, key: c}\n", "tls.root_ca file not found"),
-    ("acl: missing.json5\n", "acl file not found"),
-    ("site: 'a b'\n", "site must be 1-64 characters"),
-    ("- 1\n", "expected a mapping"),
-    ("site: [unclosed\n", "not valid YAML"),
-])
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("colour: red\n", "collector.yaml: unknown key 'colour'"),
+        ("fsync_interval_s: soon\n", "collector.yaml: fsync_interval_s must be a number"),
+        ("insecure: 1\n", "collector.yaml: insecure must be true or false"),
+        ("listen: [7447]\n", "collector.yaml: listen entries must look like tcp/HOST:PORT"),
+        (
+            "listen: [tcp/192.168.1.10:7447]\n",
+            "tcp/192.168.1.10:7447 is unencrypted beyond this machine",
+        ),
+        ("tls: {root_ca: ca.pem}\n", "tls must be null or a mapping with root_ca, cert and key"),
+        ("tls: {root_ca: a, cert: b, key: c}\n", "tls.root_ca file not found"),
+        ("acl: missing.json5\n", "acl file not found"),
+        ("site: 'a b'\n", "site must be 1-64 characters"),
+        ("- 1\n", "expected a mapping"),
+        ("site: [unclosed\n", "not valid YAML"),
+    ],
+)
 def test_config_errors_name_the_field(tmp_path, text: str, message: str) -> None:
     with pytest.raises(ConfigError, match=message.replace("[", r"\[")) as e:
         load_config(_write(tmp_path, text))
@@ -273,8 +318,9 @@ def test_failed_write_keeps_rows_for_the_retry(tmp_path) -> None:
     assert w.buffered > 0
     disk.full = False  # space again
     w.close()
-    assert path.read_text().splitlines() == \
-        [format_row(r.t_ns, b.sensor, r.beacon, r.rssi).strip() for r in b.readings]
+    assert path.read_text().splitlines() == [
+        format_row(r.t_ns, b.sensor, r.beacon, r.rssi).strip() for r in b.readings
+    ]
 
 
 def test_insecure_flag_allows_lan_listen() -> None:
@@ -300,12 +346,26 @@ def test_live_table_shows_every_sensor_and_the_run() -> None:
 
     from collector.live import render
 
-    status = {"run": {"run_id": "20261122T033500Z-x", "readings": 12},
-              "agents": {"pi-01": {"alive": True, "sensors": {
-                  "b827eb4521b4": {"rate_hz": 9.5, "last_rssi": -61, "last_seen_age_s": 0.25,
-                                   "readings": 12, "recent_rssi": [-90, -30]}}},
-                         "pi-02": {"alive": False, "sensors": {}}},
-              "rejected_payloads": {"bad_magic": 3}, "duplicates_dropped": 1}
+    status = {
+        "run": {"run_id": "20261122T033500Z-x", "readings": 12},
+        "agents": {
+            "pi-01": {
+                "alive": True,
+                "sensors": {
+                    "b827eb4521b4": {
+                        "rate_hz": 9.5,
+                        "last_rssi": -61,
+                        "last_seen_age_s": 0.25,
+                        "readings": 12,
+                        "recent_rssi": [-90, -30],
+                    }
+                },
+            },
+            "pi-02": {"alive": False, "sensors": {}},
+        },
+        "rejected_payloads": {"bad_magic": 3},
+        "duplicates_dropped": 1,
+    }
     console = Console(width=120, record=True)
     console.print(render(status))
     text = console.export_text()
@@ -322,11 +382,15 @@ def test_live_view_reports_bad_readings_refused_and_shared_streams() -> None:
 
     from collector.live import render
 
-    status = {"run": None, "agents": {}, "duplicates_dropped": 0,
-              "rejected_payloads": {"bad_reading": 2, "truncated": 1},
-              "streams": {"total": 1300, "shown": 200, "admitted": 1100, "open_files": 128},
-              "refused_streams": {"batches": 100, "streams": 100, "by_agent": {"pi-bad": 100}},
-              "shared_sensors": {"b827eb4521b4": ["pi-01", "pi-02"]}}
+    status = {
+        "run": None,
+        "agents": {},
+        "duplicates_dropped": 0,
+        "rejected_payloads": {"bad_reading": 2, "truncated": 1},
+        "streams": {"total": 1300, "shown": 200, "admitted": 1100, "open_files": 128},
+        "refused_streams": {"batches": 100, "streams": 100, "by_agent": {"pi-bad": 100}},
+        "shared_sensors": {"b827eb4521b4": ["pi-01", "pi-02"]},
+    }
     console = Console(width=160, record=True)
     console.print(render(status))
     text = console.export_text()

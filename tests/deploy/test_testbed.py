@@ -311,8 +311,9 @@ def test_capture_across_an_agent_reboot_loses_and_repeats_nothing(fleet: Fleet) 
         )
         tb.wait_ssh(rebooted, timeout=180)
         wait_for(
-            lambda: show(rebooted, "sensor-agent.service", "ActiveState")["ActiveState"]
-            == "active",
+            lambda: (
+                show(rebooted, "sensor-agent.service", "ActiveState")["ActiveState"] == "active"
+            ),
             60,
             "the rebooted agent's service",
         )
@@ -421,7 +422,9 @@ def test_upgrade_with_a_newer_wheel_keeps_spool_and_runs(fleet: Fleet, tmp_path:
     r = tb.deploy(["-e", f"bgt_src_dir={src}"])
     assert r.returncode == 0, r.output[-4000:]
     for h in tb.HOSTS:
-        shown = on(h, "/opt/ble-groundtruth/venv/bin/python", "-m", "pip", "show", "ble-groundtruth")
+        shown = on(
+            h, "/opt/ble-groundtruth/venv/bin/python", "-m", "pip", "show", "ble-groundtruth"
+        )
         assert f"Version: {new}" in shown, (h.name, shown)
         st = show(h, unit_of(h), "InvocationID", "ActiveState")
         assert st["ActiveState"] == "active", h.name

@@ -113,11 +113,23 @@ def test_unit_has_the_contracted_settings(unit: str) -> None:
     assert "network-online.target" in settings["After"][0]
     # Bounded resources (issue 11): descriptors, memory (throttled before killed), threads, and
     # a stop timeout that fits the collector's worst-case drain (60 s stop + closing files).
-    limits = {k: settings[k] for k in ("LimitNOFILE", "MemoryHigh", "MemoryMax", "TasksMax",
-                                       "TimeoutStopSec")}
+    limits = {
+        k: settings[k]
+        for k in ("LimitNOFILE", "MemoryHigh", "MemoryMax", "TasksMax", "TimeoutStopSec")
+    }
     if unit == "collector.service":
-        assert limits == {"LimitNOFILE": ["4096"], "MemoryHigh": ["512M"], "MemoryMax": ["768M"],
-                          "TasksMax": ["256"], "TimeoutStopSec": ["120"]}
+        assert limits == {
+            "LimitNOFILE": ["4096"],
+            "MemoryHigh": ["512M"],
+            "MemoryMax": ["768M"],
+            "TasksMax": ["256"],
+            "TimeoutStopSec": ["120"],
+        }
     else:
-        assert limits == {"LimitNOFILE": ["1024"], "MemoryHigh": ["256M"], "MemoryMax": ["384M"],
-                          "TasksMax": ["128"], "TimeoutStopSec": ["45"]}
+        assert limits == {
+            "LimitNOFILE": ["1024"],
+            "MemoryHigh": ["256M"],
+            "MemoryMax": ["384M"],
+            "TasksMax": ["128"],
+            "TimeoutStopSec": ["45"],
+        }

@@ -17,7 +17,13 @@ UUID = bytes.fromhex("e2c56db5dffb48d2b060d0f5a71096e0")
 
 
 def ibeacon_payload(major: int = 1, minor: int = 2, tx: int = -59) -> bytes:
-    return b"\x02\x15" + UUID + major.to_bytes(2, "big") + minor.to_bytes(2, "big") + bytes([tx & 0xFF])
+    return (
+        b"\x02\x15"
+        + UUID
+        + major.to_bytes(2, "big")
+        + minor.to_bytes(2, "big")
+        + bytes([tx & 0xFF])
+    )
 
 
 def test_ibeacon_fields() -> None:
@@ -29,12 +35,15 @@ def test_ibeacon_positive_tx_power() -> None:
     assert parse_ibeacon({APPLE_COMPANY_ID: ibeacon_payload(tx=4)}).tx_power == 4
 
 
-@pytest.mark.parametrize("data", [
-    {0x0059: ibeacon_payload()},  # not Apple
-    {APPLE_COMPANY_ID: b"\x10\x05" + ibeacon_payload()[2:]},  # Apple, but not type 0x02 0x15
-    {APPLE_COMPANY_ID: ibeacon_payload()[:22]},  # truncated
-    {},
-])
+@pytest.mark.parametrize(
+    "data",
+    [
+        {0x0059: ibeacon_payload()},  # not Apple
+        {APPLE_COMPANY_ID: b"\x10\x05" + ibeacon_payload()[2:]},  # Apple, but not type 0x02 0x15
+        {APPLE_COMPANY_ID: ibeacon_payload()[:22]},  # truncated
+        {},
+    ],
+)
 def test_not_an_ibeacon(data: dict[int, bytes]) -> None:
     assert parse_ibeacon(data) is None
 
@@ -42,14 +51,18 @@ def test_not_an_ibeacon(data: dict[int, bytes]) -> None:
 def test_eddystone_uid() -> None:
     frame = b"\x00" + bytes([0xEE]) + bytes(range(10)) + bytes.fromhex("aabbccddeeff") + b"\x00\x00"
     assert parse_eddystone({EDDYSTONE_UUID128: frame}) == Eddystone(
-        "uid", namespace="00010203040506070809", instance="aabbccddeeff", tx_power=-18)
+        "uid", namespace="00010203040506070809", instance="aabbccddeeff", tx_power=-18
+    )
 
 
 def test_eddystone_url_expansion() -> None:
     frame = b"\x10\xf4\x03" + b"example" + b"\x07" + b"/x"
-    assert parse_eddystone_frame(frame) == Eddystone("url", url="https://example.com/x", tx_power=-12)
+    assert parse_eddystone_frame(frame) == Eddystone(
+        "url", url="https://example.com/x", tx_power=-12
+    )
     assert parse_eddystone_frame(b"\x10\x00\x00goo.gl\x00") == Eddystone(
-        "url", url="http://www.goo.gl.com/", tx_power=0)
+        "url", url="http://www.goo.gl.com/", tx_power=0
+    )
 
 
 def test_eddystone_tlm_and_eid() -> None:
@@ -59,8 +72,17 @@ def test_eddystone_tlm_and_eid() -> None:
     assert parse_eddystone_frame(eid) == Eddystone("eid", instance="0102030405060708", tx_power=-16)
 
 
-@pytest.mark.parametrize("frame", [b"", b"\x00\x00" + bytes(5), b"\x10\x00\x09x", b"\x10\x00\x00\x80",
-                                   b"\x20\x00", b"\x40" + bytes(20)])
+@pytest.mark.parametrize(
+    "frame",
+    [
+        b"",
+        b"\x00\x00" + bytes(5),
+        b"\x10\x00\x09x",
+        b"\x10\x00\x00\x80",
+        b"\x20\x00",
+        b"\x40" + bytes(20),
+    ],
+)
 def test_malformed_eddystone(frame: bytes) -> None:
     assert parse_eddystone_frame(frame) is None
 

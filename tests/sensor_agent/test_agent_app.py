@@ -15,16 +15,25 @@ def make_reading(beacon: str = "e78f135624ce", ibeacon: IBeacon | None = None) -
     return Reading(1_700_000_000 * 10**9, beacon, -60, 1, ibeacon)
 
 
-@pytest.mark.parametrize(("allow", "reading", "kept"), [
-    (AllowList(), make_reading(), True),
-    (AllowList(frozenset({"e78f135624ce"})), make_reading(), True),
-    (AllowList(frozenset({"e78f135624cf"})), make_reading(), False),
-    (AllowList(ibeacon_uuids=frozenset({UUID})), make_reading(), False),
-    (AllowList(ibeacon_uuids=frozenset({UUID})),
-     make_reading("aabbccddeeff", IBeacon(UUID, 1, 2, -59)), True),
-    (AllowList(ibeacon_uuids=frozenset({UUID})),
-     make_reading("aabbccddeeff", IBeacon("0" * 32, 1, 2, -59)), False),
-])
+@pytest.mark.parametrize(
+    ("allow", "reading", "kept"),
+    [
+        (AllowList(), make_reading(), True),
+        (AllowList(frozenset({"e78f135624ce"})), make_reading(), True),
+        (AllowList(frozenset({"e78f135624cf"})), make_reading(), False),
+        (AllowList(ibeacon_uuids=frozenset({UUID})), make_reading(), False),
+        (
+            AllowList(ibeacon_uuids=frozenset({UUID})),
+            make_reading("aabbccddeeff", IBeacon(UUID, 1, 2, -59)),
+            True,
+        ),
+        (
+            AllowList(ibeacon_uuids=frozenset({UUID})),
+            make_reading("aabbccddeeff", IBeacon("0" * 32, 1, 2, -59)),
+            False,
+        ),
+    ],
+)
 def test_allowlist(allow: AllowList, reading: Reading, kept: bool) -> None:
     assert allowed(allow, reading) is kept
 
@@ -66,10 +75,13 @@ def test_sink_skips_implausible_readings_one_by_one_and_counts_them(caplog) -> N
     agent = Agent(AgentConfig(agent_id="pi-01"), ReplayBackend(["unused.mbd"]))
     pub = agent._publisher = _Collecting()
     t = 1_700_000_000 * 10**9
-    sent = [Reading(t, "e78f135624ce", -60, 1), Reading(t + 1, "e78f135624ce", 42, 2),
-            Reading(t + 2, "e78f135624ce", 127, 3),  # BlueZ's "unknown"
-            Reading(5, "e78f135624ce", -61, 4),  # 1970
-            Reading(t + 4, "e78f135624ce", -62, 5)]
+    sent = [
+        Reading(t, "e78f135624ce", -60, 1),
+        Reading(t + 1, "e78f135624ce", 42, 2),
+        Reading(t + 2, "e78f135624ce", 127, 3),  # BlueZ's "unknown"
+        Reading(5, "e78f135624ce", -61, 4),  # 1970
+        Reading(t + 4, "e78f135624ce", -62, 5),
+    ]
     for r in sent:
         agent._sink("aa0000000001", r)
     assert [r for _s, r in pub.added] == [sent[0], sent[4]]
@@ -77,5 +89,7 @@ def test_sink_skips_implausible_readings_one_by_one_and_counts_them(caplog) -> N
     assert agent.bad_readings == 3
     assert agent.stats["aa0000000001"].bad_readings == 3
     warned = [r.getMessage() for r in caplog.records if "implausible" in r.getMessage()]
-    assert warned == ["adapter aa0000000001: skipped an implausible reading of beacon e78f135624ce "
-                      "(RSSI 42 dBm out of range); 1 skipped so far"]  # one line a minute
+    assert warned == [
+        "adapter aa0000000001: skipped an implausible reading of beacon e78f135624ce "
+        "(RSSI 42 dBm out of range); 1 skipped so far"
+    ]  # one line a minute

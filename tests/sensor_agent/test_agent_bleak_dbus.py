@@ -15,8 +15,10 @@ import pytest
 
 pytestmark = [
     pytest.mark.dbus,
-    pytest.mark.skipif(shutil.which("dbus-daemon") is None,
-                       reason="dbus-daemon is not installed (needed for a private D-Bus)"),
+    pytest.mark.skipif(
+        shutil.which("dbus-daemon") is None,
+        reason="dbus-daemon is not installed (needed for a private D-Bus)",
+    ),
 ]
 
 dbus = pytest.importorskip("dbus")
@@ -50,7 +52,8 @@ def system_bus() -> Iterator[str]:
 
 def spawn_bluez(parameters: dict | None = None):
     proc, obj = dbusmock.DBusTestCase.spawn_server_template(
-        "bluez5", parameters or {}, stdout=subprocess.DEVNULL, system_bus=True)
+        "bluez5", parameters or {}, stdout=subprocess.DEVNULL, system_bus=True
+    )
     return proc, obj
 
 
@@ -65,10 +68,16 @@ def bluez(system_bus: str) -> Iterator:
 
 
 def ibeacon_md(major: int, minor: int, tx: int = -59) -> dbus.Dictionary:
-    payload = (b"\x02\x15" + bytes.fromhex(UUID) + major.to_bytes(2, "big")
-               + minor.to_bytes(2, "big") + bytes([tx & 0xFF]))
-    return dbus.Dictionary({dbus.UInt16(0x004C): dbus.Array(payload, signature="y")},
-                           signature="qv")
+    payload = (
+        b"\x02\x15"
+        + bytes.fromhex(UUID)
+        + major.to_bytes(2, "big")
+        + minor.to_bytes(2, "big")
+        + bytes([tx & 0xFF])
+    )
+    return dbus.Dictionary(
+        {dbus.UInt16(0x004C): dbus.Array(payload, signature="y")}, signature="qv"
+    )
 
 
 def device(path: str):
@@ -88,7 +97,9 @@ def test_two_adapters_listed_with_their_dbus_addresses(bluez) -> None:
     bluez.AddAdapter("hci1", "pi-b", dbus_interface=BLUEZ_MOCK_IFACE)
     found = asyncio.run(list_adapters())
     assert [(a.name, a.address, a.powered, a.alias) for a in found] == [
-        ("hci0", "000102030405", True, "pi-a"), ("hci1", "010203040506", True, "pi-b")]
+        ("hci0", "000102030405", True, "pi-a"),
+        ("hci1", "010203040506", True, "pi-b"),
+    ]
     assert all(a.passive_capable for a in found)
 
 
@@ -100,9 +111,13 @@ def add_beacon(bluez, adapter: str) -> str:
     """
     path = bluez.AddDevice(adapter, "E7:8F:13:56:24:CE", "beacon1", dbus_interface=BLUEZ_MOCK_IFACE)
     device(path).UpdateProperties(
-        DEVICE_IFACE, {"ManufacturerData": dbus.Dictionary({}, signature="qv"),
-                       "ServiceData": dbus.Dictionary({}, signature="sv")},
-        dbus_interface=dbusmock.MOCK_IFACE)
+        DEVICE_IFACE,
+        {
+            "ManufacturerData": dbus.Dictionary({}, signature="qv"),
+            "ServiceData": dbus.Dictionary({}, signature="sv"),
+        },
+        dbus_interface=dbusmock.MOCK_IFACE,
+    )
     return path
 
 
@@ -115,27 +130,47 @@ def test_every_rssi_update_delivered_with_its_ibeacon(bluez) -> None:
     paths = {a: add_beacon(bluez, a) for a in ("hci0", "hci1")}
     got: list[tuple[str, Reading]] = []
     # (adapter, rssi, major, minor) updates, including a repeated RSSI value
-    updates = [("hci0", -60, 1, 1), ("hci1", -70, 1, 1), ("hci0", -61, 1, 2),
-               ("hci0", -61, 1, 3), ("hci1", -72, 2, 7), ("hci0", -65, 3, 9)]
+    updates = [
+        ("hci0", -60, 1, 1),
+        ("hci1", -70, 1, 1),
+        ("hci0", -61, 1, 2),
+        ("hci0", -61, 1, 3),
+        ("hci1", -72, 2, 7),
+        ("hci0", -65, 3, 9),
+    ]
 
     async def main() -> None:
         backend = BleakBackend((), "active")
         await backend.start(lambda mac, r: got.append((mac, r)))
         assert [(a.name, a.mac, a.mode) for a in backend.adapters] == [
-            ("hci0", "000102030405", "active"), ("hci1", "010203040506", "active")]
+            ("hci0", "000102030405", "active"),
+            ("hci1", "010203040506", "active"),
+        ]
         t_before = time.time_ns()
         for adapter, rssi, major, minor in updates:
             await asyncio.to_thread(
-                device(paths[adapter]).UpdateProperties, DEVICE_IFACE,
+                device(paths[adapter]).UpdateProperties,
+                DEVICE_IFACE,
                 {"RSSI": dbus.Int16(rssi), "ManufacturerData": ibeacon_md(major, minor)},
-                dbus_interface=dbusmock.MOCK_IFACE)
+                dbus_interface=dbusmock.MOCK_IFACE,
+            )
         # an Eddystone frame arrives as service data
         await asyncio.to_thread(
-            device(paths["hci1"]).UpdateProperties, DEVICE_IFACE,
-            {"RSSI": dbus.Int16(-75), "ServiceData": dbus.Dictionary(
-                {"0000feaa-0000-1000-8000-00805f9b34fb": dbus.Array(EDDYSTONE_UID, signature="y")},
-                signature="sv")},
-            dbus_interface=dbusmock.MOCK_IFACE)
+            device(paths["hci1"]).UpdateProperties,
+            DEVICE_IFACE,
+            {
+                "RSSI": dbus.Int16(-75),
+                "ServiceData": dbus.Dictionary(
+                    {
+                        "0000feaa-0000-1000-8000-00805f9b34fb": dbus.Array(
+                            EDDYSTONE_UID, signature="y"
+                        )
+                    },
+                    signature="sv",
+                ),
+            },
+            dbus_interface=dbusmock.MOCK_IFACE,
+        )
         await wait_for(lambda: len(got) == len(updates) + 1)
         await backend.stop()
         assert all(t_before <= r.t_ns <= time.time_ns() for _, r in got)
@@ -143,8 +178,10 @@ def test_every_rssi_update_delivered_with_its_ibeacon(bluez) -> None:
     asyncio.run(main())
     adapter_mac = {"hci0": "000102030405", "hci1": "010203040506"}
     delivered = [(mac, r.beacon, r.rssi, r.ibeacon) for mac, r in got[:-1]]
-    assert delivered == [(adapter_mac[a], "e78f135624ce", rssi, IBeacon(UUID, major, minor, -59))
-                         for a, rssi, major, minor in updates]
+    assert delivered == [
+        (adapter_mac[a], "e78f135624ce", rssi, IBeacon(UUID, major, minor, -59))
+        for a, rssi, major, minor in updates
+    ]
     mac, last = got[-1]
     assert (mac, last.rssi) == ("010203040506", -75)
     assert last.eddystone is not None
@@ -161,7 +198,9 @@ def test_adapter_selection_by_name_or_mac(bluez) -> None:
         await backend.start(lambda mac, r: None)
         assert [a.name for a in backend.adapters] == ["hci1"]
         await backend.stop()
-        with pytest.raises(BackendError, match=r"adapter 'hci7' not found \(BlueZ has: hci0 000102030405"):
+        with pytest.raises(
+            BackendError, match=r"adapter 'hci7' not found \(BlueZ has: hci0 000102030405"
+        ):
             await BleakBackend(["hci7"]).start(lambda mac, r: None)
 
     asyncio.run(main())
@@ -183,8 +222,10 @@ def test_passive_without_monitor_api_is_a_clear_error(system_bus: str) -> None:
     proc, obj = spawn_bluez({"enable_monitor_api": False})
     try:
         obj.AddAdapter("hci0", "pi-a", dbus_interface=BLUEZ_MOCK_IFACE)
-        with pytest.raises(BackendError, match="passive scanning needs BlueZ's "
-                                               "AdvertisementMonitorManager1, which hci0 lacks"):
+        with pytest.raises(
+            BackendError,
+            match="passive scanning needs BlueZ's AdvertisementMonitorManager1, which hci0 lacks",
+        ):
             asyncio.run(BleakBackend(["hci0"], "passive").start(lambda mac, r: None))
     finally:
         proc.terminate()
@@ -194,16 +235,28 @@ def test_passive_without_monitor_api_is_a_clear_error(system_bus: str) -> None:
 def test_adapters_command(bluez, system_bus: str) -> None:
     bluez.AddAdapter("hci0", "pi-a", dbus_interface=BLUEZ_MOCK_IFACE)
     bluez.AddAdapter("hci1", "pi-b", dbus_interface=BLUEZ_MOCK_IFACE)
-    r = subprocess.run(AGENT + ["adapters"], capture_output=True, text=True, timeout=60,
-                       env={**os.environ, ENV: system_bus})
+    r = subprocess.run(
+        AGENT + ["adapters"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, ENV: system_bus},
+    )
     assert r.returncode == 0, r.stderr
     assert [line.split("\t")[:2] for line in r.stdout.splitlines()] == [
-        ["hci0", "000102030405"], ["hci1", "010203040506"]]
+        ["hci0", "000102030405"],
+        ["hci1", "010203040506"],
+    ]
 
 
 def test_adapters_command_without_bluez(system_bus: str) -> None:
-    r = subprocess.run(AGENT + ["adapters"], capture_output=True, text=True, timeout=60,
-                       env={**os.environ, ENV: system_bus})
+    r = subprocess.run(
+        AGENT + ["adapters"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, ENV: system_bus},
+    )
     assert r.returncode == 1
     assert r.stderr.strip() == "D-Bus service org.bluez not found; is bluetoothd running?"
 
@@ -218,8 +271,12 @@ def test_watchdog_restarts_a_silent_scanner(bluez) -> None:
         await backend.start(lambda mac, r: got.append(r))
         await wait_for(lambda: backend.restarts("000102030405") >= 2)
         # still scanning after the restarts: a new advert arrives
-        await asyncio.to_thread(device(path).UpdateProperties, DEVICE_IFACE,
-                                {"RSSI": dbus.Int16(-50)}, dbus_interface=dbusmock.MOCK_IFACE)
+        await asyncio.to_thread(
+            device(path).UpdateProperties,
+            DEVICE_IFACE,
+            {"RSSI": dbus.Int16(-50)},
+            dbus_interface=dbusmock.MOCK_IFACE,
+        )
         await wait_for(lambda: any(r.rssi == -50 for r in got))
         await backend.stop()
 
@@ -252,8 +309,12 @@ def test_implausible_bluez_rssi_reaches_the_agent_unclamped_and_is_skipped(bluez
     async def main() -> None:
         await backend.start(sink)
         for rssi in (-60, 42, 127, -61):  # 127: BlueZ's "RSSI unknown"
-            await asyncio.to_thread(device(path).UpdateProperties, DEVICE_IFACE,
-                                    {"RSSI": dbus.Int16(rssi)}, dbus_interface=dbusmock.MOCK_IFACE)
+            await asyncio.to_thread(
+                device(path).UpdateProperties,
+                DEVICE_IFACE,
+                {"RSSI": dbus.Int16(rssi)},
+                dbus_interface=dbusmock.MOCK_IFACE,
+            )
         await wait_for(lambda: len(raw) == 4)
         await backend.stop()
 

@@ -62,38 +62,54 @@ def test_full_file_parses_with_paths_relative_to_it(tmp_path: Path) -> None:
 def test_empty_file_gives_defaults(tmp_path: Path) -> None:
     cfg = load_config(write(tmp_path, ""))
     assert (cfg.site, cfg.connect, cfg.backend, cfg.batch_ms) == (
-        "default", ("tcp/127.0.0.1:7447",), "bleak", 100)
+        "default",
+        ("tcp/127.0.0.1:7447",),
+        "bleak",
+        100,
+    )
     assert cfg.allow.everything
     assert cfg.tls is None
     assert cfg.spool.dir is None
     assert cfg.ack_timeout_s == 30
 
 
-@pytest.mark.parametrize(("text", "message"), [
-    ("batch_ms: x", "agent.yaml: batch_ms must be a positive integer, got 'x'"),
-    ("batch_ms: 0", "agent.yaml: batch_ms must be a positive integer, got 0"),
-    ("agent_id: 'pi 01'", "agent.yaml: agent_id must be 1-64 characters"),
-    ("backend: usb", "agent.yaml: backend must be bleak | replay | simulated, got 'usb'"),
-    ("scan_mode: loud", "agent.yaml: scan_mode must be active | passive"),
-    ("connect: tcp/1.2.3.4:7447", "agent.yaml: connect must be a list of strings"),
-    ("connect: [localhost]", "agent.yaml: connect[0] must be a Zenoh endpoint"),
-    ("adapters: [hci0, nonsense]", "agent.yaml: adapters[1] must be a MAC address"),
-    ("allow: {macs: [zz]}", "agent.yaml: allow.macs[0] must be a MAC address"),
-    ("allow: {ibeacon_uuids: [1234]}", "agent.yaml: allow.ibeacon_uuids[0] must be a non-empty string"),
-    ("allow: {colours: []}", "agent.yaml: unknown key 'allow.colours'"),
-    ("replay: {speed: -1}", "agent.yaml: replay.speed must be a number >= 0, got -1"),
-    ("replay: {keep_time: 'yes'}", "agent.yaml: replay.keep_time must be true or false"),
-    ("simulated: {seed: 1.5}", "agent.yaml: simulated.seed must be an integer, got 1.5"),
-    ("simulated: {drop_prob: 2}", "agent.yaml: simulated.drop_prob must be a number in [0, 1]"),
-    ("simulated: {path: {waypoints: [[1, 2]]}}", "agent.yaml: simulated.path: waypoint 0 must be [x, y, z]"),
-    ("simulated: {events: [{start_s: 1}]}", "agent.yaml: simulated.events[0]: cover event: missing 'duration_s'"),
-    ("spool: {max_mb: -5}", "agent.yaml: spool.max_mb must be a positive integer, got -5"),
-    ("tls: {root_ca: ca.pem}", "agent.yaml: tls.cert is missing"),
-    ("status_interval_s: 0", "agent.yaml: status_interval_s must be a number > 0, got 0"),
-    ("colour: blue", "agent.yaml: unknown key 'colour'"),
-    ("- just\n- a list", "agent.yaml: the top level must be a mapping"),
-    ("batch_ms: [", "agent.yaml:2: not valid YAML"),
-])
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("batch_ms: x", "agent.yaml: batch_ms must be a positive integer, got 'x'"),
+        ("batch_ms: 0", "agent.yaml: batch_ms must be a positive integer, got 0"),
+        ("agent_id: 'pi 01'", "agent.yaml: agent_id must be 1-64 characters"),
+        ("backend: usb", "agent.yaml: backend must be bleak | replay | simulated, got 'usb'"),
+        ("scan_mode: loud", "agent.yaml: scan_mode must be active | passive"),
+        ("connect: tcp/1.2.3.4:7447", "agent.yaml: connect must be a list of strings"),
+        ("connect: [localhost]", "agent.yaml: connect[0] must be a Zenoh endpoint"),
+        ("adapters: [hci0, nonsense]", "agent.yaml: adapters[1] must be a MAC address"),
+        ("allow: {macs: [zz]}", "agent.yaml: allow.macs[0] must be a MAC address"),
+        (
+            "allow: {ibeacon_uuids: [1234]}",
+            "agent.yaml: allow.ibeacon_uuids[0] must be a non-empty string",
+        ),
+        ("allow: {colours: []}", "agent.yaml: unknown key 'allow.colours'"),
+        ("replay: {speed: -1}", "agent.yaml: replay.speed must be a number >= 0, got -1"),
+        ("replay: {keep_time: 'yes'}", "agent.yaml: replay.keep_time must be true or false"),
+        ("simulated: {seed: 1.5}", "agent.yaml: simulated.seed must be an integer, got 1.5"),
+        ("simulated: {drop_prob: 2}", "agent.yaml: simulated.drop_prob must be a number in [0, 1]"),
+        (
+            "simulated: {path: {waypoints: [[1, 2]]}}",
+            "agent.yaml: simulated.path: waypoint 0 must be [x, y, z]",
+        ),
+        (
+            "simulated: {events: [{start_s: 1}]}",
+            "agent.yaml: simulated.events[0]: cover event: missing 'duration_s'",
+        ),
+        ("spool: {max_mb: -5}", "agent.yaml: spool.max_mb must be a positive integer, got -5"),
+        ("tls: {root_ca: ca.pem}", "agent.yaml: tls.cert is missing"),
+        ("status_interval_s: 0", "agent.yaml: status_interval_s must be a number > 0, got 0"),
+        ("colour: blue", "agent.yaml: unknown key 'colour'"),
+        ("- just\n- a list", "agent.yaml: the top level must be a mapping"),
+        ("batch_ms: [", "agent.yaml:2: not valid YAML"),
+    ],
+)
 def test_bad_values_name_the_field(tmp_path: Path, text: str, message: str) -> None:
     with pytest.raises(ConfigError) as e:
         load_config(write(tmp_path, text))
@@ -108,10 +124,21 @@ def test_missing_file_is_one_line(tmp_path: Path) -> None:
 
 def test_flags_override_the_file(tmp_path: Path) -> None:
     cfg = load_config(write(tmp_path, FULL))
-    out = with_overrides(cfg, agent_id="pi-09", site="lab", connect=["tcp/10.0.0.1:7447"],
-                         adapters=["hci1"], replay=["x.mbd"], replay_speed=0.0)
+    out = with_overrides(
+        cfg,
+        agent_id="pi-09",
+        site="lab",
+        connect=["tcp/10.0.0.1:7447"],
+        adapters=["hci1"],
+        replay=["x.mbd"],
+        replay_speed=0.0,
+    )
     assert (out.agent_id, out.site, out.connect, out.adapters) == (
-        "pi-09", "lab", ("tcp/10.0.0.1:7447",), ("hci1",))
+        "pi-09",
+        "lab",
+        ("tcp/10.0.0.1:7447",),
+        ("hci1",),
+    )
     # replay files without --backend pick the replay backend; keep_time stays from the file
     assert out.backend == "replay"
     assert out.replay.paths == (Path.cwd() / "x.mbd",)
@@ -138,8 +165,19 @@ def test_to_dict_round_trips(tmp_path: Path) -> None:
 
 def test_check_command_prints_resolved_config(tmp_path: Path) -> None:
     p = write(tmp_path, "agent_id: pi-03\nbatch_ms: 50\n")
-    r = subprocess.run([sys.executable, "-c", "from sensor_agent.cli import main; main()",
-                        "check", "--config", str(p)], capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from sensor_agent.cli import main; main()",
+            "check",
+            "--config",
+            str(p),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0, r.stderr
     printed = yaml.safe_load(r.stdout)
     assert printed["agent_id"] == "pi-03"
@@ -147,8 +185,19 @@ def test_check_command_prints_resolved_config(tmp_path: Path) -> None:
     assert printed["connect"] == ["tcp/127.0.0.1:7447"]
 
     bad = write(tmp_path, "batch_ms: x\n", "bad.yaml")
-    r = subprocess.run([sys.executable, "-c", "from sensor_agent.cli import main; main()",
-                        "check", "--config", str(bad)], capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from sensor_agent.cli import main; main()",
+            "check",
+            "--config",
+            str(bad),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 1
     assert r.stderr.strip() == "bad.yaml: batch_ms must be a positive integer, got 'x'"
 

@@ -37,17 +37,24 @@ simulated: {{seed: 3, sensors: [sensor10, sensor40], drop_prob: 0.0}}
 """)
     collector = FakeCollector(endpoint, "lab")
     log = (tmp_path / "agent.log").open("w")
-    proc = subprocess.Popen(AGENT + ["run", "--config", str(cfg)], stdout=log, stderr=log,
-                            env=agent_env())
+    proc = subprocess.Popen(
+        AGENT + ["run", "--config", str(cfg)], stdout=log, stderr=log, env=agent_env()
+    )
     try:
         wait_until(lambda: len(collector.batches) >= 20, 30, collector)
 
-        tokens = [r.ok.key_expr for r in collector.session.liveliness().get(
-            wire.agent_token_selector("lab"), timeout=5) if r.ok is not None]
+        tokens = [
+            r.ok.key_expr
+            for r in collector.session.liveliness().get(wire.agent_token_selector("lab"), timeout=5)
+            if r.ok is not None
+        ]
         assert [str(k) for k in tokens] == [wire.agent_token_key("lab", "sim-01")]
 
-        replies = [r.ok for r in collector.session.get(wire.agent_status_key("lab", "sim-01"),
-                                                       timeout=5) if r.ok is not None]
+        replies = [
+            r.ok
+            for r in collector.session.get(wire.agent_status_key("lab", "sim-01"), timeout=5)
+            if r.ok is not None
+        ]
         assert len(replies) == 1
         status = wire.from_json(replies[0].payload.to_bytes())
         assert status["agent_id"] == "sim-01"
@@ -68,8 +75,11 @@ simulated: {{seed: 3, sensors: [sensor10, sensor40], drop_prob: 0.0}}
         proc.wait(20)
         collector.poll()
         # a stopped agent's liveliness token is gone
-        gone = [r for r in collector.session.liveliness().get(wire.agent_token_selector("lab"),
-                                                              timeout=2) if r.ok is not None]
+        gone = [
+            r
+            for r in collector.session.liveliness().get(wire.agent_token_selector("lab"), timeout=2)
+            if r.ok is not None
+        ]
         assert gone == []
     finally:
         if proc.poll() is None:

@@ -31,8 +31,14 @@ def test_batches_seqs_and_acks(endpoint: str) -> None:
     router = zenoh.open(build_config(SessionSpec(mode="router", listen=[endpoint])))
     sub = router.declare_subscriber(wire.data_selector("lab"))
     client = zenoh.open(build_config(SessionSpec(mode="client", connect=[endpoint])))
-    pub = Publisher(client, site="lab", agent_id="pi-01", boot_id="00112233aabbccdd",
-                    wall_ns=lambda: T + 42, max_batch=4)
+    pub = Publisher(
+        client,
+        site="lab",
+        agent_id="pi-01",
+        boot_id="00112233aabbccdd",
+        wall_ns=lambda: T + 42,
+        max_batch=4,
+    )
     try:
         for i in range(3):
             pub.add(SENSOR, make_reading(i))
@@ -54,7 +60,8 @@ def test_batches_seqs_and_acks(endpoint: str) -> None:
         assert [len(b.readings) for b in batches] == [3, 4, 2]
         assert [r for b in batches for r in b.readings] == [make_reading(i) for i in range(9)]
         assert {(b.agent_id, b.boot_id, b.sensor, b.sent_ns) for b in batches} == {
-            ("pi-01", "00112233aabbccdd", SENSOR, T + 42)}
+            ("pi-01", "00112233aabbccdd", SENSOR, T + 42)
+        }
         assert pub.unacked() == {SENSOR: (2, -1)}
 
         ack = wire.ack_key("lab", "pi-01")

@@ -36,7 +36,9 @@ def make_reading(i: int) -> Reading:
     return Reading(T + i * 1000, "e78f135624ce", -40 - i % 60, i + 1)
 
 
-def wait_for(cond: Callable[[], bool], timeout_s: float = 15.0, poll: Callable[[], None] | None = None) -> None:
+def wait_for(
+    cond: Callable[[], bool], timeout_s: float = 15.0, poll: Callable[[], None] | None = None
+) -> None:
     deadline = time.monotonic() + timeout_s
     while True:
         if poll is not None:
@@ -69,7 +71,9 @@ class RecordingSpool(Spool):
         return ok
 
 
-def test_batches_are_spooled_before_publish_and_leave_it_when_acked(endpoint: str, tmp_path: Path) -> None:
+def test_batches_are_spooled_before_publish_and_leave_it_when_acked(
+    endpoint: str, tmp_path: Path
+) -> None:
     r = router(endpoint)
     seen: list[tuple[int, bool]] = []
     lock = threading.Lock()
@@ -93,7 +97,8 @@ def test_batches_are_spooled_before_publish_and_leave_it_when_acked(endpoint: st
         assert [q for _s, q, _p in spool.pending()] == list(range(8))
         # the spooled bytes are exactly what was published
         assert [wire.from_wire(p).readings for _s, _q, p in spool.pending()] == [
-            (make_reading(i),) for i in range(8)]
+            (make_reading(i),) for i in range(8)
+        ]
 
         r.put(wire.ack_key("lab", "pi-01"), wire.to_json({"boot": BOOT, "streams": {SENSOR: 4}}))
         wait_for(lambda: spool.lowest_pending(sid) == 5)
@@ -211,8 +216,15 @@ class TickBackend(ScannerBackend):
 
 
 def tick_config(endpoint: str, spool_dir: Path | None) -> AgentConfig:
-    return AgentConfig(agent_id="pi-01", site="lab", connect=(endpoint,), backend="simulated",
-                       batch_ms=20, spool=SpoolConfig(spool_dir, 1), ack_timeout_s=30.0)
+    return AgentConfig(
+        agent_id="pi-01",
+        site="lab",
+        connect=(endpoint,),
+        backend="simulated",
+        batch_ms=20,
+        spool=SpoolConfig(spool_dir, 1),
+        ack_timeout_s=30.0,
+    )
 
 
 async def poll_until(col: FakeCollector, cond: Callable[[], bool], timeout_s: float = 30.0) -> None:
@@ -233,8 +245,9 @@ def test_outage_of_the_router_loses_nothing(endpoint: str, tmp_path: Path) -> No
     """The router (collector) goes away mid-run and comes back empty-handed on the same port:
     the spool re-sends what the first one never acknowledged; every reading arrives."""
     n = 250
-    agent = Agent(tick_config(endpoint, tmp_path / "spool"), TickBackend(n, 0.02),
-                  boot_id=BOOT, resend_s=1.0)
+    agent = Agent(
+        tick_config(endpoint, tmp_path / "spool"), TickBackend(n, 0.02), boot_id=BOOT, resend_s=1.0
+    )
 
     async def main() -> tuple[list[wire.Batch], list[wire.Batch], bool]:
         col = FakeCollector(endpoint, "lab")
@@ -271,8 +284,9 @@ def test_router_absent_at_start_then_appears(endpoint: str, tmp_path: Path) -> N
     """No router when the agent starts: it records into the spool, connects when the router
     comes, and everything arrives."""
     n = 60
-    agent = Agent(tick_config(endpoint, tmp_path / "spool"), TickBackend(n, 0.01),
-                  boot_id=BOOT, resend_s=0.5)
+    agent = Agent(
+        tick_config(endpoint, tmp_path / "spool"), TickBackend(n, 0.01), boot_id=BOOT, resend_s=0.5
+    )
 
     async def main() -> tuple[list[wire.Batch], bool]:
         task = asyncio.create_task(agent.run())
@@ -295,10 +309,17 @@ def test_clock_queryable_four_timestamps(endpoint: str) -> None:
     c = client(endpoint)
     wall = iter(range(T + 100, T + 10**6, 7))
     chrony = {"system_time_offset_s": 1.5e-05, "stratum": 3}
-    pub = Publisher(c, site="lab", agent_id="pi-01", boot_id=BOOT, wall_ns=lambda: next(wall),
-                    chrony=lambda: chrony)
+    pub = Publisher(
+        c,
+        site="lab",
+        agent_id="pi-01",
+        boot_id=BOOT,
+        wall_ns=lambda: next(wall),
+        chrony=lambda: chrony,
+    )
     key = wire.agent_clock_key("lab", "pi-01")
     try:
+
         def ask(payload: bytes):
             deadline = time.monotonic() + 10
             while True:
@@ -342,11 +363,16 @@ Leap status     : Normal
 def test_chronyc_tracking_parsed() -> None:
     got = parse_chronyc_tracking(TRACKING)
     assert got == {
-        "ref_id": "C0A80101 (192.168.1.1)", "stratum": 3,
+        "ref_id": "C0A80101 (192.168.1.1)",
+        "stratum": 3,
         "system_time_offset_s": pytest.approx(-1.2345e-05),  # slow = behind NTP time
-        "last_offset_s": pytest.approx(-5.678e-06), "rms_offset_s": pytest.approx(2.3456e-05),
-        "frequency_ppm": pytest.approx(12.345), "root_delay_s": pytest.approx(0.001234567),
-        "root_dispersion_s": pytest.approx(0.000456789), "leap_status": "Normal"}
+        "last_offset_s": pytest.approx(-5.678e-06),
+        "rms_offset_s": pytest.approx(2.3456e-05),
+        "frequency_ppm": pytest.approx(12.345),
+        "root_delay_s": pytest.approx(0.001234567),
+        "root_dispersion_s": pytest.approx(0.000456789),
+        "leap_status": "Normal",
+    }
     fast = parse_chronyc_tracking(TRACKING.replace("seconds slow", "seconds fast"))
     assert fast["system_time_offset_s"] == pytest.approx(1.2345e-05)
 
@@ -354,9 +380,14 @@ def test_chronyc_tracking_parsed() -> None:
 def test_chronyc_tracking_partial_or_garbage() -> None:
     got = parse_chronyc_tracking("506 Cannot talk to daemon\n")
     assert set(got.values()) == {None}
-    got = parse_chronyc_tracking("Stratum : x\nSystem time : nope\nLeap status : Not synchronised\n")
+    got = parse_chronyc_tracking(
+        "Stratum : x\nSystem time : nope\nLeap status : Not synchronised\n"
+    )
     assert (got["stratum"], got["system_time_offset_s"], got["leap_status"]) == (
-        None, None, "Not synchronised")
+        None,
+        None,
+        "Not synchronised",
+    )
 
 
 class FullDisk(FileOps):
@@ -377,7 +408,9 @@ class FullDisk(FileOps):
         os.ftruncate(fd, length)
 
 
-def test_full_disk_under_the_spool_still_publishes_and_can_resend(endpoint: str, tmp_path: Path) -> None:
+def test_full_disk_under_the_spool_still_publishes_and_can_resend(
+    endpoint: str, tmp_path: Path
+) -> None:
     """Spool writes fail: batches are still published, kept in memory for re-sending, counted,
     and the floor still covers them; what was spooled before the disk filled stays intact."""
     r = router(endpoint)
@@ -385,8 +418,16 @@ def test_full_disk_under_the_spool_still_publishes_and_can_resend(endpoint: str,
     c = client(endpoint)
     spool = Spool(tmp_path / "spool", 1 << 20, files=FullDisk(2000), fsync_interval_s=None)
     t = [0]
-    pub = Publisher(c, site="lab", agent_id="pi-01", boot_id=BOOT, wall_ns=lambda: T,
-                    mono_ns=lambda: t[0], spool=spool, resend_s=5.0)
+    pub = Publisher(
+        c,
+        site="lab",
+        agent_id="pi-01",
+        boot_id=BOOT,
+        wall_ns=lambda: T,
+        mono_ns=lambda: t[0],
+        spool=spool,
+        resend_s=5.0,
+    )
     got: list[wire.Batch] = []
 
     def drain() -> None:
@@ -425,12 +466,21 @@ def test_full_disk_under_the_spool_still_publishes_and_can_resend(endpoint: str,
         r.close()
 
 
-def test_resend_waits_for_silence_and_backs_off_while_nothing_is_acknowledged(endpoint: str) -> None:
+def test_resend_waits_for_silence_and_backs_off_while_nothing_is_acknowledged(
+    endpoint: str,
+) -> None:
     r = router(endpoint)
     c = client(endpoint)
     t = [0]
-    pub = Publisher(c, site="lab", agent_id="pi-01", boot_id=BOOT, wall_ns=lambda: T,
-                    mono_ns=lambda: t[0], resend_s=5.0)
+    pub = Publisher(
+        c,
+        site="lab",
+        agent_id="pi-01",
+        boot_id=BOOT,
+        wall_ns=lambda: T,
+        mono_ns=lambda: t[0],
+        resend_s=5.0,
+    )
     s = 10**9
     try:
         wait_for(pub.connected)

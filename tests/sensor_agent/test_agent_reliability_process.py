@@ -26,14 +26,25 @@ AGENT_ID = "pi-09"
 
 def write_config(tmp_path: Path, endpoint: str) -> Path:
     cfg = tmp_path / "agent.yaml"
-    cfg.write_text(json.dumps({  # JSON is YAML
-        "agent_id": AGENT_ID, "site": SITE, "connect": [endpoint], "backend": "simulated",
-        "batch_ms": 50, "spool": {"dir": "spool", "max_mb": 8},
-        "simulated": {"sensors": [], "rate_hz": 5.0}}))
+    cfg.write_text(
+        json.dumps(
+            {  # JSON is YAML
+                "agent_id": AGENT_ID,
+                "site": SITE,
+                "connect": [endpoint],
+                "backend": "simulated",
+                "batch_ms": 50,
+                "spool": {"dir": "spool", "max_mb": 8},
+                "simulated": {"sensors": [], "rate_hz": 5.0},
+            }
+        )
+    )
     return cfg
 
 
-def wait_for(cond: Callable[[], bool], timeout_s: float, poll: Callable[[], None] | None = None) -> None:
+def wait_for(
+    cond: Callable[[], bool], timeout_s: float, poll: Callable[[], None] | None = None
+) -> None:
     deadline = time.monotonic() + timeout_s
     while True:
         if poll is not None:
@@ -78,26 +89,37 @@ def test_kill9_then_restart_resends_the_old_boot_once(endpoint: str, tmp_path: P
     with log2.open("w") as f:
         p2 = subprocess.Popen(AGENT + ["run", "-c", str(cfg)], stdout=f, stderr=f, env=agent_env())
     try:
+
         def old_arrived() -> bool:
             got = {(b.boot_id, b.sensor, b.seq) for b in col.batches if b.boot_id == old_boot}
             return got >= before.keys()
 
         wait_for(old_arrived, 40, poll=col.poll)
-        old = [(b, p) for b, p in zip(col.batches, col.payloads, strict=True) if b.boot_id == old_boot]
+        old = [
+            (b, p) for b, p in zip(col.batches, col.payloads, strict=True) if b.boot_id == old_boot
+        ]
         for b, p in old:
             assert p == before[(b.boot_id, b.sensor, b.seq)]
         # and the new boot publishes its own streams meanwhile
         wait_for(lambda: len({b.boot_id for b in col.batches}) == 2, 20, poll=col.poll)
         new_boots = {b.boot_id for b in col.batches} - {old_boot}
         # the collector has acknowledged the old streams completely
-        wait_for(lambda: all(col.watermark((AGENT_ID, old_boot, s)) >= max(q for bt, s2, q in before if s2 == s)
-                             for s in {k[1] for k in before}), 20, poll=col.poll)
+        wait_for(
+            lambda: all(
+                col.watermark((AGENT_ID, old_boot, s)) >= max(q for bt, s2, q in before if s2 == s)
+                for s in {k[1] for k in before}
+            ),
+            20,
+            poll=col.poll,
+        )
 
         # the status reply reports the spool
         replies = []
+
         def ask() -> bool:
             replies[:] = list(col.session.get(wire.agent_status_key(SITE, AGENT_ID), timeout=2.0))
             return bool(replies) and replies[0].ok is not None
+
         wait_for(ask, 20, poll=col.poll)
         status = wire.from_json(replies[0].ok.payload.to_bytes())
         assert status["boot_id"] in new_boots
@@ -120,7 +142,9 @@ def test_kill9_then_restart_resends_the_old_boot_once(endpoint: str, tmp_path: P
     assert len({(b.sensor, b.seq) for b, _ in old}) == len(before)
 
 
-def test_sd_notify_ready_watchdog_stopping(endpoint: str, dataset_dir: Path, tmp_path: Path) -> None:
+def test_sd_notify_ready_watchdog_stopping(
+    endpoint: str, dataset_dir: Path, tmp_path: Path
+) -> None:
     sock_path = tmp_path / "notify.sock"
     server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     server.bind(str(sock_path))
@@ -131,9 +155,23 @@ def test_sd_notify_ready_watchdog_stopping(endpoint: str, dataset_dir: Path, tmp
     col = FakeCollector(endpoint, "default")
     messages: list[str] = []
     try:
-        proc = subprocess.Popen(AGENT + ["run", "--connect", endpoint, "--replay", str(f),
-                                         "--replay-speed", "0", "--ack-timeout", "20"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+        proc = subprocess.Popen(
+            AGENT
+            + [
+                "run",
+                "--connect",
+                endpoint,
+                "--replay",
+                str(f),
+                "--replay-speed",
+                "0",
+                "--ack-timeout",
+                "20",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            env=env,
+        )
         deadline = time.monotonic() + 60
         while proc.poll() is None and time.monotonic() < deadline:
             col.poll()

@@ -34,12 +34,15 @@ class FakeTime:
 
 
 def write_mbd(path: Path, rows: list[tuple[int, str, str, int]], extra: str = "") -> Path:
-    path.write_text("".join(f"{t // 10**9}.{t % 10**9:09d},{s},{b},{r}{extra}\n"
-                            for t, s, b, r in rows))
+    path.write_text(
+        "".join(f"{t // 10**9}.{t % 10**9:09d},{s},{b},{r}{extra}\n" for t, s, b, r in rows)
+    )
     return path
 
 
-def play(paths: list[Path], ft: FakeTime, **kw) -> tuple[ReplayBackend, list[tuple[int, str, Reading]]]:
+def play(
+    paths: list[Path], ft: FakeTime, **kw
+) -> tuple[ReplayBackend, list[tuple[int, str, Reading]]]:
     got: list[tuple[int, str, Reading]] = []
     backend = ReplayBackend(paths, clocks=ft.clocks(), **kw)
 
@@ -54,11 +57,21 @@ def play(paths: list[Path], ft: FakeTime, **kw) -> tuple[ReplayBackend, list[tup
 
 @pytest.fixture
 def two_files(tmp_path: Path) -> list[Path]:
-    a = write_mbd(tmp_path / "a.mbd", [(T0, "aa0000000001", "e78f135624ce", -70),
-                                       (T0 + 2_000_000_000, "aa0000000001", "e78f135624ce", -71)],
-                  extra=",1.0,2.0,3.0")  # track-file columns are ignored
-    b = write_mbd(tmp_path / "b.mbd", [(T0 + 500_000_000, "aa0000000002", "e78f135624ce", -80),
-                                       (T0 + 1_000_000_001, "aa0000000002", "e78f135624cf", -81)])
+    a = write_mbd(
+        tmp_path / "a.mbd",
+        [
+            (T0, "aa0000000001", "e78f135624ce", -70),
+            (T0 + 2_000_000_000, "aa0000000001", "e78f135624ce", -71),
+        ],
+        extra=",1.0,2.0,3.0",
+    )  # track-file columns are ignored
+    b = write_mbd(
+        tmp_path / "b.mbd",
+        [
+            (T0 + 500_000_000, "aa0000000002", "e78f135624ce", -80),
+            (T0 + 1_000_000_001, "aa0000000002", "e78f135624cf", -81),
+        ],
+    )
     return [a, b]
 
 
@@ -69,8 +82,11 @@ def test_pacing_and_time_shift(two_files: list[Path]) -> None:
     assert [a.mac for a in backend.adapters] == ["aa0000000001", "aa0000000002"]
     # merged in time order, each delivered when its recorded offset has elapsed
     assert [(m - start_mono, mac, r.rssi) for m, mac, r in got] == [
-        (0, "aa0000000001", -70), (500_000_000, "aa0000000002", -80),
-        (1_000_000_001, "aa0000000002", -81), (2_000_000_000, "aa0000000001", -71)]
+        (0, "aa0000000001", -70),
+        (500_000_000, "aa0000000002", -80),
+        (1_000_000_001, "aa0000000002", -81),
+        (2_000_000_000, "aa0000000001", -71),
+    ]
     # first row is "now", intervals kept to the nanosecond
     assert [r.t_ns - NOW for _, _, r in got] == [0, 500_000_000, 1_000_000_001, 2_000_000_000]
     assert [r.mono_ns for _, _, r in got] == [m for m, _, _ in got]
@@ -88,8 +104,12 @@ def test_speed_scales_pacing_not_timestamps(two_files: list[Path]) -> None:
 def test_keep_time_keeps_exact_timestamps(two_files: list[Path]) -> None:
     ft = FakeTime()
     _, got = play(two_files, ft, speed=1.0, keep_time=True)
-    assert [r.t_ns for _, _, r in got] == [T0, T0 + 500_000_000, T0 + 1_000_000_001,
-                                           T0 + 2_000_000_000]
+    assert [r.t_ns for _, _, r in got] == [
+        T0,
+        T0 + 500_000_000,
+        T0 + 1_000_000_001,
+        T0 + 2_000_000_000,
+    ]
     assert all(r.mono_ns == 0 for _, _, r in got)
 
 
@@ -140,5 +160,8 @@ def test_implausible_rssi_is_skipped_and_the_rest_replayed(dataset_dir: Path, ca
     backend = ReplayBackend([f], speed=0)
     backend.check()
     assert (backend.rows_total, backend.rows_skipped) == (len(lines) - 2, 2)
-    assert any("skipped 2 implausible reading(s) of sensor30_0.00_0.00_0.00.mbd (first: " in r.getMessage()
-               and ":13: RSSI 42 dBm out of range" in r.getMessage() for r in caplog.records)
+    assert any(
+        "skipped 2 implausible reading(s) of sensor30_0.00_0.00_0.00.mbd (first: " in r.getMessage()
+        and ":13: RSSI 42 dBm out of range" in r.getMessage()
+        for r in caplog.records
+    )

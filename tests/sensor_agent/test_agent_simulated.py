@@ -89,8 +89,9 @@ def test_same_seed_same_readings_and_chunking_does_not_matter() -> None:
 
 
 def test_rssi_falls_with_distance() -> None:
-    radio = RadioModel(tx_1m=-59, path_loss_exponent=2.0, sigma_db=3.0, drop_prob=0.0,
-                       floor_dbm=-127)
+    radio = RadioModel(
+        tx_1m=-59, path_loss_exponent=2.0, sigma_db=3.0, drop_prob=0.0, floor_dbm=-127
+    )
     near, far = Sensor("000000000001", (1, 0, 1)), Sensor("000000000002", (10, 0, 1))
     sim = Simulation([near, far], [BEACON], still_path(0.0), T0, seed=1, radio=radio)
     out = sim.generate(60.0)
@@ -135,8 +136,9 @@ def test_backend_paces_with_the_injected_clock() -> None:
         state["mono"] += round(s * 1e9)
         await asyncio.sleep(0)  # let the test's loop look at the clock
 
-    clocks = Clocks(wall_ns=lambda: wall0 + state["mono"] - mono0, mono_ns=lambda: state["mono"],
-                    sleep=sleep)
+    clocks = Clocks(
+        wall_ns=lambda: wall0 + state["mono"] - mono0, mono_ns=lambda: state["mono"], sleep=sleep
+    )
     cfg = SimulatedConfig(seed=5, sensors=("sensor10", "sensor30"), t0=T0 / 1e9, drop_prob=0.0)
     backend = SimulatedBackend.from_config(cfg, clocks)
     got = []

@@ -44,8 +44,10 @@ class FakeClock:
 
 def make_payload(sensor: str, seq: int, readings: int = 1) -> bytes:
     """A real encoded batch, distinct per (sensor, seq)."""
-    rows = tuple(wire.Reading(WALL_NS + seq * 10**8 + j, "e78f135624ce", -40 - (seq + j) % 50)
-                 for j in range(readings))
+    rows = tuple(
+        wire.Reading(WALL_NS + seq * 10**8 + j, "e78f135624ce", -40 - (seq + j) % 50)
+        for j in range(readings)
+    )
     return wire.to_wire(wire.Batch("pi-01", "0123456789abcdef", sensor, seq, rows))
 
 
@@ -63,7 +65,11 @@ def record_size(stream: str, payload: bytes) -> int:
     return len(encode_record(stream, 0, WALL_NS, payload))
 
 
-S1, S2, S3 = "0123456789abcdef/b827eb000001", "0123456789abcdef/b827eb000002", "feedc0de00000000/b827eb000001"
+S1, S2, S3 = (
+    "0123456789abcdef/b827eb000001",
+    "0123456789abcdef/b827eb000002",
+    "feedc0de00000000/b827eb000001",
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -105,8 +111,9 @@ def test_restart_returns_only_unacked(tmp_path: Path) -> None:
         sp.ack(S2, 9)
     with open_spool(tmp_path) as sp:
         got = [(s, q) for s, q, _ in sp.pending()]
-        assert sorted(got) == sorted([(S1, q) for q in range(45, 50)] +
-                                     [(S2, q) for q in range(10, 50)])
+        assert sorted(got) == sorted(
+            [(S1, q) for q in range(45, 50)] + [(S2, q) for q in range(10, 50)]
+        )
         # Ordering across streams is append order.
         assert got[:2] == [(S2, 10), (S2, 11)]
         assert sp.acked() == {S1: 44, S2: 9}
@@ -150,8 +157,9 @@ def test_acks_saved_atomically_and_pruned(tmp_path: Path) -> None:
     assert not (tmp_path / (ACK_FILE + ".tmp")).exists()
 
 
-def test_unreadable_ack_file_means_resend_everything(tmp_path: Path,
-                                                      caplog: pytest.LogCaptureFixture) -> None:
+def test_unreadable_ack_file_means_resend_everything(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     with open_spool(tmp_path) as sp:
         for seq in range(5):
             sp.append(S1, seq, b"p%d" % seq)
@@ -187,8 +195,12 @@ CHILD_DETERMINISTIC = textwrap.dedent("""
 
 def test_kill9_mid_record_keeps_every_whole_record(tmp_path: Path) -> None:
     n = 200
-    proc = subprocess.run([sys.executable, "-c", CHILD_DETERMINISTIC, str(tmp_path), str(n)],
-                          capture_output=True, timeout=60, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD_DETERMINISTIC, str(tmp_path), str(n)],
+        capture_output=True,
+        timeout=60,
+        check=False,
+    )
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()
     torn_tail = record_size("boot/aa", b"z" * 64) // 2
     with open_spool(tmp_path) as sp:
@@ -220,8 +232,12 @@ CHILD_RACING = textwrap.dedent("""
 
 
 def test_kill9_at_a_random_moment_loses_nothing_appended(tmp_path: Path) -> None:
-    proc = subprocess.Popen([sys.executable, "-c", CHILD_RACING, str(tmp_path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHILD_RACING, str(tmp_path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     last_appended = last_acked = -1
     deadline = time.monotonic() + 60
     try:
@@ -269,7 +285,9 @@ def _offsets(recs: list[tuple[str, int, bytes]]) -> list[int]:
     return out + [off]
 
 
-@pytest.mark.parametrize("cut", [3, 14, 40, -1], ids=["in-magic", "in-header", "in-body", "last-byte"])
+@pytest.mark.parametrize(
+    "cut", [3, 14, 40, -1], ids=["in-magic", "in-header", "in-body", "last-byte"]
+)
 def test_truncated_tail_is_cut_and_earlier_records_survive(tmp_path: Path, cut: int) -> None:
     recs = _spool_with_records(tmp_path, 12)
     offs = _offsets(recs)
@@ -285,8 +303,9 @@ def test_truncated_tail_is_cut_and_earlier_records_survive(tmp_path: Path, cut: 
         assert list(sp.pending()) == [*recs[:-1], (S1, 12, b"appended after repair")]
 
 
-def test_garbled_record_in_the_middle_is_skipped(tmp_path: Path,
-                                                 caplog: pytest.LogCaptureFixture) -> None:
+def test_garbled_record_in_the_middle_is_skipped(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     recs = _spool_with_records(tmp_path, 12)
     offs = _offsets(recs)
     (seg,) = segments(tmp_path)
@@ -328,12 +347,15 @@ def test_foreign_and_headerless_segment_files(tmp_path: Path) -> None:
 
 
 def test_size_bound_drops_oldest_segments_with_a_counted_warning(
-        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     payload = b"r" * 180
     rec = record_size(S1, payload)
     clock = FakeClock()
-    with caplog.at_level(logging.WARNING), \
-            open_spool(tmp_path, 8192, segment_bytes=1024, clock=clock) as sp:
+    with (
+        caplog.at_level(logging.WARNING),
+        open_spool(tmp_path, 8192, segment_bytes=1024, clock=clock) as sp,
+    ):
         for seq in range(300):
             assert sp.append(S1, seq, payload)
             assert sp.stats().bytes <= 8192
@@ -410,14 +432,18 @@ class QuotaFiles(FileOps):
         os.ftruncate(fd, length)
 
 
-def test_full_disk_stops_cleanly_and_resumes(tmp_path: Path,
-                                             caplog: pytest.LogCaptureFixture) -> None:
+def test_full_disk_stops_cleanly_and_resumes(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     files, clock = QuotaFiles(free=3000), FakeClock()
     stored: list[tuple[str, int, bytes]] = []
     refused = 0
-    with caplog.at_level(logging.WARNING), \
-            open_spool(tmp_path, clock=clock, files=files, retry_interval_s=5.0,
-                       ack_interval_s=0.0) as sp:
+    with (
+        caplog.at_level(logging.WARNING),
+        open_spool(
+            tmp_path, clock=clock, files=files, retry_interval_s=5.0, ack_interval_s=0.0
+        ) as sp,
+    ):
         seq = 0
         while sp.append(S1, seq, b"%05d" % seq * 30):
             stored.append((S1, seq, b"%05d" % seq * 30))
@@ -440,8 +466,9 @@ def test_full_disk_stops_cleanly_and_resumes(tmp_path: Path,
         assert files.writes == writes
         # Saving acks fails too, but the old acks.json stays intact.
         sp.ack(S1, 0)
-        assert not (tmp_path / ACK_FILE).exists() or \
-            wire.from_json((tmp_path / ACK_FILE).read_bytes())
+        assert not (tmp_path / ACK_FILE).exists() or wire.from_json(
+            (tmp_path / ACK_FILE).read_bytes()
+        )
         # Space returns; nothing is retried before the retry interval.
         files.free = 10**6
         clock.advance(4.0)
@@ -458,8 +485,10 @@ def test_full_disk_stops_cleanly_and_resumes(tmp_path: Path,
     errors = [r for r in caplog.records if r.levelno == logging.ERROR]
     assert len(errors) == 1
     assert "disk full" in errors[0].getMessage()
-    assert any("writing again" in r.getMessage() and f"{refused} batches" in r.getMessage()
-               for r in caplog.records)
+    assert any(
+        "writing again" in r.getMessage() and f"{refused} batches" in r.getMessage()
+        for r in caplog.records
+    )
     with open_spool(tmp_path) as sp:
         assert sp.stats().recovered_bytes == 0
         assert list(sp.pending()) == stored[1:]
@@ -471,13 +500,21 @@ def tiny_fs(tmp_path: Path):
     mnt = tmp_path / "tiny"
     mnt.mkdir()
     if os.geteuid() != 0:
-        pytest.skip("mounting a 64 KiB tmpfs needs root; the FileOps fault-injection test "
-                    "covers the full-disk path")
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)],
-                       capture_output=True, text=True, check=False)
+        pytest.skip(
+            "mounting a 64 KiB tmpfs needs root; the FileOps fault-injection test "
+            "covers the full-disk path"
+        )
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip()}); the FileOps "
-                    "fault-injection test covers the full-disk path")
+        pytest.skip(
+            f"cannot mount a tmpfs here ({r.stderr.strip()}); the FileOps "
+            "fault-injection test covers the full-disk path"
+        )
     try:
         yield mnt
     finally:

@@ -48,8 +48,11 @@ def test_in_progress_and_not_ready_are_retried_with_backoff() -> None:
 
 def test_other_errors_fail_at_once_with_one_line() -> None:
     bus = FakeBus(["org.bluez.Error.Failed"])
-    with pytest.raises(BackendError, match=r"cannot power on adapter /org/bluez/hci3: "
-                                           r"org\.bluez\.Error\.Failed busy now"):
+    with pytest.raises(
+        BackendError,
+        match=r"cannot power on adapter /org/bluez/hci3: "
+        r"org\.bluez\.Error\.Failed busy now",
+    ):
         run(bus, True)
     assert len(bus.calls) == 1
 
@@ -65,10 +68,12 @@ def test_watchdog_config_validated() -> None:
     cfg = parse_config({"watchdog": {"silent_s": 20, "power_cycle_after": 3}})
     assert (cfg.watchdog.silent_s, cfg.watchdog.power_cycle_after) == (20.0, 3)
     assert parse_config({}).watchdog.silent_s == 60.0
-    for bad, msg in [({"silent_s": 0}, "watchdog.silent_s must be a number > 0, got 0"),
-                     ({"silent_s": "x"}, "watchdog.silent_s must be a number > 0, got 'x'"),
-                     ({"power_cycle_after": -1}, "watchdog.power_cycle_after must be an integer >= 0"),
-                     ({"power_cycle_after": 1.5}, "watchdog.power_cycle_after must be an integer >= 0"),
-                     ({"restart": 1}, "unknown key 'watchdog.restart'")]:
+    for bad, msg in [
+        ({"silent_s": 0}, "watchdog.silent_s must be a number > 0, got 0"),
+        ({"silent_s": "x"}, "watchdog.silent_s must be a number > 0, got 'x'"),
+        ({"power_cycle_after": -1}, "watchdog.power_cycle_after must be an integer >= 0"),
+        ({"power_cycle_after": 1.5}, "watchdog.power_cycle_after must be an integer >= 0"),
+        ({"restart": 1}, "unknown key 'watchdog.restart'"),
+    ]:
         with pytest.raises(ConfigError, match=msg.replace(".", r"\.").replace("(", r"\(")):
             parse_config({"watchdog": bad}, "agent.yaml")

@@ -15,8 +15,10 @@ import pytest
 
 pytestmark = [
     pytest.mark.dbus,
-    pytest.mark.skipif(shutil.which("dbus-daemon") is None,
-                       reason="dbus-daemon is not installed (needed for a private D-Bus)"),
+    pytest.mark.skipif(
+        shutil.which("dbus-daemon") is None,
+        reason="dbus-daemon is not installed (needed for a private D-Bus)",
+    ),
 ]
 
 dbus = pytest.importorskip("dbus")
@@ -44,7 +46,8 @@ def bluez(mock_log: Path) -> Iterator:
     dbusmock.DBusTestCase.start_system_bus()
     with mock_log.open("w") as out:
         proc, obj = dbusmock.DBusTestCase.spawn_server_template(
-            "bluez5", {}, stdout=out, system_bus=True)
+            "bluez5", {}, stdout=out, system_bus=True
+        )
     try:
         yield obj
     finally:
@@ -60,9 +63,13 @@ def bluez(mock_log: Path) -> Iterator:
 def add_beacon(bluez, adapter: str) -> str:
     path = bluez.AddDevice(adapter, "E7:8F:13:56:24:CE", "beacon1", dbus_interface=BLUEZ_MOCK_IFACE)
     obj(path).UpdateProperties(
-        DEVICE_IFACE, {"ManufacturerData": dbus.Dictionary({}, signature="qv"),
-                       "ServiceData": dbus.Dictionary({}, signature="sv")},
-        dbus_interface=dbusmock.MOCK_IFACE)
+        DEVICE_IFACE,
+        {
+            "ManufacturerData": dbus.Dictionary({}, signature="qv"),
+            "ServiceData": dbus.Dictionary({}, signature="sv"),
+        },
+        dbus_interface=dbusmock.MOCK_IFACE,
+    )
     return path
 
 
@@ -71,8 +78,12 @@ def obj(path: str):
 
 
 async def advert(path: str, rssi: int) -> None:
-    await asyncio.to_thread(obj(path).UpdateProperties, DEVICE_IFACE, {"RSSI": dbus.Int16(rssi)},
-                            dbus_interface=dbusmock.MOCK_IFACE)
+    await asyncio.to_thread(
+        obj(path).UpdateProperties,
+        DEVICE_IFACE,
+        {"RSSI": dbus.Int16(rssi)},
+        dbus_interface=dbusmock.MOCK_IFACE,
+    )
 
 
 async def wait_for(cond: Callable[[], bool], timeout_s: float = 15.0) -> None:
@@ -118,16 +129,22 @@ def test_adapter_still_silent_is_power_cycled_and_refound_by_mac(bluez, mock_log
             await wait_for(lambda: len(got) == 1)
             # The controller falls off the bus and comes back as hci10 with the same address:
             # restarting the scanner on hci0 cannot help; the power-cycle path finds it by MAC.
-            await asyncio.to_thread(bluez.RemoveAdapterWithDevices, "hci0",
-                                    dbus_interface=BLUEZ_MOCK_IFACE)
-            await asyncio.to_thread(bluez.AddAdapter, "hci10", "pi-a",
-                                    dbus_interface=BLUEZ_MOCK_IFACE)
+            await asyncio.to_thread(
+                bluez.RemoveAdapterWithDevices, "hci0", dbus_interface=BLUEZ_MOCK_IFACE
+            )
+            await asyncio.to_thread(
+                bluez.AddAdapter, "hci10", "pi-a", dbus_interface=BLUEZ_MOCK_IFACE
+            )
             new_beacon = await asyncio.to_thread(add_beacon, bluez, "hci10")
             await wait_for(lambda: backend.power_cycles(MAC) >= 1)
             assert backend.restarts(MAC) >= 1  # a plain restart came first
             await wait_for(lambda: backend.adapters[0].name == "hci10")
-            powered = await asyncio.to_thread(obj("/org/bluez/hci10").Get, ADAPTER_IFACE, "Powered",
-                                              dbus_interface="org.freedesktop.DBus.Properties")
+            powered = await asyncio.to_thread(
+                obj("/org/bluez/hci10").Get,
+                ADAPTER_IFACE,
+                "Powered",
+                dbus_interface="org.freedesktop.DBus.Properties",
+            )
             assert bool(powered)  # switched off and on again, not left off
             await asyncio.sleep(0.3)  # let the new scanner settle
             await advert(new_beacon, -70)
@@ -137,8 +154,12 @@ def test_adapter_still_silent_is_power_cycled_and_refound_by_mac(bluez, mock_log
 
     asyncio.run(main())
     assert [(mac, r.rssi) for mac, r in got[:2]] == [(MAC, -60), (MAC, -70)]
-    sets = [line.split(" ", 1)[1] for line in mock_log.read_text().splitlines()
-            if " Set /org/bluez/" in line]
-    assert sets[:2] == ["Set /org/bluez/hci10 org.bluez.Adapter1.Powered False",
-                        "Set /org/bluez/hci10 org.bluez.Adapter1.Powered True"]
-
+    sets = [
+        line.split(" ", 1)[1]
+        for line in mock_log.read_text().splitlines()
+        if " Set /org/bluez/" in line
+    ]
+    assert sets[:2] == [
+        "Set /org/bluez/hci10 org.bluez.Adapter1.Powered False",
+        "Set /org/bluez/hci10 org.bluez.Adapter1.Powered True",
+    ]

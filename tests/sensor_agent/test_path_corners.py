@@ -13,9 +13,15 @@ from sensor_agent.config import load_config
 SQUARE = ((0.0, 0.0, 1.0), (4.0, 0.0, 1.0), (4.0, 4.0, 1.0), (0.0, 4.0, 1.0))
 
 
-def sample(p: PathModel, dt: float = 1e-3, laps: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def sample(
+    p: PathModel, dt: float = 1e-3, laps: float = 1.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     t = np.arange(0.0, laps * p.period_s, dt)
-    return (t, np.array([p.position_at(float(s)) for s in t]), np.array([p.direction_at(float(s)) for s in t]))
+    return (
+        t,
+        np.array([p.position_at(float(s)) for s in t]),
+        np.array([p.direction_at(float(s)) for s in t]),
+    )
 
 
 def test_zero_radius_is_the_sharp_polyline_and_is_not_written() -> None:
@@ -46,7 +52,9 @@ def test_rounded_square_geometry_is_exact() -> None:
     assert p.position_at(quarter + 2.0) == pytest.approx((r + 2.0 * v, 0.0, 1.0))
     # The path passes r (sqrt 2 - 1) inside each corner's waypoint.
     _, pos, _ = sample(p)
-    assert np.min(np.linalg.norm(pos - SQUARE[1], axis=1)) == pytest.approx(r * (math.sqrt(2) - 1), abs=1e-4)
+    assert np.min(np.linalg.norm(pos - SQUARE[1], axis=1)) == pytest.approx(
+        r * (math.sqrt(2) - 1), abs=1e-4
+    )
 
 
 def test_rounded_path_has_constant_speed_and_no_instant_turn_in_3d() -> None:
@@ -78,7 +86,9 @@ def test_dwell_is_at_the_start_of_each_arc() -> None:
 
 
 def test_collinear_waypoint_needs_no_arc() -> None:
-    p = PathModel(((0, 0, 1), (2, 0, 1), (4, 0, 1), (4, 4, 1), (0, 4, 1)), speed_mps=1.0, corner_radius=1.0)
+    p = PathModel(
+        ((0, 0, 1), (2, 0, 1), (4, 0, 1), (4, 4, 1), (0, 4, 1)), speed_mps=1.0, corner_radius=1.0
+    )
     assert p.position_at(0.0) == pytest.approx((0.0, 1.0, 1.0))  # corner 0 rounded, as before
     # Straight through (2, 0): it lies on the bottom side, 1 s after that arc ends.
     t_mid = 0.5 * math.pi + 1.0
@@ -88,7 +98,9 @@ def test_collinear_waypoint_needs_no_arc() -> None:
 def test_bad_corner_radius_is_a_clear_error() -> None:
     with pytest.raises(MotionError, match="corner_radius must be a number >= 0"):
         PathModel(SQUARE, corner_radius=-1.0)
-    with pytest.raises(MotionError, match="too large: the arcs at waypoints 0 and 1 need 5.000 m of the 4.000 m"):
+    with pytest.raises(
+        MotionError, match="too large: the arcs at waypoints 0 and 1 need 5.000 m of the 4.000 m"
+    ):
         PathModel(SQUARE, corner_radius=2.5)
     with pytest.raises(MotionError, match="waypoint 0 turns straight back"):
         PathModel(((0, 0, 0), (3, 0, 0)), corner_radius=0.5)
@@ -101,7 +113,9 @@ def test_corner_radius_round_trips_through_dict_and_agent_yaml(tmp_path) -> None
     assert PathModel.from_dict(p.to_dict()) == p
     (tmp_path / "agent.yaml").write_text(
         "backend: simulated\nsimulated:\n  path: {waypoints: [[0, 0, 1], [4, 0, 1], [4, 4, 1], [0, 4, 1]], "
-        "speed_mps: 0.4, corner_radius: 0.75}\n", encoding="utf-8")
+        "speed_mps: 0.4, corner_radius: 0.75}\n",
+        encoding="utf-8",
+    )
     cfg = load_config(tmp_path / "agent.yaml")
     assert cfg.simulated.path == p
     assert cfg.simulated.path.position_at(0.0) == pytest.approx((0.0, 0.75, 1.0))

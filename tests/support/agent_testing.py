@@ -52,10 +52,15 @@ class FakeCollector:
             if b.floor > 0:
                 self._mark[b.stream] = max(self._mark.get(b.stream, -1), b.floor - 1)
             if self.ack:
-                streams = {s: self.watermark((a, boot, s)) for (a, boot, s) in list(self._seen)
-                           if a == b.agent_id and boot == b.boot_id}
-                self.session.put(wire.ack_key(self.site, b.agent_id),
-                                 wire.to_json({"boot": b.boot_id, "streams": streams}))
+                streams = {
+                    s: self.watermark((a, boot, s))
+                    for (a, boot, s) in list(self._seen)
+                    if a == b.agent_id and boot == b.boot_id
+                }
+                self.session.put(
+                    wire.ack_key(self.site, b.agent_id),
+                    wire.to_json({"boot": b.boot_id, "streams": streams}),
+                )
 
     def close(self) -> None:
         self.sub.undeclare()

@@ -16,25 +16,41 @@ T0 = 1_700_000_000_123_456_789
 
 
 def make_reading(i: int = 0, **kw) -> wire.Reading:
-    args = {"t_ns": T0 + i * 1_000_003, "beacon": "e78f135624ce", "rssi": -40 - i % 60, "mono_ns": 0}
+    args = {
+        "t_ns": T0 + i * 1_000_003,
+        "beacon": "e78f135624ce",
+        "rssi": -40 - i % 60,
+        "mono_ns": 0,
+    }
     args.update(kw)
     return wire.Reading(**args)
 
 
-def make_batch(seq: int, n: int = 5, *, agent: str = "pi-01", boot: str = "0123456789abcdef",
-               sensor: str = "b827eb4521b4", first: int | None = None) -> wire.Batch:
+def make_batch(
+    seq: int,
+    n: int = 5,
+    *,
+    agent: str = "pi-01",
+    boot: str = "0123456789abcdef",
+    sensor: str = "b827eb4521b4",
+    first: int | None = None,
+) -> wire.Batch:
     first = seq * n if first is None else first
     return wire.Batch(agent, boot, sensor, seq, tuple(make_reading(first + j) for j in range(n)))
 
 
 def with_floor(batch: wire.Batch, floor: int) -> wire.Batch:
-    return wire.Batch(batch.agent_id, batch.boot_id, batch.sensor, batch.seq, batch.readings,
-                      batch.sent_ns, floor)
+    return wire.Batch(
+        batch.agent_id, batch.boot_id, batch.sensor, batch.seq, batch.readings, batch.sent_ns, floor
+    )
 
 
 def expected_lines(batches: list[wire.Batch]) -> list[str]:
-    return [f"{wire.format_ts(r.t_ns)},{b.sensor},{r.beacon},{r.rssi}"
-            for b in batches for r in b.readings]
+    return [
+        f"{wire.format_ts(r.t_ns)},{b.sensor},{r.beacon},{r.rssi}"
+        for b in batches
+        for r in b.readings
+    ]
 
 
 def run_yaml_doc(run_dir) -> dict:
@@ -59,10 +75,18 @@ def wait_for(cond: Callable[[], object], timeout: float = 20.0, what: str = "con
 class FakeAgent:
     """Publishes batches on the data keys and records the acks it is sent, like a real agent."""
 
-    def __init__(self, endpoint: str, agent: str = "pi-01", site: str = "default",
-                 boot: str = "0123456789abcdef", tls: TlsFiles | None = None) -> None:
+    def __init__(
+        self,
+        endpoint: str,
+        agent: str = "pi-01",
+        site: str = "default",
+        boot: str = "0123456789abcdef",
+        tls: TlsFiles | None = None,
+    ) -> None:
         self.agent, self.site, self.boot = agent, site, boot
-        self.session = zenoh.open(build_config(SessionSpec(mode="client", connect=[endpoint], tls=tls)))
+        self.session = zenoh.open(
+            build_config(SessionSpec(mode="client", connect=[endpoint], tls=tls))
+        )
         self.acks: dict[str, int] = {}
         self.boot_acks: dict[str, dict[str, int]] = {}  # every boot's acks (contract 2)
         self.ack_msgs: list[dict] = []
@@ -99,10 +123,14 @@ class FakeAgent:
         self._clock_q = self.session.declare_queryable(key, on_query)
 
     def declare_token(self) -> None:
-        self.token = self.session.liveliness().declare_token(wire.agent_token_key(self.site, self.agent))
+        self.token = self.session.liveliness().declare_token(
+            wire.agent_token_key(self.site, self.agent)
+        )
 
     def put(self, batch: wire.Batch) -> None:
-        self.session.put(wire.data_key(self.site, batch.agent_id, batch.sensor), wire.to_wire(batch))
+        self.session.put(
+            wire.data_key(self.site, batch.agent_id, batch.sensor), wire.to_wire(batch)
+        )
 
     def put_raw(self, sensor: str, payload: bytes, agent: str | None = None) -> None:
         self.session.put(wire.data_key(self.site, agent or self.agent, sensor), payload)

@@ -98,8 +98,10 @@ class Honest:
         last_resend = time.monotonic()
         while not self._stop.wait(0.1):
             seq = len(self.batches)
-            rs = tuple(wire.Reading(T0 + seq * 10**8 + k * 10**6, "e78f135624ce", -50 - k)
-                       for k in range(10))
+            rs = tuple(
+                wire.Reading(T0 + seq * 10**8 + k * 10**6, "e78f135624ce", -50 - k)
+                for k in range(10)
+            )
             payload = wire.to_wire(wire.Batch(self.agent, self.boot, self.sensor, seq, rs, floor=0))
             self.batches.append(payload)
             self.rows += [f"{wire.format_ts(r.t_ns)},{self.sensor},{r.beacon},{r.rssi}" for r in rs]
@@ -109,7 +111,7 @@ class Honest:
                 self.resend()
 
     def resend(self) -> None:
-        for p in self.batches[self.acked + 1:]:
+        for p in self.batches[self.acked + 1 :]:
             self._put(p)
 
     def start(self) -> None:
@@ -134,9 +136,11 @@ def flood_macs(ep: str, n: int, tls: TlsFiles | None = None) -> None:
         rs = tuple(wire.Reading(T0 + k, "e78f135624ce", -60) for k in range(2))
         for i in range(n):
             mac = flood_mac(i)
-            s.put(wire.data_key("default", FLOODER, mac),
-                  wire.to_wire(wire.Batch(FLOODER, "b" * 16, mac, 0, rs, floor=0)),
-                  congestion_control=zenoh.CongestionControl.BLOCK)
+            s.put(
+                wire.data_key("default", FLOODER, mac),
+                wire.to_wire(wire.Batch(FLOODER, "b" * 16, mac, 0, rs, floor=0)),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
     finally:
         s.close()
 
@@ -151,8 +155,11 @@ def flood_maxsize(ep: str, seconds: float, tls: TlsFiles | None = None) -> int:
     try:
         while time.monotonic() < end:
             payload = wire.to_wire(wire.Batch(FLOODER, "b" * 16, mac, sent, rs, floor=0))
-            s.put(wire.data_key("default", FLOODER, mac), payload,
-                  congestion_control=zenoh.CongestionControl.BLOCK)
+            s.put(
+                wire.data_key("default", FLOODER, mac),
+                payload,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
             sent += 1
     finally:
         s.close()
@@ -191,13 +198,19 @@ class FloodOutcome:
 
     def summary(self) -> str:
         """One line of figures: what the tests print (run them with -s) and the bench expands on."""
-        honest = ", ".join(f"{a} {h.readings} readings lost {h.lost} dup {h.dup}" for a, h in self.honest.items())
-        return (f"{self.kind}: {self.flood}; RSS peak {self.rss_peak_kib / 1024:.1f} MiB "
-                f"(VmHWM {self.hwm_kib / 1024:.1f}); {honest}; drain {self.drain_s} s; "
-                f"stop {self.stop_s} s; exit {self.shutdown_s} s; refused {self.status['refused_streams']}")
+        honest = ", ".join(
+            f"{a} {h.readings} readings lost {h.lost} dup {h.dup}" for a, h in self.honest.items()
+        )
+        return (
+            f"{self.kind}: {self.flood}; RSS peak {self.rss_peak_kib / 1024:.1f} MiB "
+            f"(VmHWM {self.hwm_kib / 1024:.1f}); {honest}; drain {self.drain_s} s; "
+            f"stop {self.stop_s} s; exit {self.shutdown_s} s; refused {self.status['refused_streams']}"
+        )
 
 
-def _wait_reachable(ep: str, proc: subprocess.Popen, tls: TlsFiles | None, timeout: float = 30) -> None:
+def _wait_reachable(
+    ep: str, proc: subprocess.Popen, tls: TlsFiles | None, timeout: float = 30
+) -> None:
     deadline = time.monotonic() + timeout
     while True:
         try:
@@ -220,8 +233,11 @@ def _write_config(workdir: Path, ep: str, limits: dict | None, pki_dir: Path | N
         text += f"limits: {json.dumps(limits)}\n"
     if pki_dir:
         acl = workdir / "acl.json5"
-        acl.write_text(json.dumps(build_acl("default", [FLOODER, *(a for a, _ in HONEST)],
-                                            ["collector", "operator"])))
+        acl.write_text(
+            json.dumps(
+                build_acl("default", [FLOODER, *(a for a, _ in HONEST)], ["collector", "operator"])
+            )
+        )
         col = tls_files(pki_dir, "collector")
         text += f"tls: {json.dumps({'root_ca': col.root_ca, 'cert': col.cert, 'key': col.key})}\n"
         text += f"acl: {json.dumps(str(acl))}\n"
@@ -229,8 +245,9 @@ def _write_config(workdir: Path, ep: str, limits: dict | None, pki_dir: Path | N
     return cfg
 
 
-def _flood(kind: str, ep: str, macs: int, seconds: float, nofile: int | None,
-           bad: TlsFiles | None) -> str:
+def _flood(
+    kind: str, ep: str, macs: int, seconds: float, nofile: int | None, bad: TlsFiles | None
+) -> str:
     """Run the flood of `kind`; a description of what was sent."""
     if kind == "macs":
         flood_macs(ep, macs, bad)
@@ -283,15 +300,27 @@ def _honest_outcome(run_dir: Path, h: Honest) -> HonestOutcome:
     f = run_dir / "rssi" / h.agent / f"{h.sensor}.mbd"
     got = Counter(f.read_text().splitlines()) if f.exists() else Counter()
     sent = set(h.rows)
-    return HonestOutcome(len(h.rows), len(sent - got.keys()),
-                         sum(c - 1 for c in got.values() if c > 1),
-                         sum(c for k, c in got.items() if k not in sent),
-                         len(h.batches), h.acked)
+    return HonestOutcome(
+        len(h.rows),
+        len(sent - got.keys()),
+        sum(c - 1 for c in got.values() if c > 1),
+        sum(c for k, c in got.items() if k not in sent),
+        len(h.batches),
+        h.acked,
+    )
 
 
-def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20.0,
-              nofile: int | None = None, limits: dict | None = None, pki_dir: Path | None = None,
-              drain_timeout_s: float = 300.0) -> FloodOutcome:
+def run_flood(
+    kind: str,
+    workdir: Path,
+    *,
+    macs: int = 5000,
+    seconds: float = 20.0,
+    nofile: int | None = None,
+    limits: dict | None = None,
+    pki_dir: Path | None = None,
+    drain_timeout_s: float = 300.0,
+) -> FloodOutcome:
     """Start `collector serve` in `workdir`, record a run with two honest agents, flood it from a
     third (kind "macs": one batch on each of `macs` MACs; "maxsize": maximum-size batches for
     `seconds`), let the honest agents re-send until everything is acknowledged, stop the run,
@@ -307,10 +336,22 @@ def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20
 
     # -X faulthandler: a collector that does not exit is sent SIGABRT below and prints every
     # thread's stack to stderr, which the outcome carries.
-    proc = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "collector.cli", "serve",
-                             "--config", str(cfg)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=limit_fds)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-X",
+            "faulthandler",
+            "-m",
+            "collector.cli",
+            "serve",
+            "--config",
+            str(cfg),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=limit_fds,
+    )
     peak, hwm = [0], [0]
     sampling = threading.Event()
 
@@ -340,7 +381,9 @@ def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20
         drain_s = time.monotonic() - t_end
         settled = all(h.settled() for h in honest)
         with CollectorClient(ep, tls=op) as c:
-            if kind == "macs":  # the flood's last batches may still be queued behind the honest ones
+            if (
+                kind == "macs"
+            ):  # the flood's last batches may still be queued behind the honest ones
                 _wait_counted(c, macs + len(honest))
             st = c.status()
             status_bytes = len(json.dumps({"ok": True, **st}).encode())
@@ -356,6 +399,21 @@ def run_flood(kind: str, workdir: Path, *, macs: int = 5000, seconds: float = 20
     run_dir = Path(stopped["run_dir"])
     outcomes = {h.agent: _honest_outcome(run_dir, h) for h in honest}
     flood_dir = run_dir / "rssi" / FLOODER
-    return FloodOutcome(kind, flood, round(t_end - t_flood, 2), round(drain_s, 2), round(stop_s, 2),
-                        round(shutdown_s, 2), peak[0], hwm[0], proc.returncode, err, outcomes, st,
-                        status_bytes, run_dir, len(list(flood_dir.glob("*.mbd"))), settled)
+    return FloodOutcome(
+        kind,
+        flood,
+        round(t_end - t_flood, 2),
+        round(drain_s, 2),
+        round(stop_s, 2),
+        round(shutdown_s, 2),
+        peak[0],
+        hwm[0],
+        proc.returncode,
+        err,
+        outcomes,
+        st,
+        status_bytes,
+        run_dir,
+        len(list(flood_dir.glob("*.mbd"))),
+        settled,
+    )

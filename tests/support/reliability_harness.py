@@ -90,8 +90,16 @@ def beacon_macs(n: int) -> tuple[str, ...]:
     return tuple(f"e78f13{0x560000 + i:06x}" for i in range(n))
 
 
-def make_replay(folder: Path, *, sensors: Sequence[str], beacons: Sequence[str], rate_hz: float,
-                duration_s: float, t0_ns: int, tag: str = "a") -> ReplaySet:
+def make_replay(
+    folder: Path,
+    *,
+    sensors: Sequence[str],
+    beacons: Sequence[str],
+    rate_hz: float,
+    duration_s: float,
+    t0_ns: int,
+    tag: str = "a",
+) -> ReplaySet:
     """One .mbd file per sensor: every beacon heard by every sensor `rate_hz` times a second.
 
     Timestamps carry small per-sensor/per-beacon offsets so every row of the set is unique, and
@@ -135,8 +143,9 @@ class Proc:
         fh = self.log_path.open("ab")
         env = dict(os.environ, **(self.env or {}))
         env.setdefault("PYTHONUNBUFFERED", "1")
-        self.p = subprocess.Popen(self.argv, stdout=fh, stderr=subprocess.STDOUT, env=env,
-                                  start_new_session=True)
+        self.p = subprocess.Popen(
+            self.argv, stdout=fh, stderr=subprocess.STDOUT, env=env, start_new_session=True
+        )
         fh.close()
 
     @property
@@ -161,8 +170,9 @@ class Proc:
         try:
             return self.p.wait(timeout)
         except subprocess.TimeoutExpired:
-            raise AssertionError(f"{self.argv[0]} still running after {timeout:g} s; log:\n"
-                                 f"{self.tail()}") from None
+            raise AssertionError(
+                f"{self.argv[0]} still running after {timeout:g} s; log:\n{self.tail()}"
+            ) from None
 
     def terminate(self, timeout: float = 30.0) -> int | None:
         """SIGCONT (in case it is stopped) + SIGTERM, then SIGKILL if it does not go."""
@@ -184,13 +194,22 @@ class Proc:
 class CollectorProc(Proc):
     """`collector serve` on a fixed port and data directory; restartable."""
 
-    def __init__(self, data_dir: Path, port: int, logs: Path, site: str = SITE,
-                 config: Path | None = None) -> None:
+    def __init__(
+        self, data_dir: Path, port: int, logs: Path, site: str = SITE, config: Path | None = None
+    ) -> None:
         self.data_dir, self.port, self.site = data_dir, port, site
         self.endpoint = f"tcp/127.0.0.1:{port}"
         self.starts = 0
-        argv = [*_command("collector", "collector.cli"), "serve", "--data-dir", str(data_dir),
-                "--listen", self.endpoint, "--site", site]
+        argv = [
+            *_command("collector", "collector.cli"),
+            "serve",
+            "--data-dir",
+            str(data_dir),
+            "--listen",
+            self.endpoint,
+            "--site",
+            site,
+        ]
         if config is not None:
             argv += ["--config", str(config)]
         super().__init__(argv, logs / "collector.log")
@@ -230,13 +249,27 @@ class CollectorProc(Proc):
 class AgentProc(Proc):
     """`sensor-agent run` with a YAML config (replay backend, spool dir) written by the harness."""
 
-    def __init__(self, folder: Path, *, agent_id: str, endpoint: str, replay: Iterable[Path],
-                 spool_dir: Path | None, speed: float = 1.0, ack_timeout_s: float = 60.0,
-                 spool_max_mb: int = 256, name: str = "agent", site: str = SITE) -> None:
+    def __init__(
+        self,
+        folder: Path,
+        *,
+        agent_id: str,
+        endpoint: str,
+        replay: Iterable[Path],
+        spool_dir: Path | None,
+        speed: float = 1.0,
+        ack_timeout_s: float = 60.0,
+        spool_max_mb: int = 256,
+        name: str = "agent",
+        site: str = SITE,
+    ) -> None:
         folder.mkdir(parents=True, exist_ok=True)
         self.spool_dir = spool_dir
         cfg = {
-            "agent_id": agent_id, "site": site, "connect": [endpoint], "backend": "replay",
+            "agent_id": agent_id,
+            "site": site,
+            "connect": [endpoint],
+            "backend": "replay",
             "batch_ms": 100,
             "replay": {"paths": [str(p) for p in replay], "speed": speed, "keep_time": True},
             "spool": {"dir": None if spool_dir is None else str(spool_dir), "max_mb": spool_max_mb},
@@ -245,8 +278,10 @@ class AgentProc(Proc):
         }
         self.config = folder / f"{name}.yaml"
         self.config.write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
-        super().__init__([*_command("sensor-agent", "sensor_agent.cli"), "run", "--config",
-                          str(self.config)], folder / f"{name}.log")
+        super().__init__(
+            [*_command("sensor-agent", "sensor_agent.cli"), "run", "--config", str(self.config)],
+            folder / f"{name}.log",
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -271,10 +306,15 @@ class Tally:
         return not (self.lost or self.duplicated or self.unexpected or self.torn)
 
     def __str__(self) -> str:
-        s = (f"expected {self.expected}, recorded {self.recorded}, lost {self.lost}, "
-             f"duplicated {self.duplicated}, unexpected {self.unexpected}, torn {self.torn}")
-        for label, ex in (("lost e.g.", self.lost_examples), ("duplicated e.g.", self.dup_examples),
-                          ("unexpected e.g.", self.unexpected_examples)):
+        s = (
+            f"expected {self.expected}, recorded {self.recorded}, lost {self.lost}, "
+            f"duplicated {self.duplicated}, unexpected {self.unexpected}, torn {self.torn}"
+        )
+        for label, ex in (
+            ("lost e.g.", self.lost_examples),
+            ("duplicated e.g.", self.dup_examples),
+            ("unexpected e.g.", self.unexpected_examples),
+        ):
             if ex:
                 s += f"\n  {label} {ex[:3]}"
         return s
@@ -308,8 +348,12 @@ def read_rows(run_dir: Path, sensors: Iterable[str] | None = None) -> tuple[Coun
     return rows, torn
 
 
-def tally(run_dir: Path, expected: Iterable[str], sensors: Iterable[str] | None = None,
-          allowed: Iterable[str] = ()) -> Tally:
+def tally(
+    run_dir: Path,
+    expected: Iterable[str],
+    sensors: Iterable[str] | None = None,
+    allowed: Iterable[str] = (),
+) -> Tally:
     """Compare the run's rows with `expected` (each must appear exactly once).
 
     `allowed` rows may appear at most once without counting as unexpected (readings that may or
@@ -353,12 +397,12 @@ def spool_batches(spool_dir: Path) -> list[tuple[str, int, bytes]]:
             end = off + rec.size + n
             if magic != b"BGTR" or end > len(data) or n < body.size:
                 break
-            b = data[off + rec.size:end]
+            b = data[off + rec.size : end]
             if zlib.crc32(b, zlib.crc32(struct.pack("<I", n))) != crc:
                 break
             seq, _t, slen = body.unpack_from(b, 0)
-            stream = b[body.size:body.size + slen].decode()
-            out.append((stream, seq, b[body.size + slen:]))
+            stream = b[body.size : body.size + slen].decode()
+            out.append((stream, seq, b[body.size + slen :]))
             off = end
     return out
 
@@ -415,9 +459,11 @@ class Result:
     def line(self) -> str:
         t = self.tally
         extra = ", ".join(f"{k} {v}" for k, v in self.notes.items())
-        return (f"{self.name:<28} expected {t.expected:>7}  lost {t.lost:>5}  duplicated "
-                f"{t.duplicated:>5}  unexpected {t.unexpected:>4}  torn {t.torn:>3}"
-                + (f"  ({extra})" if extra else ""))
+        return (
+            f"{self.name:<28} expected {t.expected:>7}  lost {t.lost:>5}  duplicated "
+            f"{t.duplicated:>5}  unexpected {t.unexpected:>4}  torn {t.torn:>3}"
+            + (f"  ({extra})" if extra else "")
+        )
 
 
 @dataclass
@@ -434,8 +480,9 @@ class Scale:
 class Rig:
     """A collector plus agents in one folder; everything is stopped by close()."""
 
-    def __init__(self, root: Path, data_dir: Path | None = None,
-                 spool_root: Path | None = None) -> None:
+    def __init__(
+        self, root: Path, data_dir: Path | None = None, spool_root: Path | None = None
+    ) -> None:
         self.root = root
         self.spool_root = spool_root or root
         self.logs = root / "logs"
@@ -447,11 +494,26 @@ class Rig:
     def endpoint(self) -> str:
         return self.collector.endpoint
 
-    def agent(self, replay: Iterable[Path], *, agent_id: str = "pi-01", name: str = "agent",
-              spool: bool = True, speed: float = 1.0, ack_timeout_s: float = 90.0) -> AgentProc:
-        a = AgentProc(self.root / "agents", agent_id=agent_id, endpoint=self.endpoint,
-                      replay=replay, spool_dir=(self.spool_root / f"spool-{agent_id}") if spool else None,
-                      speed=speed, ack_timeout_s=ack_timeout_s, name=name)
+    def agent(
+        self,
+        replay: Iterable[Path],
+        *,
+        agent_id: str = "pi-01",
+        name: str = "agent",
+        spool: bool = True,
+        speed: float = 1.0,
+        ack_timeout_s: float = 90.0,
+    ) -> AgentProc:
+        a = AgentProc(
+            self.root / "agents",
+            agent_id=agent_id,
+            endpoint=self.endpoint,
+            replay=replay,
+            spool_dir=(self.spool_root / f"spool-{agent_id}") if spool else None,
+            speed=speed,
+            ack_timeout_s=ack_timeout_s,
+            name=name,
+        )
         self.agents.append(a)
         return a
 
@@ -463,8 +525,9 @@ class Rig:
         return self.collector.control("stop")
 
     def wait_recording(self, run_dir: Path, lines: int, timeout: float = 60.0) -> None:
-        wait_until(lambda: count_lines(run_dir) >= lines, timeout,
-                   f"{lines} rows in {run_dir.name}")
+        wait_until(
+            lambda: count_lines(run_dir) >= lines, timeout, f"{lines} rows in {run_dir.name}"
+        )
 
     def wait_agent(self, a: AgentProc, timeout: float) -> int:
         return a.wait(timeout)
@@ -497,8 +560,15 @@ def _finish(rig: Rig, run_dir: Path, agent: AgentProc, timeout: float, res: Resu
     res.problems += check_run_files(run_dir)
 
 
-def collector_outage(root: Path, scale: Scale, *, mode: str, outage_s: float,
-                     name: str | None = None, fault_at: float = 0.25) -> Result:
+def collector_outage(
+    root: Path,
+    scale: Scale,
+    *,
+    mode: str,
+    outage_s: float,
+    name: str | None = None,
+    fault_at: float = 0.25,
+) -> Result:
     """The collector goes away mid-stream for `outage_s` and comes back on the same data dir.
 
     mode "kill9": kill -9, restart after outage_s. mode "sigstop": SIGSTOP, SIGCONT after
@@ -506,9 +576,14 @@ def collector_outage(root: Path, scale: Scale, *, mode: str, outage_s: float,
     once `fault_at` of the readings are in the run's files."""
     assert mode in ("kill9", "sigstop")
     rig = Rig(root)
-    data = make_replay(root / "replay", sensors=sensor_macs(scale.sensors),
-                       beacons=beacon_macs(scale.beacons), rate_hz=scale.rate_hz,
-                       duration_s=scale.duration_s, t0_ns=time.time_ns())
+    data = make_replay(
+        root / "replay",
+        sensors=sensor_macs(scale.sensors),
+        beacons=beacon_macs(scale.beacons),
+        rate_hz=scale.rate_hz,
+        duration_s=scale.duration_s,
+        t0_ns=time.time_ns(),
+    )
     res = Result(name or f"collector {mode} {outage_s:g}s", Tally())
     run_dir: Path | None = None
     try:
@@ -517,8 +592,9 @@ def collector_outage(root: Path, scale: Scale, *, mode: str, outage_s: float,
         agent = rig.agent(data.paths, speed=scale.speed)
         agent.start()
         # Fault once `fault_at` of the readings are on disk: well inside the stream.
-        rig.wait_recording(run_dir, max(1, int(len(data.rows) * fault_at)),
-                           timeout=60 + scale.duration_s)
+        rig.wait_recording(
+            run_dir, max(1, int(len(data.rows) * fault_at)), timeout=60 + scale.duration_s
+        )
         before = count_lines(run_dir)
         if mode == "kill9":
             rig.collector.kill9()
@@ -537,8 +613,9 @@ def collector_outage(root: Path, scale: Scale, *, mode: str, outage_s: float,
             run = {}
             res.problems.append(f"status after the {mode}: {e}")
         if run.get("run_id") != run_dir.name:
-            res.problems.append(f"after the {mode} the active run is {run.get('run_id')!r}, "
-                                f"not {run_dir.name!r}")
+            res.problems.append(
+                f"after the {mode} the active run is {run.get('run_id')!r}, not {run_dir.name!r}"
+            )
         _finish(rig, run_dir, agent, scale.duration_s / max(scale.speed, 0.1) + 150, res)
     except (AssertionError, CollectorError) as e:
         res.problems.append(f"{e}\n{rig.diagnostics()}")
@@ -559,11 +636,24 @@ def agent_restart(root: Path, scale: Scale, *, pause_s: float = 2.0) -> Result:
     rig = Rig(root)
     sensors, beacons = sensor_macs(scale.sensors), beacon_macs(scale.beacons)
     t0 = time.time_ns()
-    first = make_replay(root / "replay", sensors=sensors, beacons=beacons, rate_hz=scale.rate_hz,
-                        duration_s=scale.duration_s, t0_ns=t0, tag="first")
-    second = make_replay(root / "replay", sensors=sensors, beacons=beacons,
-                         rate_hz=scale.rate_hz, duration_s=scale.duration_s / 2,
-                         t0_ns=first.last_ns + 10**9, tag="second")
+    first = make_replay(
+        root / "replay",
+        sensors=sensors,
+        beacons=beacons,
+        rate_hz=scale.rate_hz,
+        duration_s=scale.duration_s,
+        t0_ns=t0,
+        tag="first",
+    )
+    second = make_replay(
+        root / "replay",
+        sensors=sensors,
+        beacons=beacons,
+        rate_hz=scale.rate_hz,
+        duration_s=scale.duration_s / 2,
+        t0_ns=first.last_ns + 10**9,
+        tag="second",
+    )
     res = Result("agent kill9 + restart", Tally())
     run_dir: Path | None = None
     spooled_rows: set[str] = set()
@@ -583,8 +673,11 @@ def agent_restart(root: Path, scale: Scale, *, pause_s: float = 2.0) -> Result:
         spooled = spool_batches(a1.spool_dir)
         boots = {s.split("/")[0] for s, _, _ in spooled}
         spooled_rows = batch_rows(p for _, _, p in spooled)
-        res.notes.update(spooled_batches=len(spooled), spooled_rows=len(spooled_rows),
-                         rows_at_kill=on_disk_at_kill)
+        res.notes.update(
+            spooled_batches=len(spooled),
+            spooled_rows=len(spooled_rows),
+            rows_at_kill=on_disk_at_kill,
+        )
         if not spooled_rows:
             res.problems.append("the agent's spool held nothing at the kill (is the spool wired?)")
         a2 = rig.agent(second.paths, speed=scale.speed, name="agent-boot2")
@@ -609,19 +702,29 @@ def _mutations(rng: Any, valid: bytes) -> list[tuple[str, bytes]]:
     """Kinds of broken payloads, each derived from a valid batch or made from scratch."""
     head = wire.BATCH_HEAD
     magic, ver, mlen, n = head.unpack_from(valid, 0)
-    meta = valid[head.size:head.size + mlen]
-    body = valid[head.size + mlen:]
+    meta = valid[head.size : head.size + mlen]
+    body = valid[head.size + mlen :]
     out = []
     flipped = bytearray(valid)
     for _ in range(rng.randint(1, 4)):
         i = rng.randrange(len(flipped))
         flipped[i] ^= 1 << rng.randrange(8)
     out.append(("bitflip", bytes(flipped)))
-    out.append(("truncated", valid[:rng.randrange(len(valid))]))
-    out.append(("wrong_version", head.pack(magic, rng.choice([0, 2, 7, 65535]), mlen, n) + meta + body))
+    out.append(("truncated", valid[: rng.randrange(len(valid))]))
+    out.append(
+        ("wrong_version", head.pack(magic, rng.choice([0, 2, 7, 65535]), mlen, n) + meta + body)
+    )
     out.append(("bad_magic", b"XGTB" + valid[4:]))
-    junk_meta = rng.choice([b"{not json", b"[]", b'"x"', b"\xff\xfe\x00", b'{"agent": 5}',
-                            b'{"agent":"a","boot":"b","sensor":"zz","seq":-1}'])
+    junk_meta = rng.choice(
+        [
+            b"{not json",
+            b"[]",
+            b'"x"',
+            b"\xff\xfe\x00",
+            b'{"agent": 5}',
+            b'{"agent":"a","boot":"b","sensor":"zz","seq":-1}',
+        ]
+    )
     out.append(("garbage_meta", head.pack(magic, ver, len(junk_meta), n) + junk_meta + body))
     out.append(("count_lies", head.pack(magic, ver, mlen, n + rng.randint(1, 1000)) + meta + body))
     out.append(("random_bytes", rng.randbytes(rng.randint(0, 600))))
@@ -652,8 +755,20 @@ def _is_invalid(key: str, payload: bytes) -> bool:
 
 # Junk control-query payloads, sent to every command.
 _JUNK_QUERIES: tuple[bytes, ...] = (
-    b"", b"{", b"null", b"[]", b"42", b'"stop"', b"\xff\xfe", b"{}" * 50, b'{"name": 5}',
-    b'{"name": "../../etc"}', b'{"name": "x/y"}', b"{" * 500, b'{"name": "' + b"n" * 5000 + b'"}')
+    b"",
+    b"{",
+    b"null",
+    b"[]",
+    b"42",
+    b'"stop"',
+    b"\xff\xfe",
+    b"{}" * 50,
+    b'{"name": 5}',
+    b'{"name": "../../etc"}',
+    b'{"name": "x/y"}',
+    b"{" * 500,
+    b'{"name": "' + b"n" * 5000 + b'"}',
+)
 
 
 def _junk_query(rng: Any, cmd: str) -> bytes:
@@ -682,9 +797,18 @@ class FuzzStats:
     kinds: Counter[str] = field(default_factory=Counter)
 
 
-def fuzz(endpoint: str, *, agent_id: str, valid_sensors: Sequence[str], n_data: int,
-         n_queries: int, seed: int = 1, site: str = SITE, oversized: int = 2,
-         should_stop: Callable[[], bool] = lambda: False) -> FuzzStats:
+def fuzz(
+    endpoint: str,
+    *,
+    agent_id: str,
+    valid_sensors: Sequence[str],
+    n_data: int,
+    n_queries: int,
+    seed: int = 1,
+    site: str = SITE,
+    oversized: int = 2,
+    should_stop: Callable[[], bool] = lambda: False,
+) -> FuzzStats:
     """Publish `n_data` broken or hostile payloads on data keys and send `n_queries` junk control
     queries. Payloads on the real agent's own keys are always invalid (checked with from_wire),
     so the real stream cannot be impersonated; plausible-looking mutants go to a fuzz identity."""
@@ -700,6 +824,7 @@ def fuzz(endpoint: str, *, agent_id: str, valid_sensors: Sequence[str], n_data: 
     fuzz_sensors = sensor_macs(2, prefix="fa11ed")
     session = zenoh.open(build_config(SessionSpec(mode="client", connect=[endpoint])))
     try:
+
         def put(key: str, payload: bytes) -> None:
             session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
@@ -707,14 +832,22 @@ def fuzz(endpoint: str, *, agent_id: str, valid_sensors: Sequence[str], n_data: 
         while stats.data_sent < n_data and not should_stop():
             seq += 1
             fsensor = rng.choice(fuzz_sensors)
-            readings = tuple(wire.Reading(time.time_ns(), "e78f13bbbbbb", -50 - k)
-                             for k in range(rng.randint(1, 5)))
+            readings = tuple(
+                wire.Reading(time.time_ns(), "e78f13bbbbbb", -50 - k)
+                for k in range(rng.randint(1, 5))
+            )
             valid = wire.to_wire(wire.Batch(fuzz_agent, fuzz_boot, fsensor, seq, readings))
             cands = _mutations(rng, valid)
             cands.append(_absurd(rng, fuzz_agent, fuzz_boot, fsensor, seq))
             # A well-formed batch that claims the real agent's identity on someone else's key.
-            cands.append(("impersonation", wire.to_wire(wire.Batch(
-                agent_id, fuzz_boot, rng.choice(valid_sensors), seq, readings))))
+            cands.append(
+                (
+                    "impersonation",
+                    wire.to_wire(
+                        wire.Batch(agent_id, fuzz_boot, rng.choice(valid_sensors), seq, readings)
+                    ),
+                )
+            )
             for kind, payload in cands:
                 if stats.data_sent >= n_data:
                     break
@@ -743,8 +876,9 @@ def fuzz(endpoint: str, *, agent_id: str, valid_sensors: Sequence[str], n_data: 
                 break
             cmd = ("start", "stop", "status", "runs", "bogus")[i % 5]
             payload = _junk_query(rng, cmd)
-            replies = session.get(wire.collector_control_key(site, cmd), payload=payload,
-                                  timeout=5.0)
+            replies = session.get(
+                wire.collector_control_key(site, cmd), payload=payload, timeout=5.0
+            )
             stats.queries_sent += 1
             stats.replies += sum(1 for _ in replies)
     finally:
@@ -755,8 +889,14 @@ def fuzz(endpoint: str, *, agent_id: str, valid_sensors: Sequence[str], n_data: 
 def fuzz_scenario(root: Path, scale: Scale, *, n_data: int, n_queries: int) -> Result:
     rig = Rig(root)
     sensors = sensor_macs(scale.sensors)
-    data = make_replay(root / "replay", sensors=sensors, beacons=beacon_macs(scale.beacons),
-                       rate_hz=scale.rate_hz, duration_s=scale.duration_s, t0_ns=time.time_ns())
+    data = make_replay(
+        root / "replay",
+        sensors=sensors,
+        beacons=beacon_macs(scale.beacons),
+        rate_hz=scale.rate_hz,
+        duration_s=scale.duration_s,
+        t0_ns=time.time_ns(),
+    )
     res = Result("fuzz (data + control keys)", Tally())
     run_dir: Path | None = None
     try:
@@ -765,10 +905,19 @@ def fuzz_scenario(root: Path, scale: Scale, *, n_data: int, n_queries: int) -> R
         agent = rig.agent(data.paths, speed=scale.speed)
         agent.start()
         rig.wait_recording(run_dir, 1, timeout=60)
-        stats = fuzz(rig.endpoint, agent_id="pi-01", valid_sensors=sensors, n_data=n_data,
-                     n_queries=n_queries, should_stop=lambda: not rig.collector.alive())
-        res.notes.update(data_sent=stats.data_sent, provably_invalid=stats.data_invalid,
-                         queries=stats.queries_sent)
+        stats = fuzz(
+            rig.endpoint,
+            agent_id="pi-01",
+            valid_sensors=sensors,
+            n_data=n_data,
+            n_queries=n_queries,
+            should_stop=lambda: not rig.collector.alive(),
+        )
+        res.notes.update(
+            data_sent=stats.data_sent,
+            provably_invalid=stats.data_invalid,
+            queries=stats.queries_sent,
+        )
         if not rig.collector.alive():
             res.problems.append(f"the collector died during the fuzz:\n{rig.collector.tail()}")
             return res
@@ -776,8 +925,10 @@ def fuzz_scenario(root: Path, scale: Scale, *, n_data: int, n_queries: int) -> R
         counted = _sum_counts(status.get("rejected_payloads"))
         res.notes["rejected_counted"] = counted
         if counted < stats.data_invalid:
-            res.problems.append(f"status counts {counted} rejected payloads, but "
-                                f"{stats.data_invalid} provably invalid ones were sent")
+            res.problems.append(
+                f"status counts {counted} rejected payloads, but "
+                f"{stats.data_invalid} provably invalid ones were sent"
+            )
         if (status.get("run") or {}).get("run_id") != run_dir.name:
             res.problems.append("the fuzz stopped or replaced the run")
         _finish(rig, run_dir, agent, scale.duration_s / max(scale.speed, 0.1) + 150, res)
@@ -870,8 +1021,12 @@ def mount_tmpfs(where: Path, size: str) -> str | None:
     if shutil.which("mount") is None:
         return "no mount(8) on this machine"
     where.mkdir(parents=True, exist_ok=True)
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
-                       capture_output=True, text=True, check=False)
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     if r.returncode != 0:
         return f"cannot mount a tmpfs here: {r.stderr.strip() or r.returncode}"
     return None
@@ -925,8 +1080,9 @@ def agent_status(endpoint: str, agent_id: str, site: str = SITE) -> dict[str, An
     return {}
 
 
-def full_disk(root: Path, scale: Scale, *, hold_s: float, size: str = "2m",
-              side: str = "collector") -> Result:
+def full_disk(
+    root: Path, scale: Scale, *, hold_s: float, size: str = "2m", side: str = "collector"
+) -> Result:
     """The collector's data directory (side "collector") or the agent's spool (side "agent")
     sits on a small tmpfs that fills up mid-run and is freed again after `hold_s`."""
     assert side in ("collector", "agent")
@@ -937,11 +1093,19 @@ def full_disk(root: Path, scale: Scale, *, hold_s: float, size: str = "2m",
         res.notes["skipped"] = why
         return res
     try:
-        rig = Rig(root, data_dir=disk / "data" if side == "collector" else None,
-                  spool_root=disk if side == "agent" else None)
-        data = make_replay(root / "replay", sensors=sensor_macs(scale.sensors),
-                           beacons=beacon_macs(scale.beacons), rate_hz=scale.rate_hz,
-                           duration_s=scale.duration_s, t0_ns=time.time_ns())
+        rig = Rig(
+            root,
+            data_dir=disk / "data" if side == "collector" else None,
+            spool_root=disk if side == "agent" else None,
+        )
+        data = make_replay(
+            root / "replay",
+            sensors=sensor_macs(scale.sensors),
+            beacons=beacon_macs(scale.beacons),
+            rate_hz=scale.rate_hz,
+            duration_s=scale.duration_s,
+            t0_ns=time.time_ns(),
+        )
         run_dir: Path | None = None
         try:
             rig.collector.start()
@@ -1008,17 +1172,26 @@ def absurd_readings(root: Path, *, batches: int = 40) -> Result:
             token = session.liveliness().declare_token(wire.agent_token_key(SITE, agent))
             block = zenoh.CongestionControl.BLOCK
             for seq in range(batches):
-                rs = tuple(wire.Reading(now + seq * 10**8 + k, "e78f13cccccc", -60 - k)
-                           for k in range(2))
-                expected |= {format_row(r.t_ns, sane_sensor, r.beacon, r.rssi).rstrip("\n")
-                             for r in rs}
-                session.put(wire.data_key(SITE, agent, sane_sensor),
-                            wire.to_wire(wire.Batch(agent, boot, sane_sensor, seq, rs)),
-                            congestion_control=block)
+                rs = tuple(
+                    wire.Reading(now + seq * 10**8 + k, "e78f13cccccc", -60 - k) for k in range(2)
+                )
+                expected |= {
+                    format_row(r.t_ns, sane_sensor, r.beacon, r.rssi).rstrip("\n") for r in rs
+                }
+                session.put(
+                    wire.data_key(SITE, agent, sane_sensor),
+                    wire.to_wire(wire.Batch(agent, boot, sane_sensor, seq, rs)),
+                    congestion_control=block,
+                )
                 t = (3_786_912_000 + seq * 7_000_000) * 10**9  # 2090 onwards
-                odd = wire.Batch(agent, boot, odd_sensor, seq, (wire.Reading(t, "e78f13cccccc", -70),))
-                session.put(wire.data_key(SITE, agent, odd_sensor), wire.to_wire(odd),
-                            congestion_control=block)
+                odd = wire.Batch(
+                    agent, boot, odd_sensor, seq, (wire.Reading(t, "e78f13cccccc", -70),)
+                )
+                session.put(
+                    wire.data_key(SITE, agent, odd_sensor),
+                    wire.to_wire(odd),
+                    congestion_control=block,
+                )
             wait_until(lambda: count_lines(run_dir) >= len(expected), 30, "the sane stream")
             token.undeclare()
         finally:
@@ -1029,16 +1202,23 @@ def absurd_readings(root: Path, *, batches: int = 40) -> Result:
         far = [r for r in rows if parse_line(r).t_ns - now > day]
         res.notes["absurd_recorded"] = len(far)
         if far:
-            res.problems.append(f"{len(far)} readings decades in the future were recorded, "
-                                f"e.g. {far[0]}")
-        keys = [json.loads(raw).get("key") for raw in
-                (run_dir / "rejected.jsonl").read_bytes().split(b"\n")[:-1]] \
-            if (run_dir / "rejected.jsonl").exists() else []
+            res.problems.append(
+                f"{len(far)} readings decades in the future were recorded, e.g. {far[0]}"
+            )
+        keys = (
+            [
+                json.loads(raw).get("key")
+                for raw in (run_dir / "rejected.jsonl").read_bytes().split(b"\n")[:-1]
+            ]
+            if (run_dir / "rejected.jsonl").exists()
+            else []
+        )
         quarantined = sum(1 for k in keys if k == wire.data_key(SITE, agent, odd_sensor))
         res.notes["quarantined"] = quarantined
         if quarantined < batches:
-            res.problems.append(f"only {quarantined} of {batches} absurd batches are in "
-                                "rejected.jsonl")
+            res.problems.append(
+                f"only {quarantined} of {batches} absurd batches are in rejected.jsonl"
+            )
     except (AssertionError, CollectorError) as e:
         res.problems.append(f"{e}\n{rig.diagnostics()}")
     finally:

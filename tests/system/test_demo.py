@@ -45,7 +45,10 @@ def test_cover_events_match_between_radio_and_video() -> None:
     assert s.covers() == [(2.0, 1.5), (27.0, 1.5)]
     # The radio sees the hands from the middle of the video's closing ramp, for the same time.
     ev = rssi_events(s)
-    assert [(e.start_s, e.duration_s) for e in ev] == [(2.0 + COVER_RAMP_S / 2, 1.5), (27.0 + COVER_RAMP_S / 2, 1.5)]
+    assert [(e.start_s, e.duration_s) for e in ev] == [
+        (2.0 + COVER_RAMP_S / 2, 1.5),
+        (27.0 + COVER_RAMP_S / 2, 1.5),
+    ]
     # Too short for a second event well apart from the first: only one.
     assert DemoSettings(out=Path("x"), duration_s=8.0).covers() == [(2.0, 1.5)]
     assert DemoSettings(out=Path("x"), duration_s=30.0, end_cover=False).covers() == [(2.0, 1.5)]
@@ -60,8 +63,12 @@ def test_bundle_pose_follows_the_path_and_heads_along_it() -> None:
     # The first stretch of the loop runs along +x: the bundle's x axis points there, z stays up.
     x_axis = rot.apply([1.0, 0.0, 0.0])
     d = path.direction_at(0.5)
-    assert x_axis[0] @ np.array([d[0], d[1], 0.0]) / np.hypot(d[0], d[1]) == pytest.approx(1.0, abs=1e-6)
-    np.testing.assert_allclose(rot.apply([0.0, 0.0, 1.0]), np.tile([0.0, 0.0, 1.0], (3, 1)), atol=1e-12)
+    assert x_axis[0] @ np.array([d[0], d[1], 0.0]) / np.hypot(d[0], d[1]) == pytest.approx(
+        1.0, abs=1e-6
+    )
+    np.testing.assert_allclose(
+        rot.apply([0.0, 0.0, 1.0]), np.tile([0.0, 0.0, 1.0], (3, 1)), atol=1e-12
+    )
     # Inside the room, at hand-held height.
     assert all(5.5 < p[0] < 12.5 and 4.0 < p[1] < 9.5 and 1.3 < p[2] < 1.8 for p in pos)
 
@@ -95,7 +102,9 @@ def test_demo_walk_never_turns_in_an_instant() -> None:
     assert np.abs(rate).max() >= 0.95 * max_rate
     # The turn rate itself builds up over the +-0.3 s heading window, not in one frame.
     assert np.abs(np.diff(rate)).max() <= max_rate / 10
-    assert yaw[-1] - yaw[0] == pytest.approx(2 * np.pi * (1 - 1 / len(t)), abs=0.02)  # one left turn per lap
+    assert yaw[-1] - yaw[0] == pytest.approx(
+        2 * np.pi * (1 - 1 / len(t)), abs=0.02
+    )  # one left turn per lap
     d = np.array([path.direction_at(float(s)) for s in t])
     assert np.arccos(np.clip(np.sum(d[1:] * d[:-1], axis=1), -1, 1)).max() <= max_rate / fps * 1.001
 
@@ -107,11 +116,21 @@ def test_score_against_the_path_at_each_readings_own_time() -> None:
     labelled = np.array([True, True, True, False])
     # Labels 1 cm off along z, 2 cm and 3 cm along x; the last reading was not labelled.
     positions = truth + np.array([[0, 0, 0.01], [0.02, 0, 0], [0.03, 0, 0], [9, 9, 9]])
-    report = {"coverage": {"labelled_of_tracked_span": 0.75}, "counts": {},
-              "sync": {"cameras": {
-                  "front": {"video_start": t0 + 0.012, "video_start_sigma_s": 0.005, "method": "auto",
-                            "drift": -4e-4},
-                  "back": {"video_start": t0 + 0.35 - 0.003, "method": "auto", "drift": 0.0}}}}
+    report = {
+        "coverage": {"labelled_of_tracked_span": 0.75},
+        "counts": {},
+        "sync": {
+            "cameras": {
+                "front": {
+                    "video_start": t0 + 0.012,
+                    "video_start_sigma_s": 0.005,
+                    "method": "auto",
+                    "drift": -4e-4,
+                },
+                "back": {"video_start": t0 + 0.35 - 0.003, "method": "auto", "drift": 0.0},
+            }
+        },
+    }
 
     class Table:  # the two things score() uses of the readings table
         def __init__(self, t: np.ndarray) -> None:
@@ -120,8 +139,11 @@ def test_score_against_the_path_at_each_readings_own_time() -> None:
         def __len__(self) -> int:
             return len(self.t_ns)
 
-    run = SimpleNamespace(labels=SimpleNamespace(labelled=labelled, positions=positions), rssi=Table(t_ns),
-                          report=report)
+    run = SimpleNamespace(
+        labels=SimpleNamespace(labelled=labelled, positions=positions),
+        rssi=Table(t_ns),
+        report=report,
+    )
     s = score(run, path, t0, {"front": t0, "back": t0 + 0.35}, duration_s=30.0)
     assert s["error_cm"]["n"] == 3
     assert s["error_cm"]["median"] == pytest.approx(2.0, abs=1e-6)
@@ -137,8 +159,13 @@ def test_score_against_the_path_at_each_readings_own_time() -> None:
 
 
 def test_too_short_duration_is_one_line_error(tmp_path: Path) -> None:
-    res = subprocess.run([*annotator_cmd(), "demo", "--out", str(tmp_path / "o"), "--duration", "3"],
-                         capture_output=True, text=True, timeout=120, check=False)
+    res = subprocess.run(
+        [*annotator_cmd(), "demo", "--out", str(tmp_path / "o"), "--duration", "3"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert res.returncode == 1
     assert "--duration must be at least 8 s" in res.stderr
     assert "Traceback" not in res.stderr
@@ -149,8 +176,14 @@ def test_too_short_duration_is_one_line_error(tmp_path: Path) -> None:
 def test_demo_end_to_end(tmp_path: Path) -> None:
     out = tmp_path / "demo"
     env = {**os.environ, "COLUMNS": "200"}
-    res = subprocess.run([*annotator_cmd(), "demo", "--out", str(out), "--duration", "12"],
-                         capture_output=True, text=True, timeout=600, check=False, env=env)
+    res = subprocess.run(
+        [*annotator_cmd(), "demo", "--out", str(out), "--duration", "12"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+        env=env,
+    )
     assert res.returncode == 0, res.stdout + res.stderr
     s = json.loads((out / "demo_summary.json").read_text(encoding="utf-8"))
 
@@ -235,15 +268,21 @@ def test_ctrl_c_during_capture_stops_every_child(tmp_path: Path) -> None:
     import time
 
     out = tmp_path / "interrupted"
-    proc = subprocess.Popen([*annotator_cmd(), "demo", "--out", str(out), "--duration", "30"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [*annotator_cmd(), "demo", "--out", str(out), "--duration", "30"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         # Wait until the collector and all three agents run (their configs and logs exist).
         deadline = time.monotonic() + 90
         while time.monotonic() < deadline:
             logs = out / "logs"
-            if all((logs / f"{a}.log").is_file() and (logs / f"{a}.log").stat().st_size > 0
-                   for a in ("pi-1", "pi-2", "pi-3")):
+            if all(
+                (logs / f"{a}.log").is_file() and (logs / f"{a}.log").stat().st_size > 0
+                for a in ("pi-1", "pi-2", "pi-3")
+            ):
                 break
             assert proc.poll() is None, proc.communicate()
             time.sleep(0.2)

@@ -18,8 +18,14 @@ def _run_dir(tmp_path: Path, files: dict[str, str]) -> Path:
 
 
 def test_make_replay_rows_are_unique_and_match_the_files(tmp_path: Path) -> None:
-    data = make_replay(tmp_path, sensors=sensor_macs(3), beacons=beacon_macs(4), rate_hz=10,
-                       duration_s=2.5, t0_ns=1_800_000_000 * 10**9)
+    data = make_replay(
+        tmp_path,
+        sensors=sensor_macs(3),
+        beacons=beacon_macs(4),
+        rate_hz=10,
+        duration_s=2.5,
+        t0_ns=1_800_000_000 * 10**9,
+    )
     assert len(data.rows) == 3 * 4 * 25
     lines = [ln for p in data.paths for ln in p.read_text().splitlines()]
     assert sorted(lines) == sorted(data.rows)
@@ -34,7 +40,14 @@ def test_tally_counts_lost_duplicated_unexpected_and_torn(tmp_path: Path) -> Non
     # rows[4] is lost; rows[1] is there twice; one unexpected row; the other file ends torn
     run = _run_dir(tmp_path, {s1: text, s2: f"1800000001.0,{s2},e78f13560000,-5"})
     t = tally(run, rows, [s1, s2])
-    assert (t.expected, t.recorded, t.lost, t.duplicated, t.unexpected, t.torn) == (5, 6, 1, 1, 1, 1)
+    assert (t.expected, t.recorded, t.lost, t.duplicated, t.unexpected, t.torn) == (
+        5,
+        6,
+        1,
+        1,
+        1,
+        1,
+    )
     assert t.lost_examples == [rows[4]]
     assert not t.ok()
     # the same run is clean once the faults are accounted as allowed / not looked at
@@ -55,8 +68,13 @@ def test_spool_reader_reads_what_the_agent_spool_wrote(tmp_path: Path) -> None:
     written = []
     with Spool(tmp_path, 16 * 1024 * 1024) as sp:
         for seq in range(5):
-            b = wire.Batch("pi-01", "0123456789abcdef", sensor, seq,
-                           (wire.Reading(1_800_000_000 * 10**9 + seq, "e78f13560000", -60),))
+            b = wire.Batch(
+                "pi-01",
+                "0123456789abcdef",
+                sensor,
+                seq,
+                (wire.Reading(1_800_000_000 * 10**9 + seq, "e78f13560000", -60),),
+            )
             payload = wire.to_wire(b)
             assert sp.append(f"0123456789abcdef/{sensor}", seq, payload)
             written.append((f"0123456789abcdef/{sensor}", seq, payload))

@@ -63,9 +63,11 @@ def test_agent_kill9_restart_delivers_its_spool_once(tmp_path: Path) -> None:
 
 
 def test_fuzz_on_data_and_control_keys_collector_survives_and_records_valid_stream(
-        tmp_path: Path) -> None:
-    res = fuzz_scenario(tmp_path, Scale(sensors=2, beacons=3, rate_hz=10, duration_s=16),
-                        n_data=3000, n_queries=200)
+    tmp_path: Path,
+) -> None:
+    res = fuzz_scenario(
+        tmp_path, Scale(sensors=2, beacons=3, rate_hz=10, duration_s=16), n_data=3000, n_queries=200
+    )
     _assert_clean(res)
 
 
@@ -79,8 +81,13 @@ def test_full_disk_collector_pauses_and_resumes_without_corruption(tmp_path: Pat
 
 def test_full_disk_under_the_agent_spool_loses_nothing(tmp_path: Path) -> None:
     # The spool cannot write: batches are published unspooled meanwhile, and the agent says so.
-    res = full_disk(tmp_path, Scale(sensors=4, beacons=3, rate_hz=10, duration_s=20), hold_s=4.0,
-                    size="1m", side="agent")
+    res = full_disk(
+        tmp_path,
+        Scale(sensors=4, beacons=3, rate_hz=10, duration_s=20),
+        hold_s=4.0,
+        size="1m",
+        side="agent",
+    )
     if "skipped" in res.notes:
         pytest.skip(res.notes["skipped"])
     _assert_clean(res)

@@ -31,7 +31,12 @@ from deploy import pki
 from deploy.acl import build_acl
 
 REPO = Path(__file__).resolve().parents[2]
-EXTRAS = {"agent": "sensor_agent", "collector": "collector", "annotator": "annotator", "deploy": "deploy"}
+EXTRAS = {
+    "agent": "sensor_agent",
+    "collector": "collector",
+    "annotator": "annotator",
+    "deploy": "deploy",
+}
 PIP = ("-m", "pip", "--disable-pip-version-check")
 
 
@@ -41,14 +46,20 @@ def clean_env() -> dict[str, str]:
 
 
 def run(argv: list[str], cwd: Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(argv, cwd=cwd, env=clean_env(), capture_output=True, text=True,
-                          timeout=timeout, check=False)
+    return subprocess.run(
+        argv, cwd=cwd, env=clean_env(), capture_output=True, text=True, timeout=timeout, check=False
+    )
 
 
 def build_wheel(out: Path) -> Path:
     """The project wheel, made the way the playbook makes it (`python -m deploy wheel`)."""
-    res = subprocess.run([sys.executable, "-m", "deploy", "wheel", "--src", str(REPO), "--out", str(out)],
-                         capture_output=True, text=True, timeout=300, check=False)
+    res = subprocess.run(
+        [sys.executable, "-m", "deploy", "wheel", "--src", str(REPO), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
     assert res.returncode == 0, f"building the project wheel failed:\n{res.stderr[-3000:]}"
     return Path(res.stdout.splitlines()[-2])
 
@@ -59,12 +70,26 @@ def install(where: Path, wheel: Path, extra: str) -> Path | str:
     compiling (the venv is thrown away)."""
     venv.create(where, with_pip=False)
     py = where / "bin" / "python"
-    res = run([sys.executable, *PIP, "--python", str(py), "install", "-q", "--no-compile",
-               f"{wheel}[{extra}]"], cwd=where, timeout=600)
+    res = run(
+        [
+            sys.executable,
+            *PIP,
+            "--python",
+            str(py),
+            "install",
+            "-q",
+            "--no-compile",
+            f"{wheel}[{extra}]",
+        ],
+        cwd=where,
+        timeout=600,
+    )
     if res.returncode != 0:
-        return (f"pip could not install the project with [{extra}] in a fresh venv (this test needs "
-                f"the package index pip is configured with, or a warm pip cache):\n"
-                f"{res.stderr.strip()[-3000:]}")
+        return (
+            f"pip could not install the project with [{extra}] in a fresh venv (this test needs "
+            f"the package index pip is configured with, or a warm pip cache):\n"
+            f"{res.stderr.strip()[-3000:]}"
+        )
     return where / "bin"
 
 
@@ -102,7 +127,9 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
     pki.issue(d / "tls", "collector", ["collector", "localhost", "127.0.0.1"], now)
     for cn in ("operator", "pi-01"):
         pki.issue(d / "tls", cn, [cn], now)
-    (d / "acl.json5").write_text(json.dumps(build_acl("default", ["pi-01"], ["collector", "operator"])))
+    (d / "acl.json5").write_text(
+        json.dumps(build_acl("default", ["pi-01"], ["collector", "operator"]))
+    )
     return d
 
 
@@ -112,7 +139,9 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_the_extra_installs_every_module_its_role_imports(venvs, extra, tmp_path) -> None:
     bin_dir = bin_of(venvs, extra)
     res = run([str(bin_dir / "python"), import_closure.__file__, EXTRAS[extra]], cwd=tmp_path)
-    assert res.returncode == 0, f"[{extra}] misses modules its code imports:\n{res.stdout}{res.stderr}"
+    assert res.returncode == 0, (
+        f"[{extra}] misses modules its code imports:\n{res.stdout}{res.stderr}"
+    )
     found = json.loads(res.stdout)
     # The installed package was checked, not the checkout.
     assert Path(found["package_dir"]).is_relative_to(bin_dir.parent), found["package_dir"]
@@ -128,9 +157,14 @@ def test_collector_extra_help_and_tls_config_check(venvs, site) -> None:
     assert "serve" in res.stdout
     assert "start" in res.stdout
 
-    conf = {"site": "default", "data_dir": "data", "listen": ["tls/127.0.0.1:7447"],
-            "tls": {"root_ca": "tls/ca.crt", "cert": "tls/collector.crt", "key": "tls/collector.key"},
-            "insecure": False, "acl": "acl.json5"}
+    conf = {
+        "site": "default",
+        "data_dir": "data",
+        "listen": ["tls/127.0.0.1:7447"],
+        "tls": {"root_ca": "tls/ca.crt", "cert": "tls/collector.crt", "key": "tls/collector.key"},
+        "insecure": False,
+        "acl": "acl.json5",
+    }
     (site / "collector.yaml").write_text(yaml.safe_dump(conf))
     res = run([collector, "serve", "--config", "collector.yaml", "--check"], cwd=site)
     assert res.returncode == 0, res.stderr
@@ -155,9 +189,14 @@ def test_agent_extra_help_and_tls_config_check(venvs, site) -> None:
     assert "run" in res.stdout
     assert "check" in res.stdout
 
-    conf = {"agent_id": "pi-01", "site": "default", "connect": ["tls/127.0.0.1:7447"],
-            "backend": "simulated", "spool": {"dir": "spool", "max_mb": 16},
-            "tls": {"root_ca": "tls/ca.crt", "cert": "tls/pi-01.crt", "key": "tls/pi-01.key"}}
+    conf = {
+        "agent_id": "pi-01",
+        "site": "default",
+        "connect": ["tls/127.0.0.1:7447"],
+        "backend": "simulated",
+        "spool": {"dir": "spool", "max_mb": 16},
+        "tls": {"root_ca": "tls/ca.crt", "cert": "tls/pi-01.crt", "key": "tls/pi-01.key"},
+    }
     (site / "agent.yaml").write_text(yaml.safe_dump(conf))
     res = run([agent, "check", "--config", "agent.yaml"], cwd=site)
     assert res.returncode == 0, res.stderr
@@ -183,11 +222,27 @@ def test_annotator_extra_help_and_experiment_check(venvs, tmp_path) -> None:
     assert "track" in res.stdout
     assert "simulate" in res.stdout
 
-    res = run([annotator, "simulate", "--out", "exp", "--duration", "2", "--width", "320",
-               "--height", "180"], cwd=tmp_path)
+    res = run(
+        [
+            annotator,
+            "simulate",
+            "--out",
+            "exp",
+            "--duration",
+            "2",
+            "--width",
+            "320",
+            "--height",
+            "180",
+        ],
+        cwd=tmp_path,
+    )
     assert res.returncode == 0, res.stderr
-    res = run([annotator, "track", "exp/experiment.yaml", "--out", "tr", "--max-frames", "10"],
-              cwd=tmp_path, timeout=300)
+    res = run(
+        [annotator, "track", "exp/experiment.yaml", "--out", "tr", "--max-frames", "10"],
+        cwd=tmp_path,
+        timeout=300,
+    )
     assert res.returncode == 0, res.stderr
     with (tmp_path / "tr" / "trajectory.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
@@ -217,14 +272,18 @@ def test_deploy_extra_help_and_inventory_check(venvs, tmp_path) -> None:
     assert res.stdout.splitlines()[-1] == "changed"
     for cn in ("ca", "collector", "operator", "pi-01", "pi-02", "pi-03"):
         assert (tmp_path / "pki" / f"{cn}.crt").is_file(), cn
-    res = run([py, "-m", "deploy", "acl", "--inventory", "inventory.yml", "--out", "acl.json5"],
-              cwd=tmp_path)
+    res = run(
+        [py, "-m", "deploy", "acl", "--inventory", "inventory.yml", "--out", "acl.json5"],
+        cwd=tmp_path,
+    )
     assert res.returncode == 0, res.stderr
     assert "pi-03" in (tmp_path / "acl.json5").read_text()
 
     (tmp_path / "broken.yml").write_text("all: [not, a, mapping]\n")
-    res = run([py, "-m", "deploy", "acl", "--inventory", "broken.yml", "--out", "acl2.json5"],
-              cwd=tmp_path)
+    res = run(
+        [py, "-m", "deploy", "acl", "--inventory", "broken.yml", "--out", "acl2.json5"],
+        cwd=tmp_path,
+    )
     one_line_error(res, "broken.yml")
     assert not (tmp_path / "acl2.json5").exists()
 
@@ -239,27 +298,39 @@ def _package(root: Path, files: dict[str, str]) -> None:
 
 
 def test_import_scan_finds_imports_inside_functions_and_through_project_modules(tmp_path) -> None:
-    _package(tmp_path, {
-        "collector/__init__.py": "",
-        "collector/config.py": ("import json\nfrom . import util\n\n"
-                                "def check():\n    from cryptography import x509\n"),
-        "collector/util.py": "from bgt_core.tls import load\n",
-        "bgt_core/__init__.py": "",
-        "bgt_core/tls.py": "import os\n\ndef load():\n    import not_installed_xyz.sub\n",
-        "bgt_core/unused.py": "import never_reached_xyz\n",
-    })
+    _package(
+        tmp_path,
+        {
+            "collector/__init__.py": "",
+            "collector/config.py": (
+                "import json\nfrom . import util\n\n"
+                "def check():\n    from cryptography import x509\n"
+            ),
+            "collector/util.py": "from bgt_core.tls import load\n",
+            "bgt_core/__init__.py": "",
+            "bgt_core/tls.py": "import os\n\ndef load():\n    import not_installed_xyz.sub\n",
+            "bgt_core/unused.py": "import never_reached_xyz\n",
+        },
+    )
     found = import_closure.third_party_imports(tmp_path, "collector")
     assert found == {"cryptography": "collector.config", "not_installed_xyz": "bgt_core.tls"}
 
 
 def test_import_scan_leaves_out_optional_and_type_checking_imports(tmp_path) -> None:
-    _package(tmp_path, {
-        "annotator/__init__.py": ("try:\n    import optional_xyz\nexcept ImportError:\n"
-                                  "    optional_xyz = None\nimport numpy\n"),
-        "annotator/types.py": ("import typing\nfrom typing import TYPE_CHECKING\n"
-                               "if TYPE_CHECKING:\n    import pandas\n"
-                               "if typing.TYPE_CHECKING:\n    from scipy import stats\n"),
-    })
+    _package(
+        tmp_path,
+        {
+            "annotator/__init__.py": (
+                "try:\n    import optional_xyz\nexcept ImportError:\n"
+                "    optional_xyz = None\nimport numpy\n"
+            ),
+            "annotator/types.py": (
+                "import typing\nfrom typing import TYPE_CHECKING\n"
+                "if TYPE_CHECKING:\n    import pandas\n"
+                "if typing.TYPE_CHECKING:\n    from scipy import stats\n"
+            ),
+        },
+    )
     assert import_closure.third_party_imports(tmp_path, "annotator") == {"numpy": "annotator"}
 
 
@@ -271,4 +342,3 @@ def test_import_scan_reports_a_module_that_does_not_import(tmp_path, monkeypatch
     assert folder == tmp_path / "deploy_probe_xyz"
     assert list(missing) == ["not_installed_xyz"]
     assert missing["not_installed_xyz"].startswith("deploy_probe_xyz: ModuleNotFoundError")
-

@@ -13,15 +13,25 @@ from annotator.cli import app
 from annotator.render.camera import default_cameras
 from annotator.render.charuco import charuco_board, random_board_poses, render_charuco_views
 
-BOARD = ["--squares", "5x7", "--square-length", "0.0598", "--marker-length", "0.0299",
-         "--dictionary", "DICT_6X6_50"]
+BOARD = [
+    "--squares",
+    "5x7",
+    "--square-length",
+    "0.0598",
+    "--marker-length",
+    "0.0299",
+    "--dictionary",
+    "DICT_6X6_50",
+]
 CAMERA = default_cameras()["back"]
 
 
 @pytest.fixture(scope="module")
 def views() -> list[np.ndarray]:
     board = charuco_board((5, 7), 0.0598, 0.0299, "DICT_6X6_50")
-    return render_charuco_views(CAMERA, board, random_board_poses(14, board, CAMERA, np.random.default_rng(7)))
+    return render_charuco_views(
+        CAMERA, board, random_board_poses(14, board, CAMERA, np.random.default_rng(7))
+    )
 
 
 def read_back(path: Path) -> tuple[np.ndarray, np.ndarray, int, int]:
@@ -34,7 +44,9 @@ def read_back(path: Path) -> tuple[np.ndarray, np.ndarray, int, int]:
     return k, d, w, h
 
 
-def test_calibrate_png_views_recovers_the_focal_lengths(views: list[np.ndarray], tmp_path: Path) -> None:
+def test_calibrate_png_views_recovers_the_focal_lengths(
+    views: list[np.ndarray], tmp_path: Path
+) -> None:
     paths = []
     for i, img in enumerate(views):
         paths.append(tmp_path / f"view{i:02d}.png")
@@ -56,13 +68,17 @@ def test_calibrate_png_views_recovers_the_focal_lengths(views: list[np.ndarray],
 
 def test_calibrate_from_a_video(views: list[np.ndarray], tmp_path: Path) -> None:
     video = tmp_path / "board.mp4"
-    writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"mp4v"), 5, (CAMERA.width, CAMERA.height))
+    writer = cv2.VideoWriter(
+        str(video), cv2.VideoWriter.fourcc(*"mp4v"), 5, (CAMERA.width, CAMERA.height)
+    )
     for img in views:
         for _ in range(2):  # each view held for two frames; --every 2 takes one of each
             writer.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
     writer.release()
     out = tmp_path / "camera.yaml"
-    res = CliRunner().invoke(app, ["calibrate", str(video), *BOARD, "--every", "2", "--out", str(out)])
+    res = CliRunner().invoke(
+        app, ["calibrate", str(video), *BOARD, "--every", "2", "--out", str(out)]
+    )
     assert res.exit_code == 0, res.output
     assert "over 14 of 14 views" in res.output
     k, _, _, _ = read_back(out)
@@ -83,15 +99,22 @@ def test_wrong_dictionary_finds_no_board(views: list[np.ndarray], tmp_path: Path
     assert not out.exists()
 
 
-@pytest.mark.parametrize(("args", "message"), [
-    (["--squares", "5by7"], "--squares '5by7'"),
-    (["--dictionary", "DICT_NOPE"], "unknown ArUco dictionary"),
-    (["--marker-length", "0.07"], "smaller than the square length"),
-])
-def test_bad_board_settings_are_one_line_errors(tmp_path: Path, args: list[str], message: str) -> None:
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--squares", "5by7"], "--squares '5by7'"),
+        (["--dictionary", "DICT_NOPE"], "unknown ArUco dictionary"),
+        (["--marker-length", "0.07"], "smaller than the square length"),
+    ],
+)
+def test_bad_board_settings_are_one_line_errors(
+    tmp_path: Path, args: list[str], message: str
+) -> None:
     img = tmp_path / "x.png"
     cv2.imwrite(str(img), np.zeros((10, 10), np.uint8))
-    res = CliRunner().invoke(app, ["calibrate", str(img), *BOARD, *args, "--out", str(tmp_path / "c.yaml")])
+    res = CliRunner().invoke(
+        app, ["calibrate", str(img), *BOARD, *args, "--out", str(tmp_path / "c.yaml")]
+    )
     assert res.exit_code == 1
     assert message in res.output
     assert "Traceback" not in res.output
@@ -100,6 +123,8 @@ def test_bad_board_settings_are_one_line_errors(tmp_path: Path, args: list[str],
 def test_unreadable_input_is_named(tmp_path: Path) -> None:
     bad = tmp_path / "notes.txt"
     bad.write_text("not a picture")
-    res = CliRunner().invoke(app, ["calibrate", str(bad), *BOARD, "--out", str(tmp_path / "c.yaml")])
+    res = CliRunner().invoke(
+        app, ["calibrate", str(bad), *BOARD, "--out", str(tmp_path / "c.yaml")]
+    )
     assert res.exit_code == 1
     assert "notes.txt" in res.output

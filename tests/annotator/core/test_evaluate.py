@@ -20,7 +20,9 @@ from annotator.core.trajectory import Trajectory
 from annotator.io.trajectory import write_trajectory
 
 
-def make_truth(n: int = 101, dt: float = 0.1, t0: float = 1000.0) -> tuple[np.ndarray, np.ndarray, Rotation]:
+def make_truth(
+    n: int = 101, dt: float = 0.1, t0: float = 1000.0
+) -> tuple[np.ndarray, np.ndarray, Rotation]:
     """Straight line along x at 1 m/s, 1.5 m high, turning about z at 10 deg/s."""
     t = t0 + np.arange(n) * dt
     pos = np.column_stack([t - t0, np.zeros(n), np.full(n, 1.5)])
@@ -52,7 +54,9 @@ def test_constant_offset_and_tilt_are_measured_exactly() -> None:
     est_pos = np.column_stack([est_t - 1000.0, np.zeros(len(est_t)), np.full(len(est_t), 1.5)])
     est_pos = est_pos + [0.03, 0.04, 0.0]  # 5 cm off
     tilt = Rotation.from_euler("x", 2.0, degrees=True)
-    est_rot = (Rotation.from_euler("z", 10.0 * (est_t - 1000.0)[:, None], degrees=True) * tilt).as_matrix()
+    est_rot = (
+        Rotation.from_euler("z", 10.0 * (est_t - 1000.0)[:, None], degrees=True) * tilt
+    ).as_matrix()
     cmp = compare_to_truth(est_t, est_pos, est_rot, t, pos, rot.as_matrix())
     np.testing.assert_allclose(cmp.position_error, 0.05, atol=1e-9)
     np.testing.assert_allclose(cmp.rotation_error_deg, 2.0, atol=1e-9)
@@ -130,13 +134,19 @@ def test_cli_truth_report_and_plot(tmp_path: Path) -> None:
 def test_cli_path_report(tmp_path: Path) -> None:
     pos, wp = l_path_trajectory()
     n = len(pos)
-    est = write_traj(tmp_path / "trajectory.csv", 1000.0 + np.arange(n) * 0.1, pos,
-                     np.broadcast_to(np.eye(3), (n, 3, 3)).copy())
+    est = write_traj(
+        tmp_path / "trajectory.csv",
+        1000.0 + np.arange(n) * 0.1,
+        pos,
+        np.broadcast_to(np.eye(3), (n, 3, 3)).copy(),
+    )
     path = tmp_path / "path.yaml"
     path.write_text("waypoints: [[0, 0], [4, 0], [4, 3]]\n")
     out, png = tmp_path / "r" / "rep.json", tmp_path / "p.png"
     (tmp_path / "r").mkdir()
-    res = CliRunner().invoke(app, ["evaluate", str(est), "--path", str(path), "--report", str(out), "--plot", str(png)])
+    res = CliRunner().invoke(
+        app, ["evaluate", str(est), "--path", str(path), "--report", str(out), "--plot", str(png)]
+    )
     assert res.exit_code == 0, res.output
     rep = json.loads(out.read_text())
     assert rep["drag_m"] == [pytest.approx(0.2), pytest.approx(0.5)]
@@ -144,13 +154,16 @@ def test_cli_path_report(tmp_path: Path) -> None:
     assert png.exists()
 
 
-@pytest.mark.parametrize(("path_text", "message"), [
-    ("waypoints: [[0, 0]]\n", "at least two [x, y] pairs"),
-    ("waypoints: [[0, 0], [1, 1, 1]]\n", "at least two [x, y] pairs"),
-    ("points: []\n", "'waypoints'"),
-    ("waypoints: [[0, 0], [0, 0]]\n", "the same point"),
-    ("waypoints: [[0, 0], [1, 0]\n", "not valid YAML"),
-])
+@pytest.mark.parametrize(
+    ("path_text", "message"),
+    [
+        ("waypoints: [[0, 0]]\n", "at least two [x, y] pairs"),
+        ("waypoints: [[0, 0], [1, 1, 1]]\n", "at least two [x, y] pairs"),
+        ("points: []\n", "'waypoints'"),
+        ("waypoints: [[0, 0], [0, 0]]\n", "the same point"),
+        ("waypoints: [[0, 0], [1, 0]\n", "not valid YAML"),
+    ],
+)
 def test_bad_path_files_are_one_line_errors(tmp_path: Path, path_text: str, message: str) -> None:
     t, pos, rot = make_truth(n=5)
     est = write_traj(tmp_path / "trajectory.csv", t, pos, rot.as_matrix())

@@ -67,7 +67,10 @@ def test_normalise_marks_empty_histograms_as_gaps():
 
 
 def test_parse_fingerprint_name():
-    assert fp.parse_fingerprint_name("sensor10_12.95_16.80_1.85.mbd") == ("sensor10", (12.95, 16.8, 1.85))
+    assert fp.parse_fingerprint_name("sensor10_12.95_16.80_1.85.mbd") == (
+        "sensor10",
+        (12.95, 16.8, 1.85),
+    )
     assert fp.parse_fingerprint_name("my_dongle_-1_2.5_0.mbd") == ("my_dongle", (-1.0, 2.5, 0.0))
     with pytest.raises(ValueError, match="alias"):
         fp.parse_fingerprint_name("sensor10.mbd")
@@ -129,8 +132,10 @@ def test_hst_layout_is_the_published_one(dataset_hst: Path):
     bins = json.loads(lines[0].removeprefix("Bins:"))
     assert bins == [float(v) for v in range(-100, -19)]
     # the devices line spells the published file's way (json, floats as Python prints them)
-    assert lines[1].startswith('Dongles:{"b827eb4521b4": [[7.0, 7.09, 1.22], 16711680, "sensor10"], '
-                               '"000000000101": [[7.18, 0.68, 2.3], 16711730, "sensor11"]')
+    assert lines[1].startswith(
+        'Dongles:{"b827eb4521b4": [[7.0, 7.09, 1.22], 16711680, "sensor10"], '
+        '"000000000101": [[7.18, 0.68, 2.3], 16711730, "sensor11"]'
+    )
     assert lines[2] == 'Beacons:{"e78f135624ce": [[], 1328790, "beacon1"]}'
     assert lines[3].startswith('Fingerprints:{ "(2.59, 2.19, 2.05)": {"')
     body = json.loads(lines[3].removeprefix("Fingerprints:"))
@@ -146,7 +151,9 @@ def test_bins_option_drops_readings_outside(tmp_path: Path):
     assert len(h.bins) == 16
     got = h.fingerprints[(2.59, 2.19, 2.05)]["b827eb917e19"][BEACON]
     rows = read_plain(f)
-    np.testing.assert_allclose(got, independent_histogram([r for *_, r in rows], -80, -65), atol=1e-15)
+    np.testing.assert_allclose(
+        got, independent_histogram([r for *_, r in rows], -80, -65), atol=1e-15
+    )
     # without --devices the built-in tetam site (which knows this sensor) supplies the devices
     assert h.devices.dongles["b827eb917e19"].alias == "sensor20"
 
@@ -174,8 +181,16 @@ def test_devices_file_restricts_beacons(tmp_path: Path):
     (d / src.name).write_text(text)
     open_out, strict_out = tmp_path / "open.hst", tmp_path / "strict.hst"
     assert run("fingerprints", d, "--out", open_out).exit_code == 0
-    assert run("fingerprints", d, "--out", strict_out, "--devices", DATASET / "cnf" / "tetam.dev").exit_code == 0
-    assert set(read_hst(open_out).fingerprints[(2.59, 2.19, 2.05)]["000000000102"]) == {BEACON, "aaaaaaaaaaaa"}
+    assert (
+        run(
+            "fingerprints", d, "--out", strict_out, "--devices", DATASET / "cnf" / "tetam.dev"
+        ).exit_code
+        == 0
+    )
+    assert set(read_hst(open_out).fingerprints[(2.59, 2.19, 2.05)]["000000000102"]) == {
+        BEACON,
+        "aaaaaaaaaaaa",
+    }
     assert set(read_hst(strict_out).fingerprints[(2.59, 2.19, 2.05)]["000000000102"]) == {BEACON}
 
 
@@ -192,11 +207,16 @@ def test_from_annotated_gives_cells_along_the_path(tmp_path: Path):
     rows = []
     for f in sorted(track.glob("*.mbd")):
         with f.open(newline="") as fh:
-            rows += [(r[1], r[2], int(r[3]), float(r[4]), float(r[5]), float(r[6]))
-                     for r in csv.reader(fh) if r]
+            rows += [
+                (r[1], r[2], int(r[3]), float(r[4]), float(r[5]), float(r[6]))
+                for r in csv.reader(fh)
+                if r
+            ]
     xs = np.array([r[3] for r in rows])
     ys = np.array([r[4] for r in rows])
-    expected_cells = {(int(np.floor(x / 0.5)), int(np.floor(y / 0.5))) for x, y in zip(xs, ys, strict=True)}
+    expected_cells = {
+        (int(np.floor(x / 0.5)), int(np.floor(y / 0.5))) for x, y in zip(xs, ys, strict=True)
+    }
     got_cells = {(round(x / 0.5 - 0.5), round(y / 0.5 - 0.5)) for x, y, _ in h.fingerprints}
     assert got_cells == expected_cells
     assert len(got_cells) >= 30  # an 18 m straight line in 0.5 m cells
@@ -207,16 +227,32 @@ def test_from_annotated_gives_cells_along_the_path(tmp_path: Path):
     # one cell checked bin by bin against the rows that fall in it
     (x, y, z), per_sensor = next(iter(h.fingerprints.items()))
     sensor = sorted(per_sensor)[0]
-    mine = [r[2] for r in rows if r[0] == sensor and abs(r[3] - x) <= 0.25 and abs(r[4] - y) <= 0.25]
+    mine = [
+        r[2] for r in rows if r[0] == sensor and abs(r[3] - x) <= 0.25 and abs(r[4] - y) <= 0.25
+    ]
     np.testing.assert_allclose(per_sensor[sensor][BEACON], independent_histogram(mine), atol=1e-15)
 
 
 def test_from_annotated_min_readings_thins_cells(tmp_path: Path):
     track = DATASET / "trk" / "straight_01"
     a, b = tmp_path / "a.hst", tmp_path / "b.hst"
-    assert run("fingerprints", "--from-annotated", track, "--cell", "1.0", "--out", a).exit_code == 0
-    assert run("fingerprints", "--from-annotated", track, "--cell", "1.0", "--out", b,
-               "--min-readings", "10").exit_code == 0
+    assert (
+        run("fingerprints", "--from-annotated", track, "--cell", "1.0", "--out", a).exit_code == 0
+    )
+    assert (
+        run(
+            "fingerprints",
+            "--from-annotated",
+            track,
+            "--cell",
+            "1.0",
+            "--out",
+            b,
+            "--min-readings",
+            "10",
+        ).exit_code
+        == 0
+    )
     n = [sum(len(s) for s in read_hst(p).fingerprints.values()) for p in (a, b)]
     assert n[1] < n[0]
 
@@ -227,7 +263,12 @@ def test_merged_file_is_not_counted_twice(tmp_path: Path):
     shutil.copy(DATASET / "trk" / "straight_01_all_sensors.mbd", d / "all_sensors.mbd")
     with_merged, without = tmp_path / "a.hst", tmp_path / "b.hst"
     assert run("fingerprints", "--from-annotated", d, "--out", with_merged).exit_code == 0
-    assert run("fingerprints", "--from-annotated", DATASET / "trk" / "straight_01", "--out", without).exit_code == 0
+    assert (
+        run(
+            "fingerprints", "--from-annotated", DATASET / "trk" / "straight_01", "--out", without
+        ).exit_code
+        == 0
+    )
     assert read_hst(with_merged) == read_hst(without)
 
 
@@ -235,15 +276,21 @@ def test_merged_file_is_not_counted_twice(tmp_path: Path):
 # errors
 
 
-@pytest.mark.parametrize(("args", "message"), [
-    (["--out", "x.hst"], "either stationary PATHS or --from-annotated"),
-    ([str(FPT), "--from-annotated", str(FPT), "--out", "x.hst"], "not both"),
-    ([str(FPT), "--bins", "-20:-100", "--out", "x.hst"], "--bins"),
-    ([str(DATASET / "trk" / "straight_01"), "--out", "x.hst"], "use --from-annotated"),
-    ([str(DATASET / "trk" / "straight_01_all_sensors.mbd"), "--out", "x.hst"], "<alias>_<x>_<y>_<z>.mbd"),
-    (["--from-annotated", str(FPT), "--out", "x.hst"], "no positions"),
-    (["does-not-exist", "--out", "x.hst"], "no such file"),
-])
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--out", "x.hst"], "either stationary PATHS or --from-annotated"),
+        ([str(FPT), "--from-annotated", str(FPT), "--out", "x.hst"], "not both"),
+        ([str(FPT), "--bins", "-20:-100", "--out", "x.hst"], "--bins"),
+        ([str(DATASET / "trk" / "straight_01"), "--out", "x.hst"], "use --from-annotated"),
+        (
+            [str(DATASET / "trk" / "straight_01_all_sensors.mbd"), "--out", "x.hst"],
+            "<alias>_<x>_<y>_<z>.mbd",
+        ),
+        (["--from-annotated", str(FPT), "--out", "x.hst"], "no positions"),
+        (["does-not-exist", "--out", "x.hst"], "no such file"),
+    ],
+)
 def test_bad_input_is_one_red_line(tmp_path: Path, monkeypatch, args, message):
     monkeypatch.chdir(tmp_path)
     result = run("fingerprints", *args)
@@ -272,7 +319,9 @@ def test_help_explains():
 
 def test_recordings_with_nothing_in_range_are_an_error(tmp_path: Path):
     f = tmp_path / "sensor10_1.00_2.00_3.00.mbd"
-    f.write_text("1568633989.99,b827eb4521b4,e78f135624ce,-110\n1568633990.5,b827eb4521b4,e78f135624ce,-15\n")
+    f.write_text(
+        "1568633989.99,b827eb4521b4,e78f135624ce,-110\n1568633990.5,b827eb4521b4,e78f135624ce,-15\n"
+    )
     result = run("fingerprints", f, "--out", tmp_path / "x.hst")
     assert result.exit_code == 1
     assert flat("no readings inside -100..-20 dBm") in flat(result.output)

@@ -24,7 +24,9 @@ def walled_room() -> Occupancy:
 
 def densify(route: np.ndarray, closed: bool) -> np.ndarray:
     pts = np.vstack([route, route[:1]]) if closed else route
-    return np.vstack([a + (b - a) * np.linspace(0, 1, 50)[:, None] for a, b in zip(pts, pts[1:], strict=False)])
+    return np.vstack(
+        [a + (b - a) * np.linspace(0, 1, 50)[:, None] for a, b in zip(pts, pts[1:], strict=False)]
+    )
 
 
 def test_route_goes_through_the_door_and_keeps_its_margin() -> None:
@@ -45,8 +47,9 @@ def test_route_goes_through_the_door_and_keeps_its_margin() -> None:
 def test_clearance_is_to_the_occupied_squares() -> None:
     g = FloorGrid.from_occupancy(walled_room())
     # the inner wall's cells span x 5.0 .. 5.5; the outer wall's first column x 0 .. 0.5
-    np.testing.assert_allclose(g.clearance(np.array([[4.0, 2.0], [5.25, 2.0], [1.0, 3.0]])),
-                               [1.0, 0.0, 0.5])
+    np.testing.assert_allclose(
+        g.clearance(np.array([[4.0, 2.0], [5.25, 2.0], [1.0, 3.0]])), [1.0, 0.0, 0.5]
+    )
 
 
 def test_no_route_is_a_plan_error() -> None:

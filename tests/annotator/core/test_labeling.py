@@ -30,8 +30,9 @@ def truth(t_rel: np.ndarray) -> tuple[np.ndarray, Rotation]:
     return P0 + t_rel[:, None] * VEL, Rotation.from_rotvec(np.outer(t_rel * OMEGA, AXIS)) * R0
 
 
-def make_poses(n: int = 151, dt: float = 1 / 30, *, gaps: list[tuple[float, float]] = (),
-               t0: float = T0) -> Trajectory:
+def make_poses(
+    n: int = 151, dt: float = 1 / 30, *, gaps: list[tuple[float, float]] = (), t0: float = T0
+) -> Trajectory:
     t_rel = np.arange(n) * dt
     p, r = truth(t_rel)
     p = p.copy()
@@ -71,8 +72,15 @@ def test_nothing_outside_the_span_is_labelled() -> None:
     poses = make_poses(n=31)  # 0 .. 1.0 s
     t_rel = np.array([-0.5, -1e-6, 0.0, 0.5, 1.0, 1.0 + 1e-6, 3.0])
     labels = label_readings(poses, to_ns(t_rel))
-    assert labels.reason.tolist() == [BEFORE_SPAN, BEFORE_SPAN, LABELLED, LABELLED, LABELLED,
-                                      AFTER_SPAN, AFTER_SPAN]
+    assert labels.reason.tolist() == [
+        BEFORE_SPAN,
+        BEFORE_SPAN,
+        LABELLED,
+        LABELLED,
+        LABELLED,
+        AFTER_SPAN,
+        AFTER_SPAN,
+    ]
     assert np.isnan(labels.positions[~labels.labelled]).all()
     assert np.isnan(labels.rotations[~labels.labelled]).all()
     # The span ends are the poses themselves, exactly.

@@ -92,7 +92,9 @@ def test_occupancy_mask_removes_occupied_cells(tmp_path: Path) -> None:
     cells = {(0.0, 0.0): {"e78f135624ce": (0.5, 0.5)}, (1.0, 0.0): {"e78f135624ce": (1.0, 0.0)}}
     grid = RadioMapGrid("000000000101", ((0.0, 0.0), (2.0, 1.0)), 1.0, edges, cells)
     occ = tmp_path / "o.occ"
-    occ.write_text("[[0.0, 0.0], [2.0, 1.0]]::1.0\n[0.0, 0.0]::1\n[1.0, 0.0]::0\n", encoding="utf-8")
+    occ.write_text(
+        "[[0.0, 0.0], [2.0, 1.0]]::1.0\n[0.0, 0.0]::1\n[1.0, 0.0]::0\n", encoding="utf-8"
+    )
     m = radiomap_arrays([grid], "e78f135624ce", occ)
     np.testing.assert_allclose(m.centres, [[1.5, 0.5]])
     assert radiomap_arrays([grid], "e78f135624ce").centres.shape == (2, 2)
@@ -100,11 +102,17 @@ def test_occupancy_mask_removes_occupied_cells(tmp_path: Path) -> None:
 
 def annotator_cmd() -> list[str]:
     exe = Path(sys.executable).parent / "annotator"
-    return [str(exe)] if exe.is_file() else [sys.executable, "-c", "from annotator.cli import main; main()"]
+    return (
+        [str(exe)]
+        if exe.is_file()
+        else [sys.executable, "-c", "from annotator.cli import main; main()"]
+    )
 
 
 def run(*args: str) -> None:
-    res = subprocess.run([*annotator_cmd(), *args], capture_output=True, text=True, timeout=300, check=False)
+    res = subprocess.run(
+        [*annotator_cmd(), *args], capture_output=True, text=True, timeout=300, check=False
+    )
     assert res.returncode == 0, res.stderr
 
 
@@ -112,14 +120,29 @@ def test_baselines_on_the_bundled_published_track(tmp_path: Path) -> None:
     """Radio map from the published histograms (1 m cells), both baselines on straight_01,
     scored against its annotation: both clearly better than always answering the room's
     free-floor centroid."""
-    run("radiomap", str(DATA / "hst" / "set_1" / "tetam_multi_rssi.hst"), "--occupancy",
-        str(DATA / "occ" / "tetam_1.0.occ"), "--out", str(tmp_path / "rm"), "--no-plots")
+    run(
+        "radiomap",
+        str(DATA / "hst" / "set_1" / "tetam_multi_rssi.hst"),
+        "--occupancy",
+        str(DATA / "occ" / "tetam_1.0.occ"),
+        "--out",
+        str(tmp_path / "rm"),
+        "--no-plots",
+    )
     truth = DATA / "trk" / "straight_01_all_sensors.mbd"
     ce75 = {}
     for method in ("knn", "grid-hmm"):
         est = tmp_path / f"{method}.csv"
-        run("localize", str(DATA / "trk" / "straight_01"), "--radiomap", str(tmp_path / "rm"),
-            "--method", method, "--out", str(est))
+        run(
+            "localize",
+            str(DATA / "trk" / "straight_01"),
+            "--radiomap",
+            str(tmp_path / "rm"),
+            "--method",
+            method,
+            "--out",
+            str(est),
+        )
         run("score", str(est), "--truth", str(truth), "--out", str(tmp_path / method), "--no-plots")
         body = json.loads((tmp_path / method / "score.json").read_text(encoding="utf-8"))
         assert body["coverage"]["scored_fraction"] > 0.95
@@ -141,10 +164,20 @@ def test_baselines_on_the_bundled_published_track(tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     (run_dir / "rssi").mkdir(parents=True)
     for f in (DATA / "trk" / "straight_01").glob("*.mbd"):
-        rows = [",".join(line.split(",")[:4]) for line in f.read_text(encoding="utf-8").splitlines()]
+        rows = [
+            ",".join(line.split(",")[:4]) for line in f.read_text(encoding="utf-8").splitlines()
+        ]
         (run_dir / "rssi" / f.name).write_text("\n".join(rows) + "\n", encoding="utf-8")
-    run("localize", str(run_dir), "--radiomap", str(tmp_path / "rm"), "--method", "grid-hmm",
-        "--out", str(tmp_path / "from_run.csv"))
+    run(
+        "localize",
+        str(run_dir),
+        "--radiomap",
+        str(tmp_path / "rm"),
+        "--method",
+        "grid-hmm",
+        "--out",
+        str(tmp_path / "from_run.csv"),
+    )
     assert (tmp_path / "from_run.csv").read_text() == (tmp_path / "grid-hmm.csv").read_text()
 
 
@@ -152,11 +185,19 @@ def test_localize_bad_input_is_one_line_error(tmp_path: Path) -> None:
     track = str(DATA / "trk" / "straight_01")
     for args, message in (
         (["--radiomap", str(tmp_path / "nowhere")], "not a folder of .grd files"),
-        (["--radiomap", str(tmp_path), "--method", "magic"], "--method must be one of knn, grid-hmm"),
+        (
+            ["--radiomap", str(tmp_path), "--method", "magic"],
+            "--method must be one of knn, grid-hmm",
+        ),
         (["--radiomap", str(tmp_path)], "no .grd files"),
     ):
-        res = subprocess.run([*annotator_cmd(), "localize", track, "--out", str(tmp_path / "e.csv"), *args],
-                             capture_output=True, text=True, timeout=120, check=False)
+        res = subprocess.run(
+            [*annotator_cmd(), "localize", track, "--out", str(tmp_path / "e.csv"), *args],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
         assert res.returncode == 1, res.stderr
         assert message in res.stderr
         assert "Traceback" not in res.stderr

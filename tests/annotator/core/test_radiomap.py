@@ -108,30 +108,42 @@ def test_mean_rssi():
 # ---------------------------------------------------------------------------------------------
 # the command
 
-FPS = {(0.25, 0.25, 1.0): gaussian(-80.5), (2.25, 0.25, 1.0): gaussian(-60.5),
-       (1.25, 1.75, 1.0): gaussian(-70.5, 3)}
+FPS = {
+    (0.25, 0.25, 1.0): gaussian(-80.5),
+    (2.25, 0.25, 1.0): gaussian(-60.5),
+    (1.25, 1.75, 1.0): gaussian(-70.5, 3),
+}
 
 
 @pytest.fixture
 def small_hst(tmp_path: Path) -> Path:
-    devs = devices.Devices({SENSOR: devices.Device(SENSOR, (1.0, 1.0, 2.0), 255, "s1")},
-                           {BEACON: devices.Device(BEACON, (), 0, "b1")})
+    devs = devices.Devices(
+        {SENSOR: devices.Device(SENSOR, (1.0, 1.0, 2.0), 255, "s1")},
+        {BEACON: devices.Device(BEACON, (), 0, "b1")},
+    )
     h = hst.histograms_from_mapping(EDGES, devs, {p: {SENSOR: {BEACON: v}} for p, v in FPS.items()})
     path = tmp_path / "small.hst"
     hst.write_hst(h, path)
     return path
 
 
-GRD_HEADER = re.compile(r"^(?P<mac>[0-9a-f]{12})::\[\[(?P<x0>[-0-9.e]+), (?P<y0>[-0-9.e]+)\], "
-                        r"\[(?P<x1>[-0-9.e]+), (?P<y1>[-0-9.e]+)\]\]::(?P<cell>[0-9.]+)::\[(?P<bins>[^\]]+)\]$")
-GRD_ROW = re.compile(r"^\[(?P<gx>[-0-9.e]+), (?P<gy>[-0-9.e]+)\]::(?P<beacon>[0-9a-f]{12})::\[(?P<p>[^\]]+)\]$")
+GRD_HEADER = re.compile(
+    r"^(?P<mac>[0-9a-f]{12})::\[\[(?P<x0>[-0-9.e]+), (?P<y0>[-0-9.e]+)\], "
+    r"\[(?P<x1>[-0-9.e]+), (?P<y1>[-0-9.e]+)\]\]::(?P<cell>[0-9.]+)::\[(?P<bins>[^\]]+)\]$"
+)
+GRD_ROW = re.compile(
+    r"^\[(?P<gx>[-0-9.e]+), (?P<gy>[-0-9.e]+)\]::(?P<beacon>[0-9a-f]{12})::\[(?P<p>[^\]]+)\]$"
+)
 
 
 def test_radiomap_writes_grd_in_the_published_layout(small_hst: Path, tmp_path: Path):
     out = tmp_path / "maps"
     result = run("radiomap", small_hst, "--cell", "0.5", "--out", out)
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in out.iterdir()) == [f"small_{SENSOR}_0.5.grd", f"small_{SENSOR}_0.5.png"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        f"small_{SENSOR}_0.5.grd",
+        f"small_{SENSOR}_0.5.png",
+    ]
     assert (out / f"small_{SENSOR}_0.5.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     lines = (out / f"small_{SENSOR}_0.5.grd").read_text().splitlines()
     head = GRD_HEADER.match(lines[0])
@@ -140,7 +152,12 @@ def test_radiomap_writes_grd_in_the_published_layout(small_hst: Path, tmp_path: 
     assert float(head["cell"]) == 0.5
     assert [float(v) for v in head["bins"].split(", ")] == list(EDGES)
     # extent: the fingerprints and the sensor, from a cell-aligned lower-left corner
-    assert (float(head["x0"]), float(head["y0"]), float(head["x1"]), float(head["y1"])) == (0.0, 0.0, 2.25, 1.75)
+    assert (float(head["x0"]), float(head["y0"]), float(head["x1"]), float(head["y1"])) == (
+        0.0,
+        0.0,
+        2.25,
+        1.75,
+    )
     xs, ys = occ.grid_corners(((0.0, 0.0), (2.25, 1.75)), 0.5)
     seen = set()
     for line in lines[1:]:
@@ -179,14 +196,28 @@ def test_occupancy_mask_is_respected(small_hst: Path, tmp_path: Path):
     assert free
     assert occupied
     out = tmp_path / "free"
-    assert run("radiomap", small_hst, "--occupancy", path, "--out", out, "--no-plots").exit_code == 0
+    assert (
+        run("radiomap", small_hst, "--occupancy", path, "--out", out, "--no-plots").exit_code == 0
+    )
     g = grd.read_grd(out / f"small_{SENSOR}_0.5.grd")
     assert set(g.cells) == free
     assert g.limits == ((0.0, 0.0), (2.25, 1.75))
     assert not list(out.glob("*.png"))
     out1 = tmp_path / "occupied"
-    assert run("radiomap", small_hst, "--occupancy", path, "--out", out1, "--no-plots",
-               "--free-value", "1").exit_code == 0
+    assert (
+        run(
+            "radiomap",
+            small_hst,
+            "--occupancy",
+            path,
+            "--out",
+            out1,
+            "--no-plots",
+            "--free-value",
+            "1",
+        ).exit_code
+        == 0
+    )
     assert set(grd.read_grd(out1 / f"small_{SENSOR}_0.5.grd").cells) == occupied
 
 
@@ -223,8 +254,11 @@ def test_heat_map_over_the_tetam_floor_plan(tmp_path: Path):
     assert run("fingerprints", DATASET / "fpt", "--out", full).exit_code == 0
     h = hst.read_hst(full)
     # one sensor's fingerprints keep the plot test short; the devices (and so the site) stay tetam's
-    one = hst.FingerprintHistograms(h.bins, h.devices, {
-        p: {"b827eb4521b4": s["b827eb4521b4"]} for p, s in h.fingerprints.items()})
+    one = hst.FingerprintHistograms(
+        h.bins,
+        h.devices,
+        {p: {"b827eb4521b4": s["b827eb4521b4"]} for p, s in h.fingerprints.items()},
+    )
     path = tmp_path / "one.hst"
     hst.write_hst(one, path)
     out = tmp_path / "maps"
@@ -239,12 +273,18 @@ def test_heat_map_over_the_tetam_floor_plan(tmp_path: Path):
     assert len(g.cells) == 22 * 19
 
 
-@pytest.mark.parametrize(("extra", "message"), [
-    (["--cell", "1.0", "--occupancy", str(DATASET / "occ" / "tetam_0.5.occ")], "does not match"),
-    ([], "give --cell"),
-    (["--cell", "0.5", "--neighbours", "0"], "--neighbours"),
-    (["--cell", "0.5", "--free-value", "2"], "--free-value"),
-])
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (
+            ["--cell", "1.0", "--occupancy", str(DATASET / "occ" / "tetam_0.5.occ")],
+            "does not match",
+        ),
+        ([], "give --cell"),
+        (["--cell", "0.5", "--neighbours", "0"], "--neighbours"),
+        (["--cell", "0.5", "--free-value", "2"], "--free-value"),
+    ],
+)
 def test_radiomap_bad_options(small_hst: Path, tmp_path: Path, extra, message):
     result = run("radiomap", small_hst, "--out", tmp_path / "m", *extra)
     assert result.exit_code == 1
@@ -254,7 +294,7 @@ def test_radiomap_bad_options(small_hst: Path, tmp_path: Path, extra, message):
 
 def test_malformed_hst_is_one_line_naming_file_and_line(tmp_path: Path):
     bad = tmp_path / "bad.hst"
-    bad.write_text("Bins:[-100.0, -99.0]\nDongles:{}\nBeacons:{}\nFingerprints:{\"(1, 2)\": {}}\n")
+    bad.write_text('Bins:[-100.0, -99.0]\nDongles:{}\nBeacons:{}\nFingerprints:{"(1, 2)": {}}\n')
     result = run("radiomap", bad, "--cell", "0.5", "--out", tmp_path / "m")
     assert result.exit_code == 1
     assert flat(f"{bad}:4:") in flat(result.output)

@@ -23,8 +23,15 @@ from track_helpers import make_path, make_rig, make_room, project
 N_KF = 60
 
 
-def _scene(seed: int = 0, survey=(0.015, 1.0), rig=(0.003, 1.0), focal_rel=0.004, moved: dict | None = None,
-           skip: tuple[int, ...] = (), noise_px: float = 0.3):
+def _scene(
+    seed: int = 0,
+    survey=(0.015, 1.0),
+    rig=(0.003, 1.0),
+    focal_rel=0.004,
+    moved: dict | None = None,
+    skip: tuple[int, ...] = (),
+    noise_px: float = 0.3,
+):
     """Truth and what a capture would hand the refinement: keyframes, perturbed survey, rig, lens."""
     rng = np.random.default_rng(seed)
     room = make_room()
@@ -41,7 +48,9 @@ def _scene(seed: int = 0, survey=(0.015, 1.0), rig=(0.003, 1.0), focal_rel=0.004
         # Start poses from a first pass: a little off.
         R0 = Rotation.from_rotvec(np.radians(0.3) * rng.standard_normal(3)).as_matrix() @ R
         keyframes.append(Keyframe(R0, pos[k] + 0.01 * rng.standard_normal(3), views))
-    truth = {int(m): (room.R_world_marker[i], room.t_world_marker[i]) for i, m in enumerate(room.ids)}
+    truth = {
+        int(m): (room.R_world_marker[i], room.t_world_marker[i]) for i, m in enumerate(room.ids)
+    }
     survey_map = {}
     for mid, (R, c) in truth.items():
         if mid in skip:
@@ -56,17 +65,43 @@ def _scene(seed: int = 0, survey=(0.015, 1.0), rig=(0.003, 1.0), focal_rel=0.004
         K = rc.calibration.camera_matrix.copy()
         K[:2, :2] *= 1 + focal_rel * rng.standard_normal()
         dR = Rotation.from_rotvec(np.radians(rig[1]) * rng.standard_normal(3)).as_matrix()
-        cams.append(CameraParams(name, dR @ rc.R_bundle_camera, rc.t_bundle_camera + rig[0] * rng.standard_normal(3),
-                                 K, rc.calibration.dist_coeffs.copy(), "radtan", 0.0, rc.calibration.height))
-    true_cams = [CameraParams(n, rig_true[n].R_bundle_camera, rig_true[n].t_bundle_camera,
-                              rig_true[n].calibration.camera_matrix, rig_true[n].calibration.dist_coeffs, "radtan",
-                              0.0, 540) for n in names]
+        cams.append(
+            CameraParams(
+                name,
+                dR @ rc.R_bundle_camera,
+                rc.t_bundle_camera + rig[0] * rng.standard_normal(3),
+                K,
+                rc.calibration.dist_coeffs.copy(),
+                "radtan",
+                0.0,
+                rc.calibration.height,
+            )
+        )
+    true_cams = [
+        CameraParams(
+            n,
+            rig_true[n].R_bundle_camera,
+            rig_true[n].t_bundle_camera,
+            rig_true[n].calibration.camera_matrix,
+            rig_true[n].calibration.dist_coeffs,
+            "radtan",
+            0.0,
+            540,
+        )
+        for n in names
+    ]
     return truth, survey_map, cams, true_cams, keyframes, room.length
 
 
 def _solve(survey_map, cams, keyframes, length, priors=None, mode="all", **settings):
-    priors = priors or Priors(survey_sigma_m=0.015, survey_sigma_deg=1.0, rig_sigma_m=0.003, rig_sigma_deg=1.0,
-                              focal_sigma_rel=0.005, readout_sigma_s=1e-4)
+    priors = priors or Priors(
+        survey_sigma_m=0.015,
+        survey_sigma_deg=1.0,
+        rig_sigma_m=0.003,
+        rig_sigma_deg=1.0,
+        focal_sigma_rel=0.005,
+        readout_sigma_s=1e-4,
+    )
     prob, starts = build_problem(survey_map, length, cams, keyframes, priors)
     return prob, solve(prob, RefineSettings(mode=mode, **settings), starts)
 
@@ -107,6 +142,7 @@ def test_perturbed_rig_and_focal_come_back():
         sigma_rel = np.sqrt(sol.covariance.intrinsics[cam.name][0, 0]) / true.K[0, 0]
         assert f_err_after < 0.5 * f_err_before, (cam.name, f_err_before, f_err_after)
         assert f_err_after < 3 * sigma_rel, (cam.name, f_err_after, sigma_rel)
+
     # Only the cameras' pose relative to each other is seen (a rotation common to both is a gauge).
     def rel(cs):
         return cs[0].R_bc.T @ cs[1].R_bc, cs[0].R_bc.T @ (cs[1].t_bc - cs[0].t_bc)
@@ -120,7 +156,9 @@ def test_perturbed_rig_and_focal_come_back():
 
 def test_exact_files_stay_exact():
     """Nothing the data do not demand is changed: an exact map, rig and lens come back unchanged."""
-    truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=5, survey=(0, 0), rig=(0, 0), focal_rel=0)
+    truth, survey_map, cams, true_cams, keyframes, length = _scene(
+        seed=5, survey=(0, 0), rig=(0, 0), focal_rel=0
+    )
     prob, sol = _solve(survey_map, true_cams, keyframes, length)
     moved = [np.linalg.norm(sol.t_m[m] - survey_map[mid][1]) for m, mid in enumerate(prob.markers)]
     assert np.median(moved) < 1e-6
@@ -135,7 +173,9 @@ def test_skipped_marker_is_mapped():
     truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=2, rig=(0, 0), focal_rel=0)
     seen = {int(i) for kf in keyframes for v in kf.views for i in v.ids}
     skip = tuple(sorted(seen)[::3])
-    truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=2, rig=(0, 0), focal_rel=0, skip=skip)
+    truth, survey_map, cams, true_cams, keyframes, length = _scene(
+        seed=2, rig=(0, 0), focal_rel=0, skip=skip
+    )
     prob, sol = _solve(survey_map, true_cams, keyframes, length, mode="map")
     err = _marker_errors(prob, sol, truth)
     mapped = [mid for mid in skip if mid in err]
@@ -156,7 +196,8 @@ def test_marker_moved_since_the_survey_is_flagged_not_absorbed():
                 counts[int(i)] = counts.get(int(i), 0) + 1
     target = max(counts, key=counts.get)
     truth, survey_map, cams, true_cams, keyframes, length = _scene(
-        seed=3, rig=(0, 0), focal_rel=0, moved={target: (0.3, 0.0, 0.0)})
+        seed=3, rig=(0, 0), focal_rel=0, moved={target: (0.3, 0.0, 0.0)}
+    )
     prob, sol = _solve(survey_map, true_cams, keyframes, length)
     assert target in sol.moved
     assert len(sol.moved) <= 2
@@ -194,21 +235,48 @@ def test_field_errors_end_to_end(tmp_path):
     from track_helpers import errors_against_truth
 
     exp = tmp_path / "exp"
-    res = CliRunner().invoke(app, ["simulate", "--out", str(exp), "--duration", "12", "--seed", "3",
-                                   "--errors", "field", "--jobs", "2"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "simulate",
+            "--out",
+            str(exp),
+            "--duration",
+            "12",
+            "--seed",
+            "3",
+            "--errors",
+            "field",
+            "--jobs",
+            "2",
+        ],
+    )
     assert res.exit_code == 0, res.output
     truth = read_trajectory(exp / "truth.csv")
     errs = {}
     for mode in ("none", "all"):
         out = tmp_path / mode
-        res = CliRunner().invoke(app, ["track", str(exp / "experiment.yaml"), "--out", str(out), "--jobs", "2",
-                                       "--refine", mode])
+        res = CliRunner().invoke(
+            app,
+            [
+                "track",
+                str(exp / "experiment.yaml"),
+                "--out",
+                str(out),
+                "--jobs",
+                "2",
+                "--refine",
+                mode,
+            ],
+        )
         assert res.exit_code == 0, res.output
         traj = read_trajectory(out / "trajectory.csv")
         pos, rot = errors_against_truth(traj, truth)
         errs[mode] = (pos, rot, len(pos) / len(traj))
-        print(f"refine {mode}: posed {len(pos) / len(traj):.1%}, median {100 * np.median(pos):.2f} cm, "
-              f"p95 {100 * np.percentile(pos, 95):.2f} cm, rotation {np.median(rot):.2f} deg")
+        print(
+            f"refine {mode}: posed {len(pos) / len(traj):.1%}, median {100 * np.median(pos):.2f} cm, "
+            f"p95 {100 * np.percentile(pos, 95):.2f} cm, rotation {np.median(rot):.2f} deg"
+        )
     pos, _, posed = errs["all"]
     assert posed > 0.9
     assert np.median(pos) < 0.02
@@ -230,8 +298,9 @@ def test_field_errors_end_to_end(tmp_path):
 def test_held_block_carries_the_correction_it_was_denied():
     """A block the gate holds at its prior keeps the prior's error: its covariance is the posterior
     spread plus the correction the data asked for, not the posterior alone (over-confident)."""
-    truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=5, survey=(0.002, 0.1), rig=(0, 0),
-                                                                   focal_rel=0.0005)
+    truth, survey_map, cams, true_cams, keyframes, length = _scene(
+        seed=5, survey=(0.002, 0.1), rig=(0, 0), focal_rel=0.0005
+    )
     prob, held = _solve(survey_map, cams, keyframes, length)
     _, free = _solve(survey_map, cams, keyframes, length, gate_sigma=0)
     for c, cam in enumerate(cams):
@@ -243,7 +312,6 @@ def test_held_block_carries_the_correction_it_was_denied():
         assert var_held == pytest.approx(var_free + d * d, rel=0.1)
         # ... and that sigma covers the focal error the held calibration keeps.
         assert abs(cam.K[0, 0] - true_cams[c].K[0, 0]) < 3 * np.sqrt(var_held)
-
 
 
 def test_the_refined_map_sits_where_the_survey_puts_it():
@@ -269,10 +337,11 @@ def test_the_refined_map_sits_where_the_survey_puts_it():
         return float(np.sqrt(np.mean(np.sum((b - a @ R.T) ** 2, axis=1))))
 
     shape_refined, shape_survey = shape_rms(refined), shape_rms(surveyed)
-    print(f"{len(ids)} markers: datum {100 * d_survey} cm (survey) vs {100 * d_refined} cm (refined); "
-          f"shape rms {100 * shape_survey:.2f} -> {100 * shape_refined:.2f} cm")
+    print(
+        f"{len(ids)} markers: datum {100 * d_survey} cm (survey) vs {100 * d_refined} cm (refined); "
+        f"shape rms {100 * shape_survey:.2f} -> {100 * shape_refined:.2f} cm"
+    )
     assert shape_refined < 0.5 * shape_survey
-
 
 
 def _far_marker(truth, keyframes):
@@ -282,7 +351,10 @@ def _far_marker(truth, keyframes):
         for v in kf.views:
             for i in v.ids:
                 rays.setdefault(int(i), []).append(truth[int(i)][1] - kf.t_wb)
-    far = max((m for m, r in rays.items() if len(r) >= 10), key=lambda m: np.median(np.linalg.norm(rays[m], axis=1)))
+    far = max(
+        (m for m, r in rays.items() if len(r) >= 10),
+        key=lambda m: np.median(np.linalg.norm(rays[m], axis=1)),
+    )
     r = np.array(rays[far])
     los = np.mean(r / np.linalg.norm(r, axis=1)[:, None], axis=0)
     return far, float(np.median(np.linalg.norm(r, axis=1))), los / np.linalg.norm(los)
@@ -300,8 +372,9 @@ def test_marker_floor_is_the_depth_error_of_a_size_error_along_the_line_of_sight
     m = prob.markers.index(target)
     w, V = np.linalg.eigh(floors[m, 3:, 3:])
     side = 700 * length / depth  # px: the scene's focal length over the distance
-    assert np.sqrt(w[-1]) == pytest.approx(np.hypot(depth * settings.marker_size_floor_px / side,
-                                                    settings.marker_floor_m), rel=0.25)
+    assert np.sqrt(w[-1]) == pytest.approx(
+        np.hypot(depth * settings.marker_size_floor_px / side, settings.marker_floor_m), rel=0.25
+    )
     assert abs(V[:, -1] @ los) > 0.95
     assert np.allclose(np.sqrt(w[:2]), settings.marker_floor_m)
     assert np.allclose(floors[m, :3, :3], np.radians(settings.marker_floor_deg) ** 2 * np.eye(3))

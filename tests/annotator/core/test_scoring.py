@@ -21,7 +21,11 @@ TRACK = DATA / "trk" / "straight_01_all_sensors.mbd"
 
 def annotator_cmd() -> list[str]:
     exe = Path(sys.executable).parent / "annotator"
-    return [str(exe)] if exe.is_file() else [sys.executable, "-c", "from annotator.cli import main; main()"]
+    return (
+        [str(exe)]
+        if exe.is_file()
+        else [sys.executable, "-c", "from annotator.cli import main; main()"]
+    )
 
 
 def walk(t: np.ndarray) -> np.ndarray:
@@ -38,7 +42,7 @@ def test_summary_figures_on_known_errors() -> None:
     assert s.ce75 == pytest.approx(75.25)
     assert s.ce95 == pytest.approx(95.05)
     assert s.max == 100.0
-    assert s.rmse == pytest.approx(np.sqrt(np.mean(e ** 2)))
+    assert s.rmse == pytest.approx(np.sqrt(np.mean(e**2)))
     assert summarize(np.array([np.nan])).as_dict()["median"] is None
 
 
@@ -91,7 +95,9 @@ def test_coverage_counts_estimates_outside_the_truth() -> None:
 
 def test_latency_is_the_shift_that_removes_a_lag() -> None:
     tt = np.arange(0.0, 60.0, 0.05)
-    truth = Truth.from_samples(tt, np.column_stack([3 * np.sin(tt / 3), 2 * np.cos(tt / 4), tt * 0]))
+    truth = Truth.from_samples(
+        tt, np.column_stack([3 * np.sin(tt / 3), 2 * np.cos(tt / 4), tt * 0])
+    )
     t = np.arange(5.0, 55.0, 0.2)
     lagged = np.column_stack([3 * np.sin((t - 0.4) / 3), 2 * np.cos((t - 0.4) / 4), t * 0])
     s = score(t, lagged, truth, latency_max_s=2.0, latency_step_s=0.05)
@@ -131,9 +137,21 @@ def test_score_cli_writes_json_blocks_and_plots(tmp_path: Path) -> None:
     est = read_estimates(tmp_path / "est.csv")
     assert est.has_z
     assert len(est.t) == len(t)
-    res = subprocess.run([*annotator_cmd(), "score", str(tmp_path / "est.csv"), "--truth", str(TRACK),
-                          "--out", str(tmp_path / "out")], capture_output=True, text=True,
-                         timeout=120, check=False)
+    res = subprocess.run(
+        [
+            *annotator_cmd(),
+            "score",
+            str(tmp_path / "est.csv"),
+            "--truth",
+            str(TRACK),
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert res.returncode == 0, res.stderr
     body = json.loads((tmp_path / "out" / "score.json").read_text(encoding="utf-8"))
     for block in ("error_2d_m", "error_3d_m"):
@@ -147,21 +165,60 @@ def test_score_cli_writes_json_blocks_and_plots(tmp_path: Path) -> None:
 def test_score_cli_bad_estimates_is_one_line_error(tmp_path: Path) -> None:
     bad = tmp_path / "bad.csv"
     bad.write_text("time,x,y\n1,2,3\n", encoding="utf-8")
-    res = subprocess.run([*annotator_cmd(), "score", str(bad), "--truth", str(TRACK), "--out",
-                          str(tmp_path / "out")], capture_output=True, text=True, timeout=120, check=False)
+    res = subprocess.run(
+        [
+            *annotator_cmd(),
+            "score",
+            str(bad),
+            "--truth",
+            str(TRACK),
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert res.returncode == 1
     assert "header lacks column(s) t" in res.stderr
     assert "Traceback" not in res.stderr
     assert not (tmp_path / "out").exists()
     bad.write_text("t,x,y\n1,2,3\n2,oops,3\n", encoding="utf-8")
-    res = subprocess.run([*annotator_cmd(), "score", str(bad), "--truth", str(TRACK), "--out",
-                          str(tmp_path / "out")], capture_output=True, text=True, timeout=120, check=False)
+    res = subprocess.run(
+        [
+            *annotator_cmd(),
+            "score",
+            str(bad),
+            "--truth",
+            str(TRACK),
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert res.returncode == 1
     assert f"{bad}:3:" in res.stderr
     # estimates from another day: nothing to score, said in one line
     bad.write_text("t,x,y\n1,2,3\n2,2,3\n", encoding="utf-8")
-    res = subprocess.run([*annotator_cmd(), "score", str(bad), "--truth", str(TRACK), "--out",
-                          str(tmp_path / "out")], capture_output=True, text=True, timeout=120, check=False)
+    res = subprocess.run(
+        [
+            *annotator_cmd(),
+            "score",
+            str(bad),
+            "--truth",
+            str(TRACK),
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert res.returncode == 1
     assert "no estimate falls inside" in res.stderr
 
@@ -172,11 +229,28 @@ def test_score_cli_latency_is_opt_in_and_finds_a_lag(tmp_path: Path) -> None:
     lagged, _ = interpolate_truth(truth, t - 0.5)  # a localizer half a second late
     write_estimates(tmp_path / "est.csv", t, lagged[:, :2])
     for extra, out in (([], "plain"), (["--latency", "2"], "lat")):
-        res = subprocess.run([*annotator_cmd(), "score", str(tmp_path / "est.csv"), "--truth", str(TRACK),
-                              "--out", str(tmp_path / out), "--no-plots", *extra], capture_output=True,
-                             text=True, timeout=120, check=False)
+        res = subprocess.run(
+            [
+                *annotator_cmd(),
+                "score",
+                str(tmp_path / "est.csv"),
+                "--truth",
+                str(TRACK),
+                "--out",
+                str(tmp_path / out),
+                "--no-plots",
+                *extra,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
         assert res.returncode == 0, res.stderr
-    assert json.loads((tmp_path / "plain" / "score.json").read_text(encoding="utf-8"))["latency"] is None
+    assert (
+        json.loads((tmp_path / "plain" / "score.json").read_text(encoding="utf-8"))["latency"]
+        is None
+    )
     lat = json.loads((tmp_path / "lat" / "score.json").read_text(encoding="utf-8"))["latency"]
     assert lat["shift_s"] == pytest.approx(0.5)
     assert lat["ce50_2d_at_shift_m"] < 1e-3 < lat["ce50_2d_at_zero_m"]

@@ -22,8 +22,13 @@ FPS = 30.0
 FRAME = 1.0 / FPS
 
 
-def covered_fraction(pts: np.ndarray, events: list[tuple[float, float]], ramp: float = 0.0,
-                     exposure: float = FRAME, sub: int = 40) -> np.ndarray:
+def covered_fraction(
+    pts: np.ndarray,
+    events: list[tuple[float, float]],
+    ramp: float = 0.0,
+    exposure: float = FRAME,
+    sub: int = 40,
+) -> np.ndarray:
     """Fraction of each frame's exposure (centred on its PTS) during which the lens is covered.
 
     With ``ramp`` > 0 the hands take that long to cover (and to uncover) the lens; the edge time
@@ -42,10 +47,19 @@ def covered_fraction(pts: np.ndarray, events: list[tuple[float, float]], ramp: f
     return f.mean(axis=1)
 
 
-def make_video(rng: np.random.Generator, events: list[tuple[float, float]], *, duration: float = 12.0,
-               start_pts: float = 0.0, ramp: float = 0.0, noise: float = 2.0, bright: float = 110.0,
-               dark: float = 10.0, fps: float = FPS,
-               gamma: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def make_video(
+    rng: np.random.Generator,
+    events: list[tuple[float, float]],
+    *,
+    duration: float = 12.0,
+    start_pts: float = 0.0,
+    ramp: float = 0.0,
+    noise: float = 2.0,
+    bright: float = 110.0,
+    dark: float = 10.0,
+    fps: float = FPS,
+    gamma: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """pts, mean brightness, marker count of a moving camera whose lens is covered in ``events``.
 
     ``gamma`` != 1 makes the picture darken non-linearly with the covered fraction, which moves
@@ -53,15 +67,25 @@ def make_video(rng: np.random.Generator, events: list[tuple[float, float]], *, d
     """
     pts = start_pts + np.arange(0.0, duration, 1.0 / fps)
     f = covered_fraction(pts, events, ramp, 1.0 / fps) ** gamma
-    scene = bright * (1.0 + 0.14 * np.sin(0.7 * pts) + 0.05 * np.sin(2.3 * pts))  # the room changes as we move
+    scene = bright * (
+        1.0 + 0.14 * np.sin(0.7 * pts) + 0.05 * np.sin(2.3 * pts)
+    )  # the room changes as we move
     b = scene * (1 - f) + dark * f + rng.normal(0.0, noise, pts.size)
     markers = np.where(f > 0.4, 0, rng.integers(1, 7, pts.size))
     return pts, b, markers
 
 
-def make_rssi(rng: np.random.Generator, covered: list[tuple[float, float]], *, duration: float = 30.0,
-              t0: float = 1_700_000_000.0, sensors: int = 12, rate: float = 8.0, drop_db: float = 12.0,
-              keep: float = 0.3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def make_rssi(
+    rng: np.random.Generator,
+    covered: list[tuple[float, float]],
+    *,
+    duration: float = 30.0,
+    t0: float = 1_700_000_000.0,
+    sensors: int = 12,
+    rate: float = 8.0,
+    drop_db: float = 12.0,
+    keep: float = 0.3,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pooled readings of one beacon at ``sensors`` sensors; in ``covered`` (seconds from t0) the
     level drops by ``drop_db`` and only ``keep`` of the readings survive."""
     ts, rs, ss = [], [], []

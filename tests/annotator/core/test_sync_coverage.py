@@ -19,8 +19,15 @@ def _readings(seed: int, duration: float):
     devices = load_site("tetam")
     ts, rs, ss = [], [], []
     for i, sensors in enumerate(demo.split_sensors()):
-        sim = Simulation(pick_sensors(devices, sensors), tuple(devices.beacons), demo.demo_path(),
-                         round(T0 * 1e9), seed=seed * 10 + i, rate_hz=10, events=events)
+        sim = Simulation(
+            pick_sensors(devices, sensors),
+            tuple(devices.beacons),
+            demo.demo_path(),
+            round(T0 * 1e9),
+            seed=seed * 10 + i,
+            rate_hz=10,
+            events=events,
+        )
         sim.skip_to(-5.0)
         for mac, r in sim.generate(duration + 1.0):
             ts.append(r.t_ns / 1e9)
@@ -30,11 +37,15 @@ def _readings(seed: int, duration: float):
     return np.array(ts), np.array(rs, float), np.array(ss), truth
 
 
-def _video(rng, cover: float, release: float, duration: float, fps: float = 30.0, ramp: float = 0.15):
+def _video(
+    rng, cover: float, release: float, duration: float, fps: float = 30.0, ramp: float = 0.15
+):
     """Per-frame brightness of a box-exposed 30 fps video whose lens is covered over [cover, release]."""
     pts = np.arange(0.0, duration, 1.0 / fps)
     s = pts[:, None] + ((np.arange(16) + 0.5) / 16 - 0.5)[None, :] / fps
-    f = np.minimum(np.clip((s - cover + ramp / 2) / ramp, 0, 1), np.clip((release + ramp / 2 - s) / ramp, 0, 1))
+    f = np.minimum(
+        np.clip((s - cover + ramp / 2) / ramp, 0, 1), np.clip((release + ramp / 2 - s) / ramp, 0, 1)
+    )
     f = f.mean(axis=1)
     b = 110.0 * (1 - f) + 10.0 * f + rng.normal(0, 2.0, pts.size)
     return pts, b, np.where(f > 0.4, 0, 4)
@@ -48,9 +59,14 @@ def test_edge_and_offset_sigmas_cover_the_truth_as_claimed():
         found = detect_rssi_events(t, r, s)
         (c, rel), *_ = truth
         ev = min(found, key=lambda e: abs(e.cover - T0 - c))
-        edge_z += [abs(ev.cover - T0 - c) / ev.cover_sigma, abs(ev.release - T0 - rel) / ev.release_sigma]
+        edge_z += [
+            abs(ev.cover - T0 - c) / ev.cover_sigma,
+            abs(ev.release - T0 - rel) / ev.release_sigma,
+        ]
         start = rng.uniform(-1.5, -0.5)  # the video's first frame, relative to T0
-        cm = fit_clock_map(detect_video_events(*_video(rng, c - start, rel - start, 8.0 - start)), [ev])
+        cm = fit_clock_map(
+            detect_video_events(*_video(rng, c - start, rel - start, 8.0 - start)), [ev]
+        )
         off_z.append(abs(cm.video_start - T0 - start) / cm.video_start_sigma)
     edge_z, off_z = np.array(edge_z), np.array(off_z)
     # 2 sigma: ~95 % for an honest sigma (a per-sensor count of adverts gave ~67 %).

@@ -18,7 +18,7 @@ def test_positions_get_closer_to_truth_than_the_measurements():
     rng = np.random.default_rng(0)
     t, truth = make_walk(600, 1 / 30)
     z = truth + rng.normal(0, 0.01, truth.shape)
-    cov = np.repeat((0.01 ** 2 * np.eye(3))[None], len(t), 0)
+    cov = np.repeat((0.01**2 * np.eye(3))[None], len(t), 0)
     out, sig, ok = smooth_positions(t, z, cov, t)
     raw = np.linalg.norm(z - truth, axis=1)
     err = np.linalg.norm(out - truth, axis=1)
@@ -33,7 +33,7 @@ def test_outliers_are_gated_and_do_not_pull_the_track():
     z = truth + rng.normal(0, 0.003, truth.shape)
     bad = np.arange(20, 300, 37)
     z[bad] += np.array([0.5, -0.4, 0.3])  # wrong-branch poses, half a metre off
-    cov = np.repeat((0.003 ** 2 * np.eye(3))[None], len(t), 0)
+    cov = np.repeat((0.003**2 * np.eye(3))[None], len(t), 0)
     out, _, ok = smooth_positions(t, z, cov, t)
     assert not ok[bad].any()
     assert ok.sum() == len(t) - len(bad)
@@ -43,7 +43,7 @@ def test_outliers_are_gated_and_do_not_pull_the_track():
 def test_gap_longer_than_max_gap_is_nan_and_query_times_between_frames_interpolate():
     t, truth = make_walk(300, 1 / 30)
     keep = (t - t[0] < 3.0) | (t - t[0] > 5.0)  # two seconds without any measurement
-    cov = np.repeat((0.002 ** 2 * np.eye(3))[None], keep.sum(), 0)
+    cov = np.repeat((0.002**2 * np.eye(3))[None], keep.sum(), 0)
     t_q = t + 1 / 60  # half-way between frames
     out, sig, _ = smooth_positions(t[keep], truth[keep], cov, t_q, SmootherSettings(max_gap_s=0.5))
     in_gap = (t_q - t[0] > 3.05) & (t_q - t[0] < 4.95)
@@ -59,14 +59,23 @@ def test_supported_marks_only_interpolation_or_short_extrapolation():
     tm = np.array([0.0, 0.1, 0.2, 2.0, 2.1])
     tq = np.array([-0.5, -0.05, 0.15, 1.0, 2.05, 2.15, 3.0])
     assert supported(tm, tq, max_gap=0.5, max_extrapolate=0.1).tolist() == [
-        False, True, True, False, True, True, False]
+        False,
+        True,
+        True,
+        False,
+        True,
+        True,
+        False,
+    ]
 
 
 def test_rotations_smoothed_on_so3_stay_rotations_and_reduce_noise():
     rng = np.random.default_rng(2)
     n, dt = 400, 1 / 30
     t = np.arange(n) * dt
-    truth = Rotation.from_euler("zyx", np.stack([1.2 * t, 0.1 * np.sin(t), 0.05 * np.cos(2 * t)], 1))
+    truth = Rotation.from_euler(
+        "zyx", np.stack([1.2 * t, 0.1 * np.sin(t), 0.05 * np.cos(2 * t)], 1)
+    )
     noise = Rotation.from_rotvec(rng.normal(0, np.radians(0.5), (n, 3)))
     meas = truth * noise
     meas_list = list(meas)
@@ -87,7 +96,12 @@ def test_steady_turn_is_followed_without_lag():
     t = np.arange(120) / 30
     truth = Rotation.from_euler("z", (1.5 * t)[:, None])  # 86 deg/s
     out, _ = smooth_rotations(t, truth, np.full(len(t), 1e-6), t + 1 / 60)
-    err = np.degrees((Rotation.from_matrix(out[:-3]) * Rotation.from_euler("z", (1.5 * (t[:-3] + 1 / 60))[:, None]).inv()).magnitude())
+    err = np.degrees(
+        (
+            Rotation.from_matrix(out[:-3])
+            * Rotation.from_euler("z", (1.5 * (t[:-3] + 1 / 60))[:, None]).inv()
+        ).magnitude()
+    )
     assert err.max() < 0.01
 
 
@@ -106,7 +120,7 @@ def test_a_bad_start_after_a_gap_does_not_lose_the_track():
     z = truth + rng.normal(0, 0.002, truth.shape)
     z[0] += [0.0, 0.04, 0.0]
     z[1] += [0.0, -0.03, 0.0]  # two poor poses: a velocity of -4 m/s
-    cov = np.repeat((0.002 ** 2 * np.eye(3))[None], len(t), 0)
+    cov = np.repeat((0.002**2 * np.eye(3))[None], len(t), 0)
     out, _, ok = smooth_positions(t, z, cov, t)
     err = np.linalg.norm(out - truth, axis=1)
     assert ok[10:].all()

@@ -40,18 +40,38 @@ def _scene(k: int = 7):
 
 def _views(room, rig, R, p, dets, twist=None):
     twist = np.zeros(6) if twist is None else twist
-    return [FrameView(n, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera, dets[n].ids,
-                      dets[n].corners, R, p, twist) for n, cam in rig.items()]
+    return [
+        FrameView(
+            n,
+            cam.calibration,
+            cam.R_bundle_camera,
+            cam.t_bundle_camera,
+            dets[n].ids,
+            dets[n].corners,
+            R,
+            p,
+            twist,
+        )
+        for n, cam in rig.items()
+    ]
 
 
 def _params(room, rig) -> ParameterCovariance:
-    return ParameterCovariance.from_priors(Priors(), [int(i) for i in room.ids],
-                                           {n: c.calibration.camera_matrix for n, c in rig.items()})
+    return ParameterCovariance.from_priors(
+        Priors(),
+        [int(i) for i in room.ids],
+        {n: c.calibration.camera_matrix for n, c in rig.items()},
+    )
 
 
 def _propagated(room, rig, R, p, dets, twist=None, params=None) -> dict[str, float]:
-    jac = frame_jacobians(_views(room, rig, R, p, dets, twist), room, params or _params(room, rig), READOUT_SIGMA,
-                          UncertaintySettings())
+    jac = frame_jacobians(
+        _views(room, rig, R, p, dets, twist),
+        room,
+        params or _params(room, rig),
+        READOUT_SIGMA,
+        UncertaintySettings(),
+    )
     var, *_ = propagate(jac)
     return dict(zip(BLOCKS, np.sqrt(var), strict=True))  # per-axis 1-sigma, m
 
@@ -69,10 +89,12 @@ def _solve(room, rig, dets, R, p, cams=None, cals=None):
 
 def _per_axis(errors: list[np.ndarray]) -> float:
     e = np.array(errors)
-    return float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)) / 3))
+    return float(np.sqrt(np.mean(np.sum(e**2, axis=1)) / 3))
 
 
-def _perturbed_room(room: MarkerRoom, cov: dict[int, np.ndarray], rng: np.random.Generator) -> MarkerRoom:
+def _perturbed_room(
+    room: MarkerRoom, cov: dict[int, np.ndarray], rng: np.random.Generator
+) -> MarkerRoom:
     Rs, ts = [], []
     for i, mid in enumerate(room.ids):
         d = rng.multivariate_normal(np.zeros(6), cov[int(mid)])
@@ -106,7 +128,10 @@ def test_rig_sigma_matches_the_spread_of_solves():
         cams = {}
         for n, cam in rig.items():
             d = rng.multivariate_normal(np.zeros(6), cov[n])
-            cams[n] = (Rotation.from_rotvec(d[:3]).as_matrix() @ cam.R_bundle_camera, cam.t_bundle_camera + d[3:])
+            cams[n] = (
+                Rotation.from_rotvec(d[:3]).as_matrix() @ cam.R_bundle_camera,
+                cam.t_bundle_camera + d[3:],
+            )
         errs.append(_solve(room, rig, dets, R, p, cams=cams) - p)
     assert want == pytest.approx(_per_axis(errs), rel=0.2)
     assert want > 0.002
@@ -121,7 +146,9 @@ def test_intrinsics_sigma_matches_the_spread_of_solves():
         full = c.copy()
         full[0, 1] = full[1, 0] = 0.95 * np.sqrt(c[0, 0] * c[1, 1])
         cov[n] = full
-    want = _propagated(room, rig, R, p, dets, params=ParameterCovariance(base.markers, base.rig, cov))["intrinsics"]
+    want = _propagated(
+        room, rig, R, p, dets, params=ParameterCovariance(base.markers, base.rig, cov)
+    )["intrinsics"]
     rng = np.random.default_rng(3)
     errs = []
     for _ in range(N_DRAWS):
@@ -164,7 +191,9 @@ def test_readout_sensitivity_matches_a_rolling_shutter_render():
                         corners[i, c] = moved.corners[j[0], c]
         dets[n] = Detections(det.ids, corners)
     err = np.linalg.norm(_solve(room, rig, dets, R, p) - p)
-    predicted = np.sqrt(3) * _propagated(room, rig, R, p, dets, np.concatenate([omega, vel]))["readout"]
+    predicted = (
+        np.sqrt(3) * _propagated(room, rig, R, p, dets, np.concatenate([omega, vel]))["readout"]
+    )
     predicted *= readout / READOUT_SIGMA
     assert err > 0.002
     assert predicted == pytest.approx(err, rel=0.2)
@@ -212,16 +241,22 @@ def test_a_correlated_covariance_is_propagated_as_a_whole():
     cals["front"] = CameraCalibration(K, c.dist_coeffs, c.width, c.height, c.source, c.model)
     moved = np.linalg.norm(_solve(room, rig, dets, R, p, cals=cals) - p) / np.sqrt(3)
     assert want == pytest.approx(moved, rel=0.05)
-    diag_only = ParameterCovariance(base.markers, base.rig, {"front": np.diag(v ** 2), "back": zero})
-    assert _propagated(room, rig, R, p, dets, params=diag_only)["intrinsics"] != pytest.approx(want, rel=0.1)
+    diag_only = ParameterCovariance(base.markers, base.rig, {"front": np.diag(v**2), "back": zero})
+    assert _propagated(room, rig, R, p, dets, params=diag_only)["intrinsics"] != pytest.approx(
+        want, rel=0.1
+    )
 
 
 def test_calibration_exposure_is_optional_and_checked():
     from annotator.errors import ConfigError
     from annotator.io.experiment import parse_calibration
 
-    d = {"camera_matrix": [[600.0, 0, 480], [0, 601.0, 270], [0, 0, 1]], "image_width": 960,
-         "image_height": 540, "distortion_coefficients": [0.0, 0.0, 0.0, 0.0, 0.0]}
+    d = {
+        "camera_matrix": [[600.0, 0, 480], [0, 601.0, 270], [0, 0, 1]],
+        "image_width": 960,
+        "image_height": 540,
+        "distortion_coefficients": [0.0, 0.0, 0.0, 0.0, 0.0],
+    }
     assert parse_calibration(d, "cam.yaml").exposure_s is None
     assert parse_calibration({**d, "exposure_s": 0.008}, "cam.yaml").exposure_s == 0.008
     with pytest.raises(ConfigError, match="exposure_s must be between"):
@@ -239,10 +274,15 @@ def test_distortion_covariance_from_a_refined_record_is_propagated():
     base = _params(room, rig)
     dk = 0.004
     dist_cov = np.zeros((5, 5))
-    dist_cov[0, 0] = dk ** 2
+    dist_cov[0, 0] = dk**2
     zero4 = np.zeros((4, 4))
-    record = SimpleNamespace(markers=base.markers, rig=base.rig, intrinsics={"front": zero4, "back": zero4},
-                             distortion={"front": dist_cov}, readout={})
+    record = SimpleNamespace(
+        markers=base.markers,
+        rig=base.rig,
+        intrinsics={"front": zero4, "back": zero4},
+        distortion={"front": dist_cov},
+        readout={},
+    )
     want = _propagated(room, rig, R, p, dets, params=record)["intrinsics"]
     cals = {n: cam.calibration for n, cam in rig.items()}
     c = cals["front"]
@@ -252,5 +292,7 @@ def test_distortion_covariance_from_a_refined_record_is_propagated():
     moved = np.linalg.norm(_solve(room, rig, dets, R, p, cals=cals) - p) / np.sqrt(3)
     assert moved > 1e-4
     assert want == pytest.approx(moved, rel=0.1)
-    without = SimpleNamespace(markers=base.markers, rig=base.rig, intrinsics={"front": zero4, "back": zero4})
+    without = SimpleNamespace(
+        markers=base.markers, rig=base.rig, intrinsics={"front": zero4, "back": zero4}
+    )
     assert _propagated(room, rig, R, p, dets, params=without)["intrinsics"] == 0.0

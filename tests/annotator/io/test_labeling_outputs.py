@@ -43,7 +43,8 @@ def write_run(run: Path, rng: np.random.Generator, n: int = 300, duration_s: flo
         rssi = rng.integers(-95, -50, n)
         (run / "rssi" / f"{s}.mbd").write_text(
             "".join(format_row(int(a), s, BEACON, int(r)) for a, r in zip(t, rssi, strict=True)),
-            encoding="utf-8")
+            encoding="utf-8",
+        )
 
 
 def make_poses(t0_s: float, n: int = 200, dt: float = 0.04) -> Trajectory:
@@ -51,7 +52,9 @@ def make_poses(t0_s: float, n: int = 200, dt: float = 0.04) -> Trajectory:
     p = np.column_stack([2 + 0.4 * (t - t0_s), 3 + np.sin(t - t0_s), np.full(n, 1.6)])
     p[80:110] = np.nan  # a 1.2 s tracking gap
     r = Rotation.from_euler("z", 0.5 * (t - t0_s)[:, None])
-    return Trajectory.from_rotation(t, p, r, {"sigma_m": np.full(n, 0.004), "markers": np.full(n, 3)})
+    return Trajectory.from_rotation(
+        t, p, r, {"sigma_m": np.full(n, 0.004), "markers": np.full(n, 3)}
+    )
 
 
 def test_load_run_dir_and_plain_folder(tmp_path: Path) -> None:
@@ -79,7 +82,9 @@ def test_dataset_folder_skips_the_merged_file(dataset_dir: Path, tmp_path: Path)
     folder.mkdir()
     for f in (dataset_dir / "trk" / "straight_01").glob("*.mbd"):
         (folder / f.name).write_bytes(f.read_bytes())
-    (folder / "x_all_sensors.mbd").write_bytes((dataset_dir / "trk" / "straight_01_all_sensors.mbd").read_bytes())
+    (folder / "x_all_sensors.mbd").write_bytes(
+        (dataset_dir / "trk" / "straight_01_all_sensors.mbd").read_bytes()
+    )
     assert len(load_rssi(folder)) == len(merged)
 
 
@@ -139,8 +144,27 @@ def test_parquet_and_report(tmp_path: Path) -> None:
     path = write_parquet(tmp_path / "annotated.parquet", table, labels)
     df = pd.read_parquet(path)
     assert len(df) == int(labels.labelled.sum())
-    assert list(df.columns[:16]) == ["ts", "t_ns", "sensor", "beacon", "rssi", "x", "y", "z",
-                                     "r11", "r12", "r13", "r21", "r22", "r23", "r31", "r32"][:16]
+    assert (
+        list(df.columns[:16])
+        == [
+            "ts",
+            "t_ns",
+            "sensor",
+            "beacon",
+            "rssi",
+            "x",
+            "y",
+            "z",
+            "r11",
+            "r12",
+            "r13",
+            "r21",
+            "r22",
+            "r23",
+            "r31",
+            "r32",
+        ][:16]
+    )
     assert {"r33", "pos_sigma", "markers_used", "gap_s"} <= set(df.columns)
     assert df["t_ns"].is_monotonic_increasing
     i = np.flatnonzero(labels.labelled)[np.argsort(table.t_ns[labels.labelled], kind="stable")]
@@ -150,10 +174,16 @@ def test_parquet_and_report(tmp_path: Path) -> None:
     assert (df["markers_used"] == 3).all()
     assert (df["gap_s"] <= 0.02 + 1e-9).all()
 
-    rep = write_report(tmp_path / "report.json", {"offset": np.float64(1.5), "sigma": math.nan,
-                                                  "counts": {"a": np.int64(3)}, "p": tmp_path})
-    assert json.loads(rep.read_text()) == {"offset": 1.5, "sigma": None, "counts": {"a": 3},
-                                           "p": str(tmp_path)}
+    rep = write_report(
+        tmp_path / "report.json",
+        {"offset": np.float64(1.5), "sigma": math.nan, "counts": {"a": np.int64(3)}, "p": tmp_path},
+    )
+    assert json.loads(rep.read_text()) == {
+        "offset": 1.5,
+        "sigma": None,
+        "counts": {"a": 3},
+        "p": str(tmp_path),
+    }
 
 
 def _png_size(path: Path) -> tuple[int, int]:
@@ -183,9 +213,23 @@ def test_builtin_site_recognised_and_plots_written(tmp_path: Path) -> None:
     t = 1_700_000_000 + np.linspace(0, 10, 300)
     sensor = np.array(SENSORS * 100)
     rssi = np.random.default_rng(0).integers(-90, -50, 300)
-    _, h3 = _png_size(plot_rssi_time(tmp_path / "rssi.png", t, rssi, sensor,
-                                      events=[(t[0] + 1, t[0] + 2.5)], span=(t[0] + 3, t[-1])))
+    _, h3 = _png_size(
+        plot_rssi_time(
+            tmp_path / "rssi.png",
+            t,
+            rssi,
+            sensor,
+            events=[(t[0] + 1, t[0] + 2.5)],
+            span=(t[0] + 3, t[-1]),
+        )
+    )
     assert h3 > 300
     pos = traj[np.arange(300) % 50]
-    assert _png_size(plot_rssi_on_trajectory(tmp_path / "on.png", traj, pos, rssi, sensor,
-                                             floor=floor, devices=devices))[0] > 300
+    assert (
+        _png_size(
+            plot_rssi_on_trajectory(
+                tmp_path / "on.png", traj, pos, rssi, sensor, floor=floor, devices=devices
+            )
+        )[0]
+        > 300
+    )

@@ -19,9 +19,14 @@ def _run(tmp_path: Path, files: dict[str, str]) -> Path:
 
 def test_per_agent_run_dir_loads_every_agents_files(tmp_path: Path) -> None:
     mac = "b827eb4521b4"
-    run = _run(tmp_path, {f"pi-01/{mac}.mbd": f"1700000000.2,{mac},e78f135624ce,-50\n",
-                          f"pi-02/{mac}.mbd": f"1700000000.1,{mac},e78f135624ce,-60\n",
-                          "pi-02/b827eb4521b5.mbd": "1700000000.3,b827eb4521b5,e78f135624ce,-70\n"})
+    run = _run(
+        tmp_path,
+        {
+            f"pi-01/{mac}.mbd": f"1700000000.2,{mac},e78f135624ce,-50\n",
+            f"pi-02/{mac}.mbd": f"1700000000.1,{mac},e78f135624ce,-60\n",
+            "pi-02/b827eb4521b5.mbd": "1700000000.3,b827eb4521b5,e78f135624ce,-70\n",
+        },
+    )
     t = load_rssi(run)
     assert t.rssi.tolist() == [-60, -50, -70]  # time order across agents
     assert len(t.files) == 3

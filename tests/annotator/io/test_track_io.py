@@ -71,7 +71,9 @@ def make_experiment(tmp_path: Path, **override: str) -> Path:
     (tmp_path / "vid").mkdir()
     make_video(tmp_path / "vid" / "front.mp4")
     make_video(tmp_path / "vid" / "back.mp4")
-    text = override.get("experiment", """\
+    text = override.get(
+        "experiment",
+        """\
 markers: {file: marker_positions.dat, dictionary: DICT_6X6_50, length: 0.298}
 rig: rig.yaml
 videos: {front: vid/front.mp4, back: vid/back.mp4}
@@ -79,7 +81,8 @@ rssi: rssi
 sync:
   mode: manual
   video_start: {front: 1700000000.00, back: 1700000000.41}
-""")
+""",
+    )
     (tmp_path / "experiment.yaml").write_text(text)
     return tmp_path / "experiment.yaml"
 
@@ -110,21 +113,46 @@ def test_old_opencv_yaml_header_is_accepted(tmp_path):
     assert np.allclose(cal.camera_matrix, K)
 
 
-@pytest.mark.parametrize(("what", "old", "new", "message"), [
-    ("experiment", "videos: {front: vid/front.mp4, back: vid/back.mp4}", "videos: {front: vid/front.mp4, side: x.mp4}",
-     "videos: camera(s) side not in the rig"),
-    ("experiment", "vid/back.mp4}", "vid/gone.mp4}", "videos.back: no such file"),
-    ("experiment", "DICT_6X6_50", "DICT_6X6_51", "unknown ArUco dictionary 'DICT_6X6_51'"),
-    ("experiment", "length: 0.298", "length: -1", "markers.length must be positive"),
-    ("experiment", "  video_start: {front: 1700000000.00, back: 1700000000.41}\n", "",
-     "sync.video_start is missing"),
-    ("experiment", "  video_start: {front: 1700000000.00, back: 1700000000.41}",
-     "  video_start: {front: 1700000000.00}", "no start time for back"),
-    ("experiment", "rig: rig.yaml", "rig: [oops", "not valid YAML"),
-    ("rig", "[0, -1, 0]]", "[0, -2, 0]]", "cameras.front: R_bundle_camera: not a rotation"),
-    ("rig", "t_bundle_camera: [0.04, 0.0, 0.0]", "t_bundle_camera: [0.04]", "t_bundle_camera: expected shape (3,)"),
-    ("rig", "calibration: cal/back.yaml", "calibration: cal/none.yaml", "cameras.back.calibration: no such file"),
-])
+@pytest.mark.parametrize(
+    ("what", "old", "new", "message"),
+    [
+        (
+            "experiment",
+            "videos: {front: vid/front.mp4, back: vid/back.mp4}",
+            "videos: {front: vid/front.mp4, side: x.mp4}",
+            "videos: camera(s) side not in the rig",
+        ),
+        ("experiment", "vid/back.mp4}", "vid/gone.mp4}", "videos.back: no such file"),
+        ("experiment", "DICT_6X6_50", "DICT_6X6_51", "unknown ArUco dictionary 'DICT_6X6_51'"),
+        ("experiment", "length: 0.298", "length: -1", "markers.length must be positive"),
+        (
+            "experiment",
+            "  video_start: {front: 1700000000.00, back: 1700000000.41}\n",
+            "",
+            "sync.video_start is missing",
+        ),
+        (
+            "experiment",
+            "  video_start: {front: 1700000000.00, back: 1700000000.41}",
+            "  video_start: {front: 1700000000.00}",
+            "no start time for back",
+        ),
+        ("experiment", "rig: rig.yaml", "rig: [oops", "not valid YAML"),
+        ("rig", "[0, -1, 0]]", "[0, -2, 0]]", "cameras.front: R_bundle_camera: not a rotation"),
+        (
+            "rig",
+            "t_bundle_camera: [0.04, 0.0, 0.0]",
+            "t_bundle_camera: [0.04]",
+            "t_bundle_camera: expected shape (3,)",
+        ),
+        (
+            "rig",
+            "calibration: cal/back.yaml",
+            "calibration: cal/none.yaml",
+            "cameras.back.calibration: no such file",
+        ),
+    ],
+)
 def test_bad_files_give_one_line_errors_naming_file_and_field(tmp_path, what, old, new, message):
     text = make_experiment(tmp_path).read_text() if what == "experiment" else RIG
     assert old in text
@@ -159,7 +187,11 @@ def test_luma_frames_match_grey_frames_at_the_same_times(tmp_path):
     # An odd width and a textured image: a wrong plane stride or chroma mix-up would show.
     w = cv2.VideoWriter(str(tmp_path / "v.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (200, 120))
     rng = np.random.default_rng(1)
-    base = cv2.resize(rng.integers(0, 256, (15, 25, 3), dtype=np.uint8), (200, 120), interpolation=cv2.INTER_NEAREST)
+    base = cv2.resize(
+        rng.integers(0, 256, (15, 25, 3), dtype=np.uint8),
+        (200, 120),
+        interpolation=cv2.INTER_NEAREST,
+    )
     for i in range(5):
         w.write(np.roll(base, 8 * i, axis=1))
     w.release()
@@ -193,7 +225,12 @@ def test_trajectory_round_trip_keeps_gaps_and_true_rotations(tmp_path):
     R = Rotation.from_euler("zyx", np.linspace(0, 1, 3 * n).reshape(n, 3)).as_matrix()
     p = np.arange(3 * n, dtype=float).reshape(n, 3) / 7
     p[2], R[2] = np.nan, np.nan
-    traj = Trajectory(t, p, R, {"markers": np.array([3, 2, 0, 5, 1.0]), "rms_px": np.array([0.5, 0.7, np.nan, 1, 2])})
+    traj = Trajectory(
+        t,
+        p,
+        R,
+        {"markers": np.array([3, 2, 0, 5, 1.0]), "rms_px": np.array([0.5, 0.7, np.nan, 1, 2])},
+    )
     write_trajectory(tmp_path / "trajectory.csv", traj)
     header = (tmp_path / "trajectory.csv").read_text().splitlines()[0]
     assert header == "t,x,y,z,r11,r12,r13,r21,r22,r23,r31,r32,r33,markers,rms_px"
@@ -225,7 +262,10 @@ def test_video_size_not_matching_its_calibration_is_a_clear_error(tmp_path):
     from annotator.pipeline import TrackSettings, track_experiment
 
     exp = load_experiment(make_experiment(tmp_path))  # 64x48 videos, 960x540 calibrations
-    with pytest.raises(NoDataError, match=r"front\.mp4: frames are 64x48 but the calibration front\.yaml is for 960x540"):
+    with pytest.raises(
+        NoDataError,
+        match=r"front\.mp4: frames are 64x48 but the calibration front\.yaml is for 960x540",
+    ):
         track_experiment(exp, TrackSettings())
 
 

@@ -26,8 +26,14 @@ BIN = Path(sys.executable).parent
 
 def annotator(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     exe = BIN / "annotator"
-    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-c", "from annotator.cli import main; main()"]
-    res = subprocess.run([*cmd, *args], capture_output=True, text=True, timeout=120, check=False, cwd=cwd)
+    cmd = (
+        [str(exe)]
+        if exe.is_file()
+        else [sys.executable, "-c", "from annotator.cli import main; main()"]
+    )
+    res = subprocess.run(
+        [*cmd, *args], capture_output=True, text=True, timeout=120, check=False, cwd=cwd
+    )
     assert res.returncode == 0, res.stderr
     return res
 
@@ -51,8 +57,11 @@ def test_published_track_export_has_one_pose_per_timestamp() -> None:
     p = read_poses(TRACK)
     assert np.all(np.diff(p.t) > 0)
     # every orientation is a proper rotation (a unit quaternion once written)
-    np.testing.assert_allclose(p.rotation @ p.rotation.transpose(0, 2, 1),
-                               np.broadcast_to(np.eye(3), p.rotation.shape), atol=1e-12)
+    np.testing.assert_allclose(
+        p.rotation @ p.rotation.transpose(0, 2, 1),
+        np.broadcast_to(np.eye(3), p.rotation.shape),
+        atol=1e-12,
+    )
 
 
 def _evo_stats(ref: Path, est: Path, tmp: Path, *extra: str) -> dict[str, float]:
@@ -61,9 +70,14 @@ def _evo_stats(ref: Path, est: Path, tmp: Path, *extra: str) -> dict[str, float]
         pytest.skip("evo is not installed (pip install '.[dev]')")
     out = tmp / f"ape{len(list(tmp.glob('ape*.zip')))}.zip"
     # HOME: evo writes its settings file there on first use
-    res = subprocess.run([str(exe), "tum", str(ref), str(est), "--no_warnings", "--save_results",
-                          str(out), *extra], capture_output=True, text=True, timeout=300, check=False,
-                         env={**os.environ, "HOME": str(tmp), "MPLBACKEND": "Agg"})
+    res = subprocess.run(
+        [str(exe), "tum", str(ref), str(est), "--no_warnings", "--save_results", str(out), *extra],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+        env={**os.environ, "HOME": str(tmp), "MPLBACKEND": "Agg"},
+    )
     assert res.returncode == 0, res.stdout + res.stderr
     with zipfile.ZipFile(out) as z:
         return json.loads(z.read("stats.json"))
@@ -76,9 +90,13 @@ def test_evo_ape_gives_the_same_figures_as_annotator_score(tmp_path: Path) -> No
     # estimates at their own times (between truth samples), some outside the truth's span
     t = np.sort(rng.uniform(truth.t[0] - 3, truth.t[-1] + 3, 300))
     ref, _ = interpolate_truth(truth, t)
-    est = np.where(np.isfinite(ref), ref, [10.0, 8.0, 1.5]) + rng.normal(0, [0.8, 0.8, 0.3], (len(t), 3))
+    est = np.where(np.isfinite(ref), ref, [10.0, 8.0, 1.5]) + rng.normal(
+        0, [0.8, 0.8, 0.3], (len(t), 3)
+    )
     write_estimates(tmp_path / "est.csv", t, est)
-    annotator("score", "est.csv", "--truth", str(TRACK), "--out", "score", "--no-plots", cwd=tmp_path)
+    annotator(
+        "score", "est.csv", "--truth", str(TRACK), "--out", "score", "--no-plots", cwd=tmp_path
+    )
     body = json.loads((tmp_path / "score" / "score.json").read_text(encoding="utf-8"))
     assert 0 < body["error_3d_m"]["n"] < len(t)  # the estimates outside the truth are not scored
 
@@ -87,11 +105,18 @@ def test_evo_ape_gives_the_same_figures_as_annotator_score(tmp_path: Path) -> No
     annotator("tum", str(TRACK), "--at", "est.csv", "--flat", "--out", "truth2d.tum", cwd=tmp_path)
     annotator("tum", "est.csv", "--flat", "--out", "est2d.tum", cwd=tmp_path)
     # evo pairs poses by timestamp; the ones outside the truth have no partner and drop out
-    for ref_file, est_file, block in (("truth.tum", "est.tum", "error_3d_m"),
-                                      ("truth2d.tum", "est2d.tum", "error_2d_m")):
+    for ref_file, est_file, block in (
+        ("truth.tum", "est.tum", "error_3d_m"),
+        ("truth2d.tum", "est2d.tum", "error_2d_m"),
+    ):
         evo = _evo_stats(tmp_path / ref_file, tmp_path / est_file, tmp_path)
         ours = body[block]
-        for ours_key, evo_key in (("rmse", "rmse"), ("mean", "mean"), ("median", "median"), ("max", "max")):
+        for ours_key, evo_key in (
+            ("rmse", "rmse"),
+            ("mean", "mean"),
+            ("median", "median"),
+            ("max", "max"),
+        ):
             assert evo[evo_key] == pytest.approx(ours[ours_key], abs=1e-6), (block, ours_key)
 
 
@@ -100,15 +125,22 @@ def test_evo_ape_gives_the_same_figures_as_annotator_evaluate(tmp_path: Path) ->
     rng = np.random.default_rng(5)
     tt = np.arange(0.0, 30.0, 1 / 30) + 1.7e9
     tau = tt - tt[0]
-    ref_pos = np.column_stack([8 + 2 * np.sin(tau / 5), 6 + 2 * np.cos(tau / 5), 1.5 + 0.1 * np.sin(tau)])
+    ref_pos = np.column_stack(
+        [8 + 2 * np.sin(tau / 5), 6 + 2 * np.cos(tau / 5), 1.5 + 0.1 * np.sin(tau)]
+    )
     rots = Rotation.from_euler("z", (tau / 5)[:, None]).as_matrix()
     write_trajectory(tmp_path / "truth.csv", Trajectory(tt, ref_pos, rots))
     # a tracker's output: its own frame times, a few cm off
     te = np.sort(rng.uniform(tt[0] + 0.5, tt[-1] - 0.5, 400))
     taue = te - tt[0]
-    est = np.column_stack([8 + 2 * np.sin(taue / 5), 6 + 2 * np.cos(taue / 5), 1.5 + 0.1 * np.sin(taue)])
+    est = np.column_stack(
+        [8 + 2 * np.sin(taue / 5), 6 + 2 * np.cos(taue / 5), 1.5 + 0.1 * np.sin(taue)]
+    )
     est += rng.normal(0, 0.03, est.shape)
-    write_trajectory(tmp_path / "est.csv", Trajectory(te, est, Rotation.from_euler("z", (taue / 5)[:, None]).as_matrix()))
+    write_trajectory(
+        tmp_path / "est.csv",
+        Trajectory(te, est, Rotation.from_euler("z", (taue / 5)[:, None]).as_matrix()),
+    )
     annotator("evaluate", "est.csv", "--truth", "truth.csv", "--report", "ev.json", cwd=tmp_path)
     ours = json.loads((tmp_path / "ev.json").read_text(encoding="utf-8"))["position_error_m"]
     annotator("tum", "truth.csv", "--at", "est.csv", "--out", "truth.tum", cwd=tmp_path)

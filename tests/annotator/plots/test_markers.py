@@ -20,7 +20,9 @@ PT_PER_M = 72 / INCH
 
 def test_pdf_has_one_true_size_page_per_marker(tmp_path: Path) -> None:
     out = tmp_path / "markers.pdf"
-    res = CliRunner().invoke(app, ["markers", "print", "--ids", "0-29", "--length", "0.298", "--out", str(out)])
+    res = CliRunner().invoke(
+        app, ["markers", "print", "--ids", "0-29", "--length", "0.298", "--out", str(out)]
+    )
     assert res.exit_code == 0, res.output
     pdf = out.read_bytes()
     assert pdf.startswith(b"%PDF")
@@ -28,7 +30,9 @@ def test_pdf_has_one_true_size_page_per_marker(tmp_path: Path) -> None:
     boxes = np.array(re.findall(rb"/MediaBox\s*\[\s*0 0 ([\d.]+) ([\d.]+)\s*\]", pdf), float)
     assert boxes.shape == (30, 2)
     # 298 mm plus margins does not fit A3 (297 mm wide): A2 portrait, 420 x 594 mm.
-    np.testing.assert_allclose(boxes, np.broadcast_to([0.420 * PT_PER_M, 0.594 * PT_PER_M], boxes.shape), atol=0.01)
+    np.testing.assert_allclose(
+        boxes, np.broadcast_to([0.420 * PT_PER_M, 0.594 * PT_PER_M], boxes.shape), atol=0.01
+    )
 
 
 def dark_boxes(img: np.ndarray) -> list[tuple[int, int, int, int]]:
@@ -39,11 +43,14 @@ def dark_boxes(img: np.ndarray) -> list[tuple[int, int, int, int]]:
 
 
 @pytest.mark.parametrize(("marker_id", "length", "paper"), [(7, 0.298, "A2"), (29, 0.15, "A4")])
-def test_rendered_page_has_the_marker_at_true_size(marker_id: int, length: float, paper: str) -> None:
+def test_rendered_page_has_the_marker_at_true_size(
+    marker_id: int, length: float, paper: str
+) -> None:
     dpi = 100
     fig, box = marker_page(marker_id, length, "DICT_6X6_50", paper)
-    assert fig.get_size_inches() == pytest.approx(np.array([0.210, 0.297]) / INCH if paper == "A4"
-                                                  else np.array([0.420, 0.594]) / INCH)
+    assert fig.get_size_inches() == pytest.approx(
+        np.array([0.210, 0.297]) / INCH if paper == "A4" else np.array([0.420, 0.594]) / INCH
+    )
     fig.set_dpi(dpi)
     canvas = FigureCanvasAgg(fig)
     canvas.draw()
@@ -80,12 +87,15 @@ def test_paper_choice() -> None:
         choose_paper(0.298, "a4")
 
 
-@pytest.mark.parametrize(("args", "message"), [
-    (["--ids", "49-50"], "marker id 50 is not in DICT_6X6_50"),
-    (["--ids", "x"], "--ids 'x'"),
-    (["--paper", "A4"], "does not fit on A4"),
-    (["--dictionary", "DICT_FOO"], "unknown ArUco dictionary"),
-])
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--ids", "49-50"], "marker id 50 is not in DICT_6X6_50"),
+        (["--ids", "x"], "--ids 'x'"),
+        (["--paper", "A4"], "does not fit on A4"),
+        (["--dictionary", "DICT_FOO"], "unknown ArUco dictionary"),
+    ],
+)
 def test_bad_options_are_one_line_errors(tmp_path: Path, args: list[str], message: str) -> None:
     out = tmp_path / "m.pdf"
     res = CliRunner().invoke(app, ["markers", "print", "--out", str(out), *args])

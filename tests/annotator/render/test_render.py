@@ -33,7 +33,11 @@ def make_detector() -> cv2.aruco.ArucoDetector:
 
 def detect(det: cv2.aruco.ArucoDetector, img: np.ndarray) -> dict[int, np.ndarray]:
     corners, ids, _ = det.detectMarkers(img)
-    return {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners, strict=True)}
+    return (
+        {}
+        if ids is None
+        else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners, strict=True)}
+    )
 
 
 def read_truth(path: Path) -> tuple[list[str], np.ndarray]:
@@ -66,15 +70,20 @@ def video_frames(path: Path) -> list[tuple[float, np.ndarray]]:
 def sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 3 s render through the CLI, with the hands over both lenses from 1.6 s for 0.6 s."""
     out = tmp_path_factory.mktemp("sim") / "exp"
-    res = CliRunner().invoke(app, ["simulate", "--out", str(out), "--duration", "3",
-                                   "--cover", "1.6:0.6", "--seed", "3"])
+    res = CliRunner().invoke(
+        app, ["simulate", "--out", str(out), "--duration", "3", "--cover", "1.6:0.6", "--seed", "3"]
+    )
     assert res.exit_code == 0, res.output
     return out
 
 
 def test_simulate_writes_the_contract_files(sim: Path) -> None:
     exp = yaml.safe_load((sim / "experiment.yaml").read_text())
-    assert exp["markers"] == {"file": "marker_positions.dat", "dictionary": "DICT_6X6_50", "length": 0.298}
+    assert exp["markers"] == {
+        "file": "marker_positions.dat",
+        "dictionary": "DICT_6X6_50",
+        "length": 0.298,
+    }
     assert exp["rig"] == "rig.yaml"
     assert exp["videos"] == {"front": "front.mp4", "back": "back.mp4"}
     assert exp["rssi"] == "rssi"
@@ -82,7 +91,9 @@ def test_simulate_writes_the_contract_files(sim: Path) -> None:
     assert (sim / "rig.yaml").read_text() == RIG_YAML
     rig = yaml.safe_load(RIG_YAML)["cameras"]
     assert rig["back"]["R_bundle_camera"] == [[0, 0, -1], [-1, 0, 0], [0, 1, 0]]
-    assert read_marker_map(sim / "marker_positions.dat") == read_marker_map(site_dir() / "marker_positions.dat")
+    assert read_marker_map(sim / "marker_positions.dat") == read_marker_map(
+        site_dir() / "marker_positions.dat"
+    )
     for name, cam in default_cameras().items():
         got = read_calibration(sim / f"{name}.yaml")
         assert (got.width, got.height) == (960, 540)
@@ -118,7 +129,9 @@ def test_truth_is_every_frame_time_with_true_rotations(sim: Path) -> None:
     expected_t = np.union1d(T0 + np.arange(90) / FPS, T0 + OFFSET + np.arange(77) / FPS)
     np.testing.assert_allclose(rows[:, 0], expected_t, atol=1e-6)
     r = rows[:, 4:13].reshape(-1, 3, 3)
-    np.testing.assert_allclose(r @ r.transpose(0, 2, 1), np.broadcast_to(np.eye(3), r.shape), atol=1e-9)
+    np.testing.assert_allclose(
+        r @ r.transpose(0, 2, 1), np.broadcast_to(np.eye(3), r.shape), atol=1e-9
+    )
     np.testing.assert_allclose(np.linalg.det(r), 1.0, atol=1e-9)
     # t is printed to the microsecond, so the poses agree to what moves in a microsecond.
     pos, rot = LoopTrajectory(t0=T0)(rows[:, 0])
@@ -126,7 +139,9 @@ def test_truth_is_every_frame_time_with_true_rotations(sim: Path) -> None:
     np.testing.assert_allclose(r, rot.as_matrix(), atol=1e-6)
 
 
-def corner_errors(sim: Path, name: str, start: float, t_max: float) -> tuple[np.ndarray, np.ndarray, int, int]:
+def corner_errors(
+    sim: Path, name: str, start: float, t_max: float
+) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Per detected marker: median corner error (px) and side length; expected and found counts."""
     header, rows = read_truth(sim / "truth.csv")
     cam = read_calibration(sim / f"{name}.yaml")
@@ -141,7 +156,9 @@ def corner_errors(sim: Path, name: str, start: float, t_max: float) -> tuple[np.
         r_wc, c_w = camera_pose(Rotation.from_matrix(row[4:13].reshape(3, 3)), row[1:4], name)
         expected = scene.expected_corners(cam, r_wc.as_matrix(), c_w)
         found = detect(det, img)
-        assert set(found) <= {m.id for m in scene.visible(r_wc.as_matrix(), c_w)}, "a marker out of view"
+        assert set(found) <= {m.id for m in scene.visible(r_wc.as_matrix(), c_w)}, (
+            "a marker out of view"
+        )
         if len(expected) < 2:
             continue
         for mid, uv in expected.items():
@@ -196,7 +213,7 @@ def test_hands_cover_darkens_and_hides_markers(sim: Path) -> None:
     # The ramp starts at the cover start: the first darkened frame is within one frame of 1.6 s.
     first_dark = t[np.argmax(bright < before.min() - 3)]
     assert abs(first_dark - 1.6) <= 1 / FPS + 1e-6
-    for (p, img) in frames:
+    for p, img in frames:
         if 1.6 + 0.16 < p < 2.2:
             assert detect(det, img) == {}
     assert detect(det, frames[0][1]), "markers are visible before the cover"
@@ -220,9 +237,12 @@ def test_loop_trajectory_walks_at_the_asked_speed() -> None:
 
 def test_two_processes_render_the_same_videos(tmp_path: Path) -> None:
     traj = LoopTrajectory(t0=T0)
-    one = render_experiment(tmp_path / "one", traj, (T0, T0 + 1.0), width=320, height=180, start_offset=0.1)
-    two = render_experiment(tmp_path / "two", traj, (T0, T0 + 1.0), width=320, height=180, start_offset=0.1,
-                            jobs=2)
+    one = render_experiment(
+        tmp_path / "one", traj, (T0, T0 + 1.0), width=320, height=180, start_offset=0.1
+    )
+    two = render_experiment(
+        tmp_path / "two", traj, (T0, T0 + 1.0), width=320, height=180, start_offset=0.1, jobs=2
+    )
     assert one.frames == two.frames == {"front": 30, "back": 27}
     for name in ("front", "back"):
         a, b = video_frames(one.videos[name]), video_frames(two.videos[name])

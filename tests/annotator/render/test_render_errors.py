@@ -39,8 +39,26 @@ def rotvec_deg(r_from: Rotation, r_to: Rotation) -> np.ndarray:
 def field(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A tiny render through the CLI with the field preset (the files are what matter here)."""
     out = tmp_path_factory.mktemp("field") / "exp"
-    res = CliRunner().invoke(app, ["simulate", "--out", str(out), "--duration", "0.3", "--start-offset", "0.1",
-                                   "--width", "160", "--height", "96", "--errors", "field", "--seed", "5"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "simulate",
+            "--out",
+            str(out),
+            "--duration",
+            "0.3",
+            "--start-offset",
+            "0.1",
+            "--width",
+            "160",
+            "--height",
+            "96",
+            "--errors",
+            "field",
+            "--seed",
+            "5",
+        ],
+    )
     assert res.exit_code == 0, res.output
     return out
 
@@ -48,7 +66,12 @@ def field(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_field_preset_settings_are_recorded(field: Path) -> None:
     s = load_perturbation(field)["settings"]
     assert (s["survey_m"], s["survey_deg"], s["rig_m"], s["rig_deg"]) == (0.015, 1.0, 0.003, 1.0)
-    assert (s["focal_rel"], s["principal_px"], s["lens"], s["readout_s"]) == (0.004, 1.0, "wide", 0.015)
+    assert (s["focal_rel"], s["principal_px"], s["lens"], s["readout_s"]) == (
+        0.004,
+        1.0,
+        "wide",
+        0.015,
+    )
     assert (s["exposure_s"], s["flicker"], s["write_readout"], s["seed"]) == (0.008, 0.1, False, 5)
 
 
@@ -64,7 +87,9 @@ def test_written_map_is_the_truth_plus_the_recorded_offsets(field: Path) -> None
         np.testing.assert_allclose(b.position, m["written"]["position"], atol=1e-12)
         np.testing.assert_allclose(a.position, m["true"]["position"], atol=1e-12)
         np.testing.assert_allclose(np.subtract(b.position, a.position), m["offset_m"], atol=1e-12)
-        rot = rotvec_deg(Rotation.from_euler("xyz", a.euler_xyz), Rotation.from_euler("xyz", b.euler_xyz))
+        rot = rotvec_deg(
+            Rotation.from_euler("xyz", a.euler_xyz), Rotation.from_euler("xyz", b.euler_xyz)
+        )
         np.testing.assert_allclose(rot, m["rotation_offset_deg"], atol=1e-9)
         d_pos.append(m["offset_m"])
         d_rot.append(rot)
@@ -82,8 +107,13 @@ def test_written_rig_and_calibrations_differ_as_recorded(field: Path) -> None:
     assert (field / "true" / "rig.yaml").read_text() == RIG_YAML
     for name in ("front", "back"):
         cam, true_cam, r = rig.cameras[name], true_rig.cameras[name], rec[name]
-        np.testing.assert_allclose(cam.t_bundle_camera - true_cam.t_bundle_camera, r["rig_offset_m"], atol=1e-12)
-        rot = rotvec_deg(Rotation.from_matrix(true_cam.R_bundle_camera), Rotation.from_matrix(cam.R_bundle_camera))
+        np.testing.assert_allclose(
+            cam.t_bundle_camera - true_cam.t_bundle_camera, r["rig_offset_m"], atol=1e-12
+        )
+        rot = rotvec_deg(
+            Rotation.from_matrix(true_cam.R_bundle_camera),
+            Rotation.from_matrix(cam.R_bundle_camera),
+        )
         np.testing.assert_allclose(rot, r["rig_rotation_offset_deg"], atol=1e-6)
         assert 0 < np.abs(r["rig_offset_m"]).max() < 4 * 0.003
         assert 0 < np.abs(rot).max() < 4.0
@@ -92,7 +122,9 @@ def test_written_rig_and_calibrations_differ_as_recorded(field: Path) -> None:
         assert k[0, 0] / k0[0, 0] - 1 == pytest.approx(r["focal_error_rel"], abs=1e-12)
         assert k[1, 1] / k0[1, 1] - 1 == pytest.approx(r["focal_error_rel"], abs=1e-12)
         assert 0 < abs(r["focal_error_rel"]) < 4 * 0.004
-        np.testing.assert_allclose([k[0, 2] - k0[0, 2], k[1, 2] - k0[1, 2]], r["principal_offset_px"], atol=1e-9)
+        np.testing.assert_allclose(
+            [k[0, 2] - k0[0, 2], k[1, 2] - k0[1, 2]], r["principal_offset_px"], atol=1e-9
+        )
         assert 0 < np.abs(r["principal_offset_px"]).max() < 4.0
         # The lens is the wide one, written exactly (no distortion error in the preset).
         wide = default_cameras(160, 96, "wide")[name].dist
@@ -122,17 +154,45 @@ def test_options_override_the_preset_and_none_means_exact(tmp_path: Path) -> Non
     assert (tmp_path / "a" / "rig.yaml").read_text() == RIG_YAML
     # Each kind of error has its own random stream: the survey does not move when the rig's sigma does.
     one = perturb_markers(SITE_MAP, 0.01, 1.0, seed=3)
-    write_experiment_files(tmp_path / "b", cams, SITE_MAP, starts, errors=FileErrors(0.01, 1.0, rig_m=0.05, seed=3))
+    write_experiment_files(
+        tmp_path / "b", cams, SITE_MAP, starts, errors=FileErrors(0.01, 1.0, rig_m=0.05, seed=3)
+    )
     assert read_marker_map(tmp_path / "b" / "marker_positions.dat") == one
-    res = CliRunner().invoke(app, ["simulate", "--out", str(tmp_path / "c"), "--duration", "0.2", "--start-offset",
-                                   "0.1", "--width", "96", "--height", "64", "--errors", "field", "--survey-m", "0",
-                                   "--survey-deg", "0", "--readout", "0.01", "--write-readout", "--lens", "mild"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "simulate",
+            "--out",
+            str(tmp_path / "c"),
+            "--duration",
+            "0.2",
+            "--start-offset",
+            "0.1",
+            "--width",
+            "96",
+            "--height",
+            "64",
+            "--errors",
+            "field",
+            "--survey-m",
+            "0",
+            "--survey-deg",
+            "0",
+            "--readout",
+            "0.01",
+            "--write-readout",
+            "--lens",
+            "mild",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert read_marker_map(tmp_path / "c" / "marker_positions.dat") == SITE_MAP
     cal = load_calibration(tmp_path / "c" / "front.yaml")
     assert cal.readout_s == 0.01
     assert cal.dist_coeffs[0] == -0.08
-    assert load_perturbation(tmp_path / "c")["settings"]["rig_m"] == 0.003  # the rest of the preset stays
+    assert (
+        load_perturbation(tmp_path / "c")["settings"]["rig_m"] == 0.003
+    )  # the rest of the preset stays
 
 
 def test_a_surveyor_who_skipped_markers(tmp_path: Path) -> None:
@@ -146,22 +206,40 @@ def test_a_surveyor_who_skipped_markers(tmp_path: Path) -> None:
     full = perturb_markers(SITE_MAP, 0.01, 1.0, seed=2)
     assert all(written[i] == full[i] for i in written)
     rec = load_perturbation(tmp_path)["markers"]
-    assert sorted(m["id"] for m in rec if m["written"] is None) == sorted(set(SITE_MAP) - set(written))
+    assert sorted(m["id"] for m in rec if m["written"] is None) == sorted(
+        set(SITE_MAP) - set(written)
+    )
     assert read_marker_map(tmp_path / "true" / "marker_positions.dat") == SITE_MAP
 
 
 def test_bad_error_options_are_one_line(tmp_path: Path) -> None:
-    for args, needle in ((["--errors", "lab"], "--errors 'lab'"), (["--readout", "0.05"], "--readout"),
-                         (["--lens", "pinhole"], "--lens 'pinhole'"), (["--survey-m", "-1"], "survey_m"),
-                         (["--surveyed", "0"], "surveyed")):
-        res = CliRunner().invoke(app, ["simulate", "--out", str(tmp_path / "x"), "--duration", "0.2",
-                                       "--start-offset", "0.1", *args])
+    for args, needle in (
+        (["--errors", "lab"], "--errors 'lab'"),
+        (["--readout", "0.05"], "--readout"),
+        (["--lens", "pinhole"], "--lens 'pinhole'"),
+        (["--survey-m", "-1"], "survey_m"),
+        (["--surveyed", "0"], "surveyed"),
+    ):
+        res = CliRunner().invoke(
+            app,
+            [
+                "simulate",
+                "--out",
+                str(tmp_path / "x"),
+                "--duration",
+                "0.2",
+                "--start-offset",
+                "0.1",
+                *args,
+            ],
+        )
         assert res.exit_code == 1, res.output
         assert needle in res.output
         assert "Traceback" not in res.output
 
 
 # --- what is in the pictures -------------------------------------------------------------------
+
 
 def make_detector() -> cv2.aruco.ArucoDetector:
     params = cv2.aruco.DetectorParameters()
@@ -197,7 +275,11 @@ class Turning:
 
 def detected(img: np.ndarray) -> dict[int, np.ndarray]:
     corners, ids, _ = make_detector().detectMarkers(img)
-    return {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners, strict=True)}
+    return (
+        {}
+        if ids is None
+        else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners, strict=True)}
+    )
 
 
 @pytest.fixture(scope="module")
@@ -205,12 +287,23 @@ def rolling(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Turning, fl
     out = tmp_path_factory.mktemp("rs") / "exp"
     pose = Turning(T0 + 0.6, rate=1.5)
     readout = 0.03
-    render_experiment(out, pose, (T0, T0 + 0.15), width=640, height=360, start_offset=0.1, noise_sigma=0.0,
-                      exposure=0.0, readout=readout)
+    render_experiment(
+        out,
+        pose,
+        (T0, T0 + 0.15),
+        width=640,
+        height=360,
+        start_offset=0.1,
+        noise_sigma=0.0,
+        exposure=0.0,
+        readout=readout,
+    )
     return out, pose, readout
 
 
-def test_rolling_shutter_puts_each_row_at_its_own_time(rolling: tuple[Path, Turning, float]) -> None:
+def test_rolling_shutter_puts_each_row_at_its_own_time(
+    rolling: tuple[Path, Turning, float],
+) -> None:
     out, pose, readout = rolling
     cam = default_cameras(640, 360)["front"]
     scene = MarkerScene(SITE_MAP, 0.298)
@@ -246,7 +339,9 @@ def test_rolling_shutter_puts_each_row_at_its_own_time(rolling: tuple[Path, Turn
     assert np.median(gs_all) > 4.0
 
 
-def test_rolling_shutter_readout_is_in_the_true_calibration_only(rolling: tuple[Path, Turning, float]) -> None:
+def test_rolling_shutter_readout_is_in_the_true_calibration_only(
+    rolling: tuple[Path, Turning, float],
+) -> None:
     out, _, readout = rolling
     assert load_calibration(out / "true" / "front.yaml").readout_s == readout
     assert load_calibration(out / "front.yaml").readout_s == 0.0
@@ -254,8 +349,17 @@ def test_rolling_shutter_readout_is_in_the_true_calibration_only(rolling: tuple[
 
 def test_fisheye_render_matches_opencv_fisheye_projection(tmp_path: Path) -> None:
     pose = Turning(T0 + 0.6, rate=0.0)
-    render_experiment(tmp_path, pose, (T0, T0 + 0.1), width=640, height=360, start_offset=0.05,
-                      noise_sigma=0.0, exposure=0.0, lens="fisheye")
+    render_experiment(
+        tmp_path,
+        pose,
+        (T0, T0 + 0.1),
+        width=640,
+        height=360,
+        start_offset=0.05,
+        noise_sigma=0.0,
+        exposure=0.0,
+        lens="fisheye",
+    )
     cal = load_calibration(tmp_path / "front.yaml")
     assert cal.model == "fisheye"
     assert cal.dist_coeffs.shape == (4,)
@@ -270,13 +374,20 @@ def test_fisheye_render_matches_opencv_fisheye_projection(tmp_path: Path) -> Non
             continue
         m = next(pm for pm in scene.markers if pm.id == mid)
         pc = ((m.centre + scene.inner @ m.rotation.T) - c_w) @ r_wc.as_matrix()
-        uv, _ = cv2.fisheye.projectPoints(pc.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), cal.camera_matrix,
-                                          cal.dist_coeffs.reshape(4, 1))
+        uv, _ = cv2.fisheye.projectPoints(
+            pc.reshape(-1, 1, 3),
+            np.zeros(3),
+            np.zeros(3),
+            cal.camera_matrix,
+            cal.dist_coeffs.reshape(4, 1),
+        )
         uv = uv.reshape(4, 2)
         errs.append(np.linalg.norm(found[mid] - uv, axis=1))
         big.append(np.linalg.norm(uv[1] - uv[0]) > 25)
         # The same numbers read as a radial-tangential lens: clearly not what was rendered.
-        uv2, _ = cv2.projectPoints(pc, np.zeros(3), np.zeros(3), cal.camera_matrix, np.append(cal.dist_coeffs, 0.0))
+        uv2, _ = cv2.projectPoints(
+            pc, np.zeros(3), np.zeros(3), cal.camera_matrix, np.append(cal.dist_coeffs, 0.0)
+        )
         radtan_errs += list(np.linalg.norm(found[mid] - uv2.reshape(4, 2), axis=1))
     all_errs = np.concatenate(errs)
     assert len(all_errs) >= 8
@@ -291,9 +402,18 @@ def test_flicker_scales_each_row_as_specified(tmp_path: Path) -> None:
     """Against the same render without flicker: with a rolling shutter each row's brightness is
     scaled by 1 + a*sin(2*pi*f*(t + readout*v/H) + phase)."""
     pose = Turning(T0 + 0.6, rate=0.0)
-    kw = {"width": 320, "height": 180, "start_offset": 0.05, "noise_sigma": 0.0, "exposure": 0.0, "readout": 0.02}
+    kw = {
+        "width": 320,
+        "height": 180,
+        "start_offset": 0.05,
+        "noise_sigma": 0.0,
+        "exposure": 0.0,
+        "readout": 0.02,
+    }
     render_experiment(tmp_path / "plain", pose, (T0, T0 + 0.12), **kw)
-    render_experiment(tmp_path / "flicker", pose, (T0, T0 + 0.12), flicker=0.2, flicker_hz=100.0, **kw)
+    render_experiment(
+        tmp_path / "flicker", pose, (T0, T0 + 0.12), flicker=0.2, flicker_hz=100.0, **kw
+    )
     phase = load_perturbation(tmp_path / "flicker")["settings"]["flicker_phase_rad"]
     plain = video_frames(tmp_path / "plain" / "front.mp4")
     flick = video_frames(tmp_path / "flicker" / "front.mp4")

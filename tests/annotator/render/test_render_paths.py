@@ -32,7 +32,9 @@ def test_closed_polyline_walks_turns_in_place_and_repeats() -> None:
     traj = still(SQUARE, speed=0.5, dwell=1.0)
     t = T0 + np.array([2.0, 4.0, 4.5, 5.0, 7.0, 19.5, 21.0])
     pos, rot = traj(t)
-    np.testing.assert_allclose(pos[:, :2], [[1, 0], [2, 0], [2, 0], [2, 0], [2, 1], [0, 0], [0.5, 0]], atol=1e-9)
+    np.testing.assert_allclose(
+        pos[:, :2], [[1, 0], [2, 0], [2, 0], [2, 0], [2, 1], [0, 0], [0.5, 0]], atol=1e-9
+    )
     np.testing.assert_allclose(pos[:, 2], 1.55)
     # Along the first side 0 deg; half way through the corner turn 45; the second side 90;
     # the corner closing the lap turns from -90 back to 0 (half way: -45).
@@ -42,7 +44,9 @@ def test_closed_polyline_walks_turns_in_place_and_repeats() -> None:
 def test_open_polyline_goes_there_and_back() -> None:
     traj = still(((0.0, 0.0), (1.0, 0.0)), speed=1.0, dwell=1.0)
     pos, rot = traj(T0 + np.array([0.5, 1.5, 2.5, 3.5, 4.5]))
-    np.testing.assert_allclose(pos[:, :2], [[0.5, 0], [1, 0], [0.5, 0], [0, 0], [0.5, 0]], atol=1e-9)
+    np.testing.assert_allclose(
+        pos[:, :2], [[0.5, 0], [1, 0], [0.5, 0], [0, 0], [0.5, 0]], atol=1e-9
+    )
     h = heading_deg(rot)
     np.testing.assert_allclose(np.abs(h[[1, 3]]), 90, atol=1e-6)  # half way through a half turn
     np.testing.assert_allclose(np.abs(h[2]), 180, atol=1e-6)
@@ -84,15 +88,32 @@ def test_bad_waypoints_are_refused() -> None:
 
 
 def simulate(out: Path, *args: str) -> None:
-    res = CliRunner().invoke(app, ["simulate", "--out", str(out), "--duration", "1.5", "--width", "320",
-                                   "--height", "180", "--start-offset", "0.11", *args])
+    res = CliRunner().invoke(
+        app,
+        [
+            "simulate",
+            "--out",
+            str(out),
+            "--duration",
+            "1.5",
+            "--width",
+            "320",
+            "--height",
+            "180",
+            "--start-offset",
+            "0.11",
+            *args,
+        ],
+    )
     assert res.exit_code == 0, res.output
 
 
 def test_simulate_rectangle_writes_a_path_that_evaluate_accepts(tmp_path: Path) -> None:
     simulate(tmp_path, "--path", "rectangle")
     np.testing.assert_allclose(load_waypoints(tmp_path / "path.yaml"), PRESET_PATHS["rectangle"])
-    res = CliRunner().invoke(app, ["evaluate", str(tmp_path / "truth.csv"), "--path", str(tmp_path / "path.yaml")])
+    res = CliRunner().invoke(
+        app, ["evaluate", str(tmp_path / "truth.csv"), "--path", str(tmp_path / "path.yaml")]
+    )
     assert res.exit_code == 0, res.output
     body = json.loads((tmp_path / "evaluation.json").read_text())
     assert body["compared"] == 45 + 41  # every frame of both cameras
@@ -106,15 +127,27 @@ def test_simulate_reads_a_waypoints_file(tmp_path: Path) -> None:
     wp = tmp_path / "mine.yaml"
     wp.write_text("waypoints: [[9.0, 8.0], [10.0, 8.0], [10.0, 9.5]]\n")
     simulate(tmp_path / "r", "--path", str(wp), "--speed", "0.5")
-    np.testing.assert_allclose(load_waypoints(tmp_path / "r" / "path.yaml"), [[9, 8], [10, 8], [10, 9.5]])
+    np.testing.assert_allclose(
+        load_waypoints(tmp_path / "r" / "path.yaml"), [[9, 8], [10, 8], [10, 9.5]]
+    )
     truth = np.loadtxt(tmp_path / "r" / "truth.csv", delimiter=",", skiprows=1)
     np.testing.assert_allclose(truth[-1, 1:3], [9.0 + 0.5 * 1.5 * 44 / 45, 8.0], atol=1e-6)
 
 
-@pytest.mark.parametrize(("value", "message"), [("circle", "--path 'circle'"), ("nope.yaml", "nope.yaml")])
+@pytest.mark.parametrize(
+    ("value", "message"), [("circle", "--path 'circle'"), ("nope.yaml", "nope.yaml")]
+)
 def test_bad_path_is_a_one_line_error(tmp_path: Path, value: str, message: str) -> None:
-    res = CliRunner().invoke(app, ["simulate", "--out", str(tmp_path / "x"), "--path", str(tmp_path / value)
-                                   if value.endswith(".yaml") else value])
+    res = CliRunner().invoke(
+        app,
+        [
+            "simulate",
+            "--out",
+            str(tmp_path / "x"),
+            "--path",
+            str(tmp_path / value) if value.endswith(".yaml") else value,
+        ],
+    )
     assert res.exit_code == 1
     assert message in res.output
     assert "Traceback" not in res.output
@@ -123,7 +156,9 @@ def test_bad_path_is_a_one_line_error(tmp_path: Path, value: str, message: str) 
 
 @pytest.mark.parametrize("exposure", ["-0.001", "0.04"])  # 0.04 s is longer than a 30 fps frame
 def test_impossible_exposure_is_a_one_line_error(tmp_path: Path, exposure: str) -> None:
-    res = CliRunner().invoke(app, ["simulate", "--out", str(tmp_path / "x"), "--exposure", exposure])
+    res = CliRunner().invoke(
+        app, ["simulate", "--out", str(tmp_path / "x"), "--exposure", exposure]
+    )
     assert res.exit_code == 1
     assert "exposure" in res.output
     assert not (tmp_path / "x").exists()

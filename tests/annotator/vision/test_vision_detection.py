@@ -12,7 +12,9 @@ from annotator.vision.detection import DetectorSettings, MarkerDetector, auto_do
 from track_helpers import make_room
 
 W, H = 960, 540
-CAL = CameraCalibration(np.array([[700.0, 0, 479.5], [0, 700.0, 269.5], [0, 0, 1]]), np.zeros(5), W, H)
+CAL = CameraCalibration(
+    np.array([[700.0, 0, 479.5], [0, 700.0, 269.5], [0, 0, 1]]), np.zeros(5), W, H
+)
 DICT = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_50)
 
 
@@ -24,14 +26,18 @@ def paste_marker(img: np.ndarray, marker_id: int, corners: np.ndarray) -> None:
     ss = 4
     side, margin = 160, 40
     tex = np.full((side + 2 * margin,) * 2, 255, np.uint8)
-    tex[margin:margin + side, margin:margin + side] = cv2.aruco.generateImageMarker(DICT, marker_id, side)
+    tex[margin : margin + side, margin : margin + side] = cv2.aruco.generateImageMarker(
+        DICT, marker_id, side
+    )
     e = margin - 0.5, margin + side - 0.5  # pixel-centre coordinates of the square's outer edges
     src = np.float32([[e[0], e[0]], [e[1], e[0]], [e[1], e[1]], [e[0], e[1]]])
     big = np.float32(corners) * ss + (ss - 1) / 2  # pixel centres of the big canvas
     Hm = cv2.getPerspectiveTransform(src, big)
     size = (W * ss, H * ss)
     warped = cv2.warpPerspective(tex, Hm, size, flags=cv2.INTER_LINEAR, borderValue=0)
-    mask = cv2.warpPerspective(np.full_like(tex, 255), Hm, size, flags=cv2.INTER_LINEAR, borderValue=0)
+    mask = cv2.warpPerspective(
+        np.full_like(tex, 255), Hm, size, flags=cv2.INTER_LINEAR, borderValue=0
+    )
     warped = cv2.resize(warped, (W, H), interpolation=cv2.INTER_AREA)
     mask = cv2.resize(mask, (W, H), interpolation=cv2.INTER_AREA)
     a = mask.astype(np.float32) / 255
@@ -43,7 +49,11 @@ def scene() -> tuple[np.ndarray, dict[int, np.ndarray]]:
     rng = np.random.default_rng(0)
     img = np.full((H, W), 110, np.uint8)
     truth = {}
-    for mid, centre, size, yaw in [(1, (250, 250), 110, 20), (5, (640, 260), 80, -35), (40, (800, 420), 70, 0)]:
+    for mid, centre, size, yaw in [
+        (1, (250, 250), 110, 20),
+        (5, (640, 260), 80, -35),
+        (40, (800, 420), 70, 0),
+    ]:
         # A square seen obliquely: rotate a 3-d square about the vertical and project it.
         h = size / 2
         sq = np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], float)
@@ -56,24 +66,38 @@ def scene() -> tuple[np.ndarray, dict[int, np.ndarray]]:
 
 
 # CONTOUR refinement measured ~0.7 px off on these edges, SUBPIX < 0.3 px: hence the default.
-@pytest.mark.parametrize(("downscale", "refine", "tol"),
-                         [(1.0, "subpix", 0.3), (1.0, "contour", 1.0), (0.5, "subpix", 0.3)])
+@pytest.mark.parametrize(
+    ("downscale", "refine", "tol"),
+    [(1.0, "subpix", 0.3), (1.0, "contour", 1.0), (0.5, "subpix", 0.3)],
+)
 def test_detects_known_markers_with_subpixel_corners(downscale, refine, tol):
     img, truth = scene()
-    det = MarkerDetector(DetectorSettings(corner_refine=refine, downscale=downscale), make_room(), CAL).detect(img)
+    det = MarkerDetector(
+        DetectorSettings(corner_refine=refine, downscale=downscale), make_room(), CAL
+    ).detect(img)
     assert sorted(det.ids.tolist()) == [1, 5]  # id 40 is not in the room's map
     for mid, corners in zip(det.ids, det.corners, strict=True):
         assert np.abs(corners - truth[mid]).max() < tol, (mid, corners - truth[mid])
 
 
 def test_blank_frame_gives_empty_detections():
-    det = MarkerDetector(DetectorSettings(), make_room(), CAL).detect(np.full((H, W, 3), 90, np.uint8))
+    det = MarkerDetector(DetectorSettings(), make_room(), CAL).detect(
+        np.full((H, W, 3), 90, np.uint8)
+    )
     assert det.ids.shape == (0,)
     assert det.corners.shape == (0, 4, 2)
 
 
 def test_auto_downscale_halves_wide_frames_only():
-    assert [auto_downscale(w) for w in (640, 960, 1280, 1281, 1920, 2560, 3840)] == [1, 1, 1, 0.5, 0.5, 0.5, 0.25]
+    assert [auto_downscale(w) for w in (640, 960, 1280, 1281, 1920, 2560, 3840)] == [
+        1,
+        1,
+        1,
+        0.5,
+        0.5,
+        0.5,
+        0.25,
+    ]
 
 
 def test_1080p_frames_are_detected_at_half_size_with_full_resolution_corners():
@@ -88,4 +112,7 @@ def test_1080p_frames_are_detected_at_half_size_with_full_resolution_corners():
     det = detector.detect(big)
     assert sorted(det.ids.tolist()) == [1, 5]
     for mid, corners in zip(det.ids, det.corners, strict=True):
-        assert np.abs(corners - (2 * truth[mid] + 0.5)).max() < 0.6, (mid, corners - (2 * truth[mid] + 0.5))
+        assert np.abs(corners - (2 * truth[mid] + 0.5)).max() < 0.6, (
+            mid,
+            corners - (2 * truth[mid] + 0.5),
+        )

@@ -73,7 +73,9 @@ def test_batches_count_frames_of_both_cameras_in_time_order_and_stamp_the_last()
 def test_frames_without_markers_count_and_an_empty_batch_is_a_nan_row():
     t, rank = two_cameras(30, 30)
     # The back camera sees nothing; the front one is blind in batch 1 (ranks 15..29).
-    poses = [make_frame(None) if r % 2 or 15 <= r < 30 else make_frame([1.0, 2.0, 3.0]) for r in rank]
+    poses = [
+        make_frame(None) if r % 2 or 15 <= r < 30 else make_frame([1.0, 2.0, 3.0]) for r in rank
+    ]
     tb, x, _, used = paper_track(t, poses, PaperSettings(frames=15))
     np.testing.assert_allclose(tb, np.array([14, 29, 44, 59]) / 60)
     assert used.tolist() == [8, 0, 8, 7]  # the front frames (even ranks) of each batch of 15
@@ -86,15 +88,21 @@ def test_all_ones_start_couples_the_axes_like_the_original():
     # starts at 0, so p = 0.01 -> gain 0.0625 -> p = 0.009375, then 0.019375 -> gain 0.114391.
     # The x step splits into both: x moves 0.1 (k_u + 2 k_o) / 3, y and z 0.1 (k_u - k_o) / 3.
     t = np.arange(30) / 30
-    poses = [make_frame([0.0, 0.0, 0.0]) if k < 15 else make_frame([0.1, 0.0, 0.0]) for k in range(30)]
+    poses = [
+        make_frame([0.0, 0.0, 0.0]) if k < 15 else make_frame([0.1, 0.0, 0.0]) for k in range(30)
+    ]
     _, x, _, _ = paper_track(t, poses, PaperSettings(frames=15))
     k_u, k_o = 0.504754, 0.114391
-    np.testing.assert_allclose(x[1], 0.1 * np.array([k_u + 2 * k_o, k_u - k_o, k_u - k_o]) / 3, atol=1e-6)
+    np.testing.assert_allclose(
+        x[1], 0.1 * np.array([k_u + 2 * k_o, k_u - k_o, k_u - k_o]) / 3, atol=1e-6
+    )
 
 
 def test_settings_change_the_filter_gain():
     t = np.arange(30) / 30
-    poses = [make_frame([0.0, 0.0, 0.0]) if k < 15 else make_frame([0.3, 0.3, 0.3]) for k in range(30)]
+    poses = [
+        make_frame([0.0, 0.0, 0.0]) if k < 15 else make_frame([0.3, 0.3, 0.3]) for k in range(30)
+    ]
     # Along (1,1,1) with q = 1, process 0.5: p = 3.5 -> gain 3.5/4.5, p = 3.5/4.5 -> 1.277778 -> gain 0.560976.
     _, x, _, _ = paper_track(t, poses, PaperSettings(frames=15, q=1.0, process=0.5))
     np.testing.assert_allclose(x[1], np.full(3, 0.3 * 0.560976), atol=1e-6)
@@ -130,8 +138,21 @@ def test_track_cli_refuses_bad_paper_settings(tmp_path):
 
     from annotator.cli import app
 
-    res = CliRunner().invoke(app, ["track", str(tmp_path / "experiment.yaml"), "--out", str(tmp_path / "o"),
-                                   "--method", "paper", "--close", "5", "--keep", "6"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "track",
+            str(tmp_path / "experiment.yaml"),
+            "--out",
+            str(tmp_path / "o"),
+            "--method",
+            "paper",
+            "--close",
+            "5",
+            "--keep",
+            "6",
+        ],
+    )
     assert res.exit_code == 1
     assert "1 <= --keep <= --close" in res.output
     assert "Traceback" not in res.output

@@ -25,7 +25,9 @@ def test_joint_solve_recovers_known_poses_to_millimetres():
     _, pos, rot = make_path(120, 0.1)
     err, ang, z2 = [], [], []
     for k in range(len(pos)):
-        pose = solve_bundle_pose(_observations(room, rig, rot[k].as_matrix(), pos[k], 0.3, rng), room)
+        pose = solve_bundle_pose(
+            _observations(room, rig, rot[k].as_matrix(), pos[k], 0.3, rng), room
+        )
         assert pose is not None
         e = pose.t_wb - pos[k]
         err.append(np.linalg.norm(e))
@@ -65,13 +67,28 @@ def test_a_marker_with_wrong_corners_is_dropped():
         corners = det.corners.copy()
         # One marker's corners warped in a way no pose explains (a mis-detection, a reflection).
         corners[0] += np.array([[9.0, 0.0], [0.0, 9.0], [-9.0, 0.0], [0.0, -9.0]])
-        obs = observe(Detections(det.ids, corners), room, cam.calibration, cam.R_bundle_camera,
-                      cam.t_bundle_camera)
+        obs = observe(
+            Detections(det.ids, corners),
+            room,
+            cam.calibration,
+            cam.R_bundle_camera,
+            cam.t_bundle_camera,
+        )
         pose = solve_bundle_pose([obs], room)
         assert pose.n_markers == len(det.ids) - 1
         # Same answer as never having seen the bad marker.
-        clean = solve_bundle_pose([observe(Detections(det.ids[1:], det.corners[1:]), room, cam.calibration,
-                                           cam.R_bundle_camera, cam.t_bundle_camera)], room)
+        clean = solve_bundle_pose(
+            [
+                observe(
+                    Detections(det.ids[1:], det.corners[1:]),
+                    room,
+                    cam.calibration,
+                    cam.R_bundle_camera,
+                    cam.t_bundle_camera,
+                )
+            ],
+            room,
+        )
         assert np.allclose(pose.t_wb, clean.t_wb, atol=1e-5)
         assert pose.rms_px < 1.0
         checked += 1
@@ -87,8 +104,13 @@ def test_single_marker_returns_both_mirror_solutions_one_of_them_true():
     det = project(room, cam, R, p)
     keep = det.ids == 1
     assert keep.any()
-    obs = observe(Detections(det.ids[keep], det.corners[keep]), room, cam.calibration,
-                  cam.R_bundle_camera, cam.t_bundle_camera)
+    obs = observe(
+        Detections(det.ids[keep], det.corners[keep]),
+        room,
+        cam.calibration,
+        cam.R_bundle_camera,
+        cam.t_bundle_camera,
+    )
     pose = solve_bundle_pose([obs], room)
     assert pose.n_markers == 1
     cands = [pose, *pose.alternatives]
@@ -102,7 +124,9 @@ def test_single_marker_returns_both_mirror_solutions_one_of_them_true():
 def test_nothing_seen_gives_none():
     room, rig = make_room(), make_rig()
     cam = rig["front"]
-    obs = observe(Detections.empty(), room, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera)
+    obs = observe(
+        Detections.empty(), room, cam.calibration, cam.R_bundle_camera, cam.t_bundle_camera
+    )
     assert solve_bundle_pose([obs], room) is None
 
 
@@ -117,7 +141,9 @@ def test_motion_compensated_extrinsics_match_the_moved_camera(offset):
     back = rig["back"]
     det = project(room, back, R1, p1, 0.0, rng)
     R_d, t_d = R0.T @ R1, R0.T @ (p1 - p0)
-    obs_b = observe(det, room, back.calibration, R_d @ back.R_bundle_camera, R_d @ back.t_bundle_camera + t_d)
+    obs_b = observe(
+        det, room, back.calibration, R_d @ back.R_bundle_camera, R_d @ back.t_bundle_camera + t_d
+    )
     obs_f = _observations(room, rig, R0, p0, 0.0, rng, cams=("front",))[0]
     pose = solve_bundle_pose([obs_f, obs_b], room)
     assert np.linalg.norm(pose.t_wb - p0) < 1e-4

@@ -19,29 +19,88 @@ HEADER = f"000000000101::[[0.0, 0.0], [2.0, 2.0]]::1.0::{BINS}"
 
 
 def _hst_text(fingerprints: str) -> str:
-    return (f"Bins:{BINS}\nDongles:{{\"000000000101\": [[1.0, 2.0, 3.0], 0, \"s\"]}}\n"
-            f"Beacons:{{\"e78f135624ce\": [[], 0, \"b\"]}}\nFingerprints:{fingerprints}\n")
+    return (
+        f'Bins:{BINS}\nDongles:{{"000000000101": [[1.0, 2.0, 3.0], 0, "s"]}}\n'
+        f'Beacons:{{"e78f135624ce": [[], 0, "b"]}}\nFingerprints:{fingerprints}\n'
+    )
 
 
 # (reader, file name, content, expected line number in the message)
 CASES = [
-    (tables.load_mbd, "bad.mbd", "1.5,aabbccddeeff,112233445566,-60\n1.6,aabbccddeeff,-61\n", MbdError, ":2:"),
-    (tables.load_mbd, "bad.mbd", "1.5,aabbccddeeff,112233445566,-60\n1.6,xx,112233445566,-61\n", MbdError, ":2:"),
+    (
+        tables.load_mbd,
+        "bad.mbd",
+        "1.5,aabbccddeeff,112233445566,-60\n1.6,aabbccddeeff,-61\n",
+        MbdError,
+        ":2:",
+    ),
+    (
+        tables.load_mbd,
+        "bad.mbd",
+        "1.5,aabbccddeeff,112233445566,-60\n1.6,xx,112233445566,-61\n",
+        MbdError,
+        ":2:",
+    ),
     (tables.load_mbd, "pose.mbd", "1.5,aabbccddeeff,112233445566,-60,1,2,3\n", MbdError, "row 1"),
-    (occ.read_occ, "bad.occ", "[[0.0, 0.0], [2.0, 2.0]]::1.0\n[0.0, 0.0]::1\n[1.0, 0.0]::2\n", occ.GridFormatError, ":3:"),
+    (
+        occ.read_occ,
+        "bad.occ",
+        "[[0.0, 0.0], [2.0, 2.0]]::1.0\n[0.0, 0.0]::1\n[1.0, 0.0]::2\n",
+        occ.GridFormatError,
+        ":3:",
+    ),
     (occ.read_occ, "bad.occ", "[[0.0, 0.0], [2.0, 2.0]]::0\n", occ.GridFormatError, ":1:"),
-    (occ.read_occ, "dup.occ", "[[0.0, 0.0], [2.0, 2.0]]::1.0\n[0.0, 0.0]::1\n[0.0, 0.0]::0\n", occ.GridFormatError, ":3:"),
-    (grd.read_grd, "bad.grd", f"{HEADER}\n[0.0, 0.0]::e78f135624ce::{GOOD_HIST}\n[1.0, 0.0]::e78f135624ce::[0.5, 0.5]\n",
-     grd.GridFormatError, ":3:"),
-    (grd.read_grd, "bad.grd", "000000000101::[[0.0, 0.0]]::1.0::[1, 2]\n", grd.GridFormatError, ":1:"),
+    (
+        occ.read_occ,
+        "dup.occ",
+        "[[0.0, 0.0], [2.0, 2.0]]::1.0\n[0.0, 0.0]::1\n[0.0, 0.0]::0\n",
+        occ.GridFormatError,
+        ":3:",
+    ),
+    (
+        grd.read_grd,
+        "bad.grd",
+        f"{HEADER}\n[0.0, 0.0]::e78f135624ce::{GOOD_HIST}\n[1.0, 0.0]::e78f135624ce::[0.5, 0.5]\n",
+        grd.GridFormatError,
+        ":3:",
+    ),
+    (
+        grd.read_grd,
+        "bad.grd",
+        "000000000101::[[0.0, 0.0]]::1.0::[1, 2]\n",
+        grd.GridFormatError,
+        ":1:",
+    ),
     (hst.read_hst, "bad.hst", _hst_text('{"(1.0, 2.0)": {}}'), hst.HstError, ":4:"),
-    (hst.read_hst, "bad.hst", _hst_text('{"(1.0, 2.0, 3.0)": {"000000000101": {"e78f135624ce": [1.0]}}}'),
-     hst.HstError, ":4:"),
-    (hst.read_hst, "bad.hst", "Bins:[-100.0, -101.0]\nDongles:{}\nFingerprints:{}\n", hst.HstError, ":1:"),
+    (
+        hst.read_hst,
+        "bad.hst",
+        _hst_text('{"(1.0, 2.0, 3.0)": {"000000000101": {"e78f135624ce": [1.0]}}}'),
+        hst.HstError,
+        ":4:",
+    ),
+    (
+        hst.read_hst,
+        "bad.hst",
+        "Bins:[-100.0, -101.0]\nDongles:{}\nFingerprints:{}\n",
+        hst.HstError,
+        ":1:",
+    ),
     (hst.read_hst, "bad.hst", _hst_text("{'unclosed"), hst.HstError, ":4:"),
-    (devices.read_dev, "bad.dev", 'Dongles:{"000000000101": [[1, 2, 3], 0, "s"]}\nBeacons:{oops}\n',
-     devices.SiteConfigError, ":2:"),
-    (markers.read_marker_map, "bad.dat", "0: [1, 2, 3]:[0, 0, 0]\n1: [1, 2]:[0, 0, 0]\n", markers.MarkerMapError, ":2:"),
+    (
+        devices.read_dev,
+        "bad.dev",
+        'Dongles:{"000000000101": [[1, 2, 3], 0, "s"]}\nBeacons:{oops}\n',
+        devices.SiteConfigError,
+        ":2:",
+    ),
+    (
+        markers.read_marker_map,
+        "bad.dat",
+        "0: [1, 2, 3]:[0, 0, 0]\n1: [1, 2]:[0, 0, 0]\n",
+        markers.MarkerMapError,
+        ":2:",
+    ),
 ]
 
 
@@ -67,8 +126,9 @@ def test_missing_file_is_a_one_line_error(tmp_path: Path, reader):
 def test_failed_write_keeps_the_previous_file(tmp_path: Path):
     out = tmp_path / "x.hst"
     out.write_text("previous\n")
-    bad = hst.FingerprintHistograms((0.0, 1.0), devices.Devices({}, {}),
-                                    {(0.0, 0.0, 0.0): {"a": {"b": (object(),)}}})
+    bad = hst.FingerprintHistograms(
+        (0.0, 1.0), devices.Devices({}, {}), {(0.0, 0.0, 0.0): {"a": {"b": (object(),)}}}
+    )
     with pytest.raises(TypeError):
         hst.write_hst(bad, out)
     assert out.read_text() == "previous\n"
@@ -113,9 +173,12 @@ def test_track_writer_rejects_reflections(tmp_path: Path):
 
 
 def test_format_modules_import_without_pandas_or_numpy():
-    code = ("import sys; sys.modules['pandas'] = None; sys.modules['numpy'] = None\n"
-            "from bgt_core.formats import hst, grd, occ, tables, mbd, devices, markers\n"
-            "print('ok')")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
-                          check=False)
+    code = (
+        "import sys; sys.modules['pandas'] = None; sys.modules['numpy'] = None\n"
+        "from bgt_core.formats import hst, grd, occ, tables, mbd, devices, markers\n"
+        "print('ok')"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False
+    )
     assert done.stdout.strip() == "ok", done.stderr

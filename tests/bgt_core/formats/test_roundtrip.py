@@ -57,7 +57,13 @@ def test_load_mbd_columns_and_exact_timestamps():
 
     trk = tables.load_mbd(DATASET / "trk" / "straight_01_all_sensors.mbd")
     assert list(trk.columns) == ["ts", "t_ns", "sensor", "beacon", "rssi", *tables.POSE_COLUMNS]
-    assert trk.loc[0, ["x", "y", "z", "r11", "r33"]].tolist() == [18.031, 8.465, 1.816, 0.062, 0.002]
+    assert trk.loc[0, ["x", "y", "z", "r11", "r33"]].tolist() == [
+        18.031,
+        8.465,
+        1.816,
+        0.062,
+        0.002,
+    ]
 
 
 def test_load_mbd_of_several_files_keeps_file_order():
@@ -71,8 +77,10 @@ def test_load_mbd_of_several_files_keeps_file_order():
 
 def test_mixed_fingerprint_and_track_rows_give_nan_poses(tmp_path: Path):
     f = tmp_path / "mixed.mbd"
-    f.write_text("1.5,aabbccddeeff,112233445566,-60\n"
-                 "2.5,aabbccddeeff,112233445566,-61,1,2,3,1,0,0,0,1,0,0,0,1\n")
+    f.write_text(
+        "1.5,aabbccddeeff,112233445566,-60\n"
+        "2.5,aabbccddeeff,112233445566,-61,1,2,3,1,0,0,0,1,0,0,0,1\n"
+    )
     df = tables.load_mbd(f)
     assert np.isnan(df.loc[0, "x"])
     assert df.loc[1, "x"] == 1.0
@@ -146,9 +154,13 @@ def _histograms() -> hst.FingerprintHistograms:
         p[rng.integers(80)] += 0.5
         return p / p.sum()
 
-    table = {(2.59, 2.19, 2.05): {"b827eb4521b4": {"e78f135624ce": h()},
-                                  "000000000101": {"e78f135624ce": h()}},
-             (12.95, 16.8, 1.85): {"b827eb4521b4": {"e78f135624ce": h()}}}
+    table = {
+        (2.59, 2.19, 2.05): {
+            "b827eb4521b4": {"e78f135624ce": h()},
+            "000000000101": {"e78f135624ce": h()},
+        },
+        (12.95, 16.8, 1.85): {"b827eb4521b4": {"e78f135624ce": h()}},
+    }
     return hst.histograms_from_mapping(hst.DEFAULT_BINS, d, table)
 
 
@@ -161,8 +173,15 @@ def test_hst_round_trip(tmp_path: Path):
     assert again == h
     assert hst.format_hst(again) == text
     lines = text.splitlines()
-    assert [line.split(":", 1)[0] for line in lines] == ["Bins", "Dongles", "Beacons", "Fingerprints"]
-    assert lines[3].startswith('Fingerprints:{ "(2.59, 2.19, 2.05)": {"b827eb4521b4": {"e78f135624ce": [')
+    assert [line.split(":", 1)[0] for line in lines] == [
+        "Bins",
+        "Dongles",
+        "Beacons",
+        "Fingerprints",
+    ]
+    assert lines[3].startswith(
+        'Fingerprints:{ "(2.59, 2.19, 2.05)": {"b827eb4521b4": {"e78f135624ce": ['
+    )
     assert text.endswith("]}}}\n")
 
 
@@ -170,9 +189,11 @@ def test_hst_reads_python_literal_spelling():
     h = _histograms()
     # the same content written with Python's repr (single quotes) instead of JSON
     d_obj, b_obj = devices.devices_to_obj(h.devices)
-    fps = {hst.position_key(p): {s: {b: list(v) for b, v in bs.items()} for s, bs in ss.items()}
-           for p, ss in h.fingerprints.items()}
-    text = (f"Bins:{list(h.bins)!r}\nDongles:{d_obj!r}\nBeacons:{b_obj!r}\nFingerprints:{fps!r}\n")
+    fps = {
+        hst.position_key(p): {s: {b: list(v) for b, v in bs.items()} for s, bs in ss.items()}
+        for p, ss in h.fingerprints.items()
+    }
+    text = f"Bins:{list(h.bins)!r}\nDongles:{d_obj!r}\nBeacons:{b_obj!r}\nFingerprints:{fps!r}\n"
     assert hst.parse_hst(text) == h
 
 
@@ -186,23 +207,31 @@ def test_hst_frame_round_trip():
     assert positions.shape == (2, 3)
     assert p.shape == (2, 2, 1, 80)
     assert np.isnan(p[1, sensors.index("000000000101"), 0]).all()  # explicit gap
-    np.testing.assert_array_equal(p[0, sensors.index("b827eb4521b4"), 0],
-                                  h.fingerprints[(2.59, 2.19, 2.05)]["b827eb4521b4"]["e78f135624ce"])
+    np.testing.assert_array_equal(
+        p[0, sensors.index("b827eb4521b4"), 0],
+        h.fingerprints[(2.59, 2.19, 2.05)]["b827eb4521b4"]["e78f135624ce"],
+    )
 
 
 def test_grd_round_trip(tmp_path: Path):
     h = _histograms()
     hist = next(iter(next(iter(h.fingerprints.values())).values()))["e78f135624ce"]
     lim = ((0.0, 0.0), (20.660138018121128, 17.64103475472807))
-    g = grd.RadioMapGrid("000000000101", lim, 1.0, hst.DEFAULT_BINS,
-                         {(0.0, 0.0): {"e78f135624ce": hist}, (2.0, 0.0): {"e78f135624ce": hist}})
+    g = grd.RadioMapGrid(
+        "000000000101",
+        lim,
+        1.0,
+        hst.DEFAULT_BINS,
+        {(0.0, 0.0): {"e78f135624ce": hist}, (2.0, 0.0): {"e78f135624ce": hist}},
+    )
     out = tmp_path / "m.grd"
     grd.write_grd(g, out)
     again = grd.read_grd(out)
     assert again == g
     lines = out.read_text().splitlines()
-    assert lines[0].startswith("000000000101::[[0.0, 0.0], [20.660138018121128, 17.64103475472807]]"
-                               "::1.0::[-100.0, -99.0,")
+    assert lines[0].startswith(
+        "000000000101::[[0.0, 0.0], [20.660138018121128, 17.64103475472807]]::1.0::[-100.0, -99.0,"
+    )
     assert lines[1].startswith("[0.0, 0.0]::e78f135624ce::[")
     frame = tables.grd_to_frame(again)
     assert len(frame) == 2 * 80
@@ -227,8 +256,13 @@ def test_grd_published_line_round_trip(tmp_path: Path):
         assert sum(hist) == pytest.approx(1.0, abs=1e-9)
     assert grd.format_grd(g) == text  # byte for byte
     # our older files (80 values per cell) still read, to the same grid
-    old = "\n".join(line if i == 0 else line.replace(", 0.0]", "]")
-                     for i, line in enumerate(text.splitlines())) + "\n"
+    old = (
+        "\n".join(
+            line if i == 0 else line.replace(", 0.0]", "]")
+            for i, line in enumerate(text.splitlines())
+        )
+        + "\n"
+    )
     assert grd.parse_grd(old) == g
     # an 81st value that is not 0 is not a published layout
     bad = text.replace(", 0.0]\n", ", 0.5]\n", 1)

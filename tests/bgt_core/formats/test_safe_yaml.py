@@ -16,7 +16,8 @@ from bgt_core.safe_yaml import MAX_DEPTH, MAX_NODES, YamlError, dump, load_file,
 
 # 342 bytes; yaml.safe_load would expand it to 9^9 = 387 million strings (tens of GiB).
 BILLION_LAUGHS = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n' + "".join(
-    f"{n}: &{n} [{','.join(['*' + p] * 9)}]\n" for p, n in zip("abcdefgh", "bcdefghi", strict=True))
+    f"{n}: &{n} [{','.join(['*' + p] * 9)}]\n" for p, n in zip("abcdefgh", "bcdefghi", strict=True)
+)
 
 # Peak resident memory allowed to a child that only imports yaml and loads one document; the
 # child's own baseline is ~25 MiB, so this is generous on any machine.
@@ -41,8 +42,13 @@ CHILD = textwrap.dedent("""\
 
 
 def load_in_child(path: Path) -> dict:
-    res = subprocess.run([sys.executable, "-c", CHILD, str(path)], capture_output=True, text=True,
-                         timeout=120, check=True)
+    res = subprocess.run(
+        [sys.executable, "-c", CHILD, str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
     return json.loads(res.stdout)
 
 
@@ -86,7 +92,11 @@ def test_nesting_is_limited():
     assert loads(ok, "f.yaml") == eval(ok)  # noqa: S307 - a literal of brackets
     with pytest.raises(YamlError, match=rf"^f\.yaml:1: nested deeper than {MAX_DEPTH} levels"):
         loads("[" * (MAX_DEPTH + 1) + "]" * (MAX_DEPTH + 1), "f.yaml")
-    deep_block = "".join("  " * i + f"k{i}:\n" for i in range(MAX_DEPTH + 1)) + "  " * (MAX_DEPTH + 1) + "v\n"
+    deep_block = (
+        "".join("  " * i + f"k{i}:\n" for i in range(MAX_DEPTH + 1))
+        + "  " * (MAX_DEPTH + 1)
+        + "v\n"
+    )
     with pytest.raises(YamlError, match="nested deeper"):
         loads(deep_block, "f.yaml")
     # 100,000 levels: refused at level 65, no RecursionError
@@ -98,7 +108,9 @@ def test_size_is_limited_before_reading(tmp_path: Path):
     p = tmp_path / "huge.yaml"
     with p.open("wb") as f:
         f.truncate(safe_yaml.MAX_BYTES + 1)  # sparse: no need to write 8 MiB
-    with pytest.raises(YamlError, match=rf"huge\.yaml: {safe_yaml.MAX_BYTES + 1} bytes; a YAML file may be at most"):
+    with pytest.raises(
+        YamlError, match=rf"huge\.yaml: {safe_yaml.MAX_BYTES + 1} bytes; a YAML file may be at most"
+    ):
         load_file(p)
     small = tmp_path / "small.yaml"
     small.write_text("a: [1, 2]\n")
@@ -116,11 +128,13 @@ def test_not_utf8_names_line_and_byte_offset(tmp_path: Path):
 def test_missing_file_and_bad_values_are_one_line(tmp_path: Path):
     with pytest.raises(YamlError, match=r"nope\.yaml: cannot read \(No such file"):
         load_file(tmp_path / "nope.yaml")
-    for text, problem in [("x: " + "9" * 5000, "a value cannot be read"),
-                          ("x: 2024-13-45", "a value cannot be read"),
-                          ("x: !!python/object/apply:os.system [echo]", "not valid YAML"),
-                          ("a: [1, 2", "not valid YAML"),
-                          ("---\na: 1\n---\nb: 2\n", "not valid YAML")]:
+    for text, problem in [
+        ("x: " + "9" * 5000, "a value cannot be read"),
+        ("x: 2024-13-45", "a value cannot be read"),
+        ("x: !!python/object/apply:os.system [echo]", "not valid YAML"),
+        ("a: [1, 2", "not valid YAML"),
+        ("---\na: 1\n---\nb: 2\n", "not valid YAML"),
+    ]:
         with pytest.raises(YamlError) as info:
             loads(text, "v.yaml")
         msg = str(info.value)
@@ -177,8 +191,11 @@ def _yaml_readers():
     ]
 
 
-@pytest.mark.parametrize("index", range(8), ids=["agent", "collector", "inventory", "experiment", "rig",
-                                                 "calibration", "path", "markers"])
+@pytest.mark.parametrize(
+    "index",
+    range(8),
+    ids=["agent", "collector", "inventory", "experiment", "rig", "calibration", "path", "markers"],
+)
 def test_every_yaml_reader_of_the_suite_refuses_aliases(tmp_path: Path, index: int):
     name, reader, error = _yaml_readers()[index]
     p = tmp_path / name
@@ -189,7 +206,9 @@ def test_every_yaml_reader_of_the_suite_refuses_aliases(tmp_path: Path, index: i
     assert name in str(info.value)
 
 
-def test_run_yaml_with_aliases_is_skipped_by_the_collector_and_refused_by_the_annotator(tmp_path: Path):
+def test_run_yaml_with_aliases_is_skipped_by_the_collector_and_refused_by_the_annotator(
+    tmp_path: Path,
+):
     from annotator.errors import ConfigError
     from annotator.io.rssi import load_rssi
     from collector.store import list_runs
