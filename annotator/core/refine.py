@@ -730,8 +730,8 @@ def _solve(
     # normal matrix alone, frames taken as independent, claims ~0.7 cm for far markers whose depth
     # is off by 5-9 cm on the field renders.
     mb = layout.static_slices()["marker"][0]
-    for m in np.flatnonzero(seen):
-        cov[mb + 6 * m : mb + 6 * m + 6, mb + 6 * m : mb + 6 * m + 6] += floor[m]
+    for k in (int(i) for i in np.flatnonzero(seen)):
+        cov[mb + 6 * k : mb + 6 * k + 6, mb + 6 * k : mb + 6 * k + 6] += floor[k]
     covariance, marker_sigma = _covariance(cov, layout, prob, lm)
     return Solution(
         v["R_m"],
