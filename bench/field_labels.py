@@ -105,22 +105,15 @@ def cached_video(
 
 def write_readings(run_dir: Path, settings: demo.DemoSettings) -> int:
     """The three simulated agents' readings as a collector run: rssi/<agent>/<sensor>.mbd."""
-    from sensor_agent.scanning.simulated import Simulation, load_site, pick_sensors
+    from sensor_agent.scanning.simulated import simulate_fleet
 
-    devices = load_site("tetam")
     path = demo.demo_path(settings.speed_mps)
+    events = demo.rssi_events(settings)
+    fleet = simulate_fleet(
+        "tetam", demo.split_sensors(), path, round(T0 * 1e9), seed=settings.seed, events=events
+    )
     n = 0
-    for i, (agent, sensors) in enumerate(zip(demo.AGENTS, demo.split_sensors(), strict=True)):
-        sim = Simulation(
-            pick_sensors(devices, sensors),
-            tuple(devices.beacons),
-            path,
-            round(T0 * 1e9),
-            seed=settings.seed * 10 + i,
-            rate_hz=10,
-            events=demo.rssi_events(settings),
-        )
-        sim.skip_to(-5.0)  # the agents start before t0
+    for agent, sim in zip(demo.AGENTS, fleet, strict=True):
         rows: dict[str, list[str]] = {}
         for mac, r in sim.generate(settings.duration_s + 1.0):
             rows.setdefault(mac, []).append(format_row(r.t_ns, mac, r.beacon, r.rssi))

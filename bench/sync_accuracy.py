@@ -86,23 +86,15 @@ def demo_readings(
     """The pooled readings `annotator demo` records (three simulated agents, four sensors each) and
     the true (cover, release) times, both in seconds after T0."""
     from annotator import demo
-    from sensor_agent.scanning.simulated import Simulation, load_site, pick_sensors
+    from sensor_agent.scanning.simulated import simulate_fleet
 
     settings = demo.DemoSettings(out=None, duration_s=duration, seed=seed)  # type: ignore[arg-type]
     events = demo.rssi_events(settings)
-    devices = load_site("tetam")
     ts, rs, ss = [], [], []
-    for i, sensors in enumerate(demo.split_sensors()):
-        sim = Simulation(
-            pick_sensors(devices, sensors),
-            tuple(devices.beacons),
-            demo.demo_path(),
-            round(T0 * 1e9),
-            seed=seed * 10 + i,
-            rate_hz=10,
-            events=events,
-        )
-        sim.skip_to(-5.0)  # as an agent started before t0 does
+    fleet = simulate_fleet(
+        "tetam", demo.split_sensors(), demo.demo_path(), round(T0 * 1e9), seed=seed, events=events
+    )
+    for sim in fleet:
         for mac, r in sim.generate(duration + 1.0):
             ts.append(r.t_ns / 1e9)
             rs.append(r.rssi)

@@ -83,21 +83,13 @@ def true_edges(settings: demo.DemoSettings) -> list[tuple[float, float]]:
 
 def sent_adverts(seed: int, duration: float) -> np.ndarray:
     """Times (s after t0) of every advert the demo's agents sent with this seed, heard or lost."""
-    from sensor_agent.scanning.simulated import RadioModel, Simulation, load_site, pick_sensors
+    from sensor_agent.scanning.simulated import RadioModel, simulate_fleet
 
-    devices = load_site("tetam")
+    radio = RadioModel(drop_prob=0.0, floor_dbm=-1000.0)
     out = []
-    for i, sensors in enumerate(demo.split_sensors()):
-        sim = Simulation(
-            pick_sensors(devices, sensors),
-            tuple(devices.beacons),
-            demo.demo_path(),
-            round(T0 * 1e9),
-            seed=seed * 10 + i,
-            rate_hz=10,
-            radio=RadioModel(drop_prob=0.0, floor_dbm=-1000.0),
-        )
-        sim.skip_to(-5.0)
+    for sim in simulate_fleet(
+        "tetam", demo.split_sensors(), demo.demo_path(), round(T0 * 1e9), seed=seed, radio=radio
+    ):
         out.append([r.t_ns / 1e9 - T0 for _, r in sim.generate(duration + 1.0)])
     return np.unique(np.concatenate(out))
 

@@ -164,6 +164,42 @@ class Simulation:
                 out.append((s.mac, Reading(t_ns, self.beacons[i], rssi_i)))
 
 
+def simulate_fleet(
+    site: str,
+    sensor_groups: Sequence[Sequence[str]],
+    path: PathModel,
+    t0_ns: int,
+    *,
+    seed: int,
+    rate_hz: float = 10.0,
+    radio: RadioModel | None = None,
+    events: Sequence[CoverEvent] = (),
+    start_s: float = -5.0,
+) -> list[Simulation]:
+    """One simulation per agent, each with its group of the site's sensors, in-process.
+
+    Agent ``i`` draws from seed ``10 * seed + i`` and starts advertising at ``start_s`` (agents
+    started before t0), as the demo's agents do; benches and tests use this to get the same
+    readings without starting processes.
+    """
+    devices = load_site(site)
+    sims = []
+    for i, sensors in enumerate(sensor_groups):
+        sim = Simulation(
+            pick_sensors(devices, sensors),
+            tuple(devices.beacons),
+            path,
+            t0_ns,
+            seed=seed * 10 + i,
+            rate_hz=rate_hz,
+            radio=radio,
+            events=events,
+        )
+        sim.skip_to(start_s)
+        sims.append(sim)
+    return sims
+
+
 class SimulatedBackend(ScannerBackend):
     name = "simulated"
 

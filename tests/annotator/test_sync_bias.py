@@ -11,7 +11,7 @@ from annotator import demo
 from annotator.core.sync import CoverEvent, detect_rssi_events, detect_video_events, fit_clock_map
 from annotator.io.sync import brightness_series
 from annotator.render import render_experiment
-from sensor_agent.scanning.simulated import Simulation, load_site, pick_sensors
+from sensor_agent.scanning.simulated import simulate_fleet
 
 T0 = 1_700_000_000.0
 DURATION = 12.0  # two cover events (2 s and 9 s after t0), as `annotator demo --duration 12`
@@ -22,19 +22,11 @@ TOLERANCE = 0.008  # s; the standard error of a 12-seed mean is ~3 ms
 def _readings(seed: int):
     """The three simulated agents' readings, as `annotator demo` makes them with this seed."""
     settings = demo.DemoSettings(out=None, duration_s=DURATION, seed=seed)  # type: ignore[arg-type]
-    devices = load_site("tetam")
+    events = demo.rssi_events(settings)
     ts, rs, ss = [], [], []
-    for i, sensors in enumerate(demo.split_sensors()):
-        sim = Simulation(
-            pick_sensors(devices, sensors),
-            tuple(devices.beacons),
-            demo.demo_path(),
-            round(T0 * 1e9),
-            seed=seed * 10 + i,
-            rate_hz=10,
-            events=demo.rssi_events(settings),
-        )
-        sim.skip_to(-5.0)
+    for sim in simulate_fleet(
+        "tetam", demo.split_sensors(), demo.demo_path(), round(T0 * 1e9), seed=seed, events=events
+    ):
         for mac, r in sim.generate(DURATION + 1.0):
             ts.append(r.t_ns / 1e9)
             rs.append(r.rssi)

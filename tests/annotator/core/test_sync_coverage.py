@@ -7,7 +7,7 @@ import numpy as np
 
 from annotator import demo
 from annotator.core.sync import detect_rssi_events, detect_video_events, fit_clock_map
-from sensor_agent.scanning.simulated import Simulation, load_site, pick_sensors
+from sensor_agent.scanning.simulated import simulate_fleet
 
 T0 = 1_700_000_000.0
 SEEDS = 30
@@ -16,19 +16,10 @@ SEEDS = 30
 def _readings(seed: int, duration: float):
     settings = demo.DemoSettings(out=None, duration_s=duration, seed=seed)  # type: ignore[arg-type]
     events = demo.rssi_events(settings)
-    devices = load_site("tetam")
     ts, rs, ss = [], [], []
-    for i, sensors in enumerate(demo.split_sensors()):
-        sim = Simulation(
-            pick_sensors(devices, sensors),
-            tuple(devices.beacons),
-            demo.demo_path(),
-            round(T0 * 1e9),
-            seed=seed * 10 + i,
-            rate_hz=10,
-            events=events,
-        )
-        sim.skip_to(-5.0)
+    for sim in simulate_fleet(
+        "tetam", demo.split_sensors(), demo.demo_path(), round(T0 * 1e9), seed=seed, events=events
+    ):
         for mac, r in sim.generate(duration + 1.0):
             ts.append(r.t_ns / 1e9)
             rs.append(r.rssi)
