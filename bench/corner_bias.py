@@ -1,0 +1,119 @@
+"""Marker corner error against a render's truth, per marker size in the image.
+
+Projects every true marker corner into each frame (truth.csv bundle pose at the frame's time,
+the rig and the calibration) and compares the detector's corners with it: mean radial error
+(positive = outward from the marker's centre), median and p90 corner error, and how many corners
+are off by more than 3 px (a wrong contour), in bins of the marker's side length in pixels.
+
+    python bench/corner_bias.py RENDER/experiment.yaml [--downscale 1] [--old] [--step 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import cv2
+import numpy as np
+
+from annotator.io.experiment import load_experiment
+from annotator.io.trajectory import read_trajectory
+from annotator.vision.detection import DetectorSettings, MarkerDetector
+from annotator.vision.geometry import MarkerRoom
+from annotator.vision.lens import project_points
+
+BINS = [(0, 35), (35, 60), (60, 1e9)]
+FPS = 30.0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("experiment")
+    ap.add_argument("--downscale", type=float, default=None)
+    ap.add_argument("--old", action="store_true", help="window corners, minRepDistance 10 px")
+    ap.add_argument("--step", type=int, default=3, help="use every n-th frame")
+    a = ap.parse_args()
+    exp = load_experiment(a.experiment)
+    truth = read_trajectory(_truth_path(a))
+    room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
+    assert exp.video_start is not None
+    for name, cam in exp.rig.cameras.items():
+        cal = cam.calibration
+        settings = DetectorSettings(downscale=a.downscale)
+        if a.old:
+            s = settings.downscale or (0.5 if cal.width > 1280 else 1.0)
+            settings = DetectorSettings(
+                downscale=a.downscale, edge_corners=False, board_refine_px=10.0 / s
+            )
+        det = MarkerDetector(settings, room, cal)
+        cap = cv2.VideoCapture(str(exp.videos[name]))
+        rows: list[tuple[float, float, float]] = []  # (side px, radial, error)
+        spent = 0.0
+        frames = 0
+        i = -1
+        while True:
+            ok, img = cap.read()
+            if not ok:
+                break
+            i += 1
+            if i % a.step:
+                continue
+            gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+            t0 = time.process_time()
+            d = det.detect(gray)
+            spent += time.process_time() - t0
+            frames += 1
+            if len(d.ids) == 0:
+                continue
+            t = exp.video_start[name] + i / FPS
+            world = room.corners_world[room.index(d.ids)]  # (n, 4, 3)
+            uv = _project(truth, t, cam, world)
+            if cal.readout_s > 0:  # rolling shutter: each corner at its row's time
+                uv = _project(truth, t + cal.readout_s * uv[..., 1:2] / cal.height, cam, world)
+            if not np.isfinite(uv).all():
+                continue
+            centre = uv.mean(axis=1, keepdims=True)
+            out = uv - centre
+            out /= np.linalg.norm(out, axis=2, keepdims=True)
+            diff = d.corners - uv
+            side = np.linalg.norm(uv - np.roll(uv, -1, axis=1), axis=2).mean(axis=1)
+            radial = (diff * out).sum(axis=2)
+            err = np.linalg.norm(diff, axis=2)
+            for k in range(len(d.ids)):
+                for j in range(4):
+                    rows.append((side[k], radial[k, j], err[k, j]))
+        r = np.array(rows)
+        print(f"{name}: {frames} frames, detection {1000 * spent / max(frames, 1):.2f} ms CPU/frame")
+        for lo, hi in BINS:
+            sel = r[(r[:, 0] >= lo) & (r[:, 0] < hi)]
+            if len(sel) == 0:
+                continue
+            good = sel[sel[:, 2] <= 3]
+            print(
+                f"  side {lo:>3.0f}-{hi if hi < 1e9 else 'inf':>4} px: {len(sel) // 4:5d} markers"
+                f"  radial {good[:, 1].mean():+.3f} px  median {np.median(good[:, 2]):.3f}"
+                f"  p90 {np.percentile(good[:, 2], 90):.3f}  >3px {len(sel) - len(good)}"
+            )
+
+
+def _truth_path(a: argparse.Namespace) -> str:
+    from pathlib import Path
+
+    return str(Path(a.experiment).parent / "truth.csv")
+
+
+def _project(truth, t, cam, world: np.ndarray) -> np.ndarray:  # noqa: ANN001
+    """True pixel positions (n, 4, 2) of world corners at time(s) t (scalar or (n, 4, 1))."""
+    times = np.broadcast_to(np.asarray(t, float), world.shape[:2] + (1,))[..., 0].reshape(-1)
+    p, rot, ok = truth.interpolate(times)
+    r_wc = rot @ cam.R_bundle_camera
+    c_w = p + rot @ cam.t_bundle_camera
+    x = world.reshape(-1, 3) - c_w
+    xc = np.einsum("nji,nj->ni", r_wc, x)
+    uv = project_points(cam.calibration, xc).reshape(world.shape[:2] + (2,))
+    uv[~ok.reshape(world.shape[:2])] = np.nan
+    return uv
+
+
+if __name__ == "__main__":
+    main()
