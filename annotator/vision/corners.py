@@ -25,7 +25,7 @@ _MIN_POINTS = 5  # per side
 
 
 def refine_corners_by_edges(
-    gray: np.ndarray, corners: np.ndarray, cal: CameraCalibration, iterations: int = 3
+    gray: np.ndarray, corners: np.ndarray, cal: CameraCalibration, iterations: int = 2
 ) -> np.ndarray:
     """Corners (n, 4, 2) in distorted pixels of ``gray`` moved onto the fitted border edges.
 
@@ -35,7 +35,7 @@ def refine_corners_by_edges(
     start = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
     if len(start) == 0:
         return start.copy()
-    img = gray.astype(np.float32, copy=False)
+    img = gray if gray.ndim == 2 else cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
     pts = start.copy()
     ok = np.ones(len(pts), bool)
     for _ in range(iterations):
@@ -65,14 +65,12 @@ def _one_pass(
     offs = half[..., None] * _ACROSS  # (n, 4, k)
     grid = base[:, :, :, None, :] + offs[:, :, None, :, None] * normal[:, :, None, None, :]
     n, m, k = len(pts), len(_ALONG), len(_ACROSS)
-    flat = grid.reshape(-1, k, 2).astype(np.float32)
+    flat = grid.reshape(-1, k, 2)
     h, w = img.shape[:2]
     inside = (
         (flat[..., 0] >= 0) & (flat[..., 0] <= w - 1) & (flat[..., 1] >= 0) & (flat[..., 1] <= h - 1)
     ).all(axis=1)
-    prof = cv2.remap(
-        img, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-    ).reshape(n, 4, m, k)
+    prof = _bilinear(img, flat).reshape(n, 4, m, k)
     grad = np.clip(np.diff(prof, axis=3), 0, None)
     centres = (_ACROSS[1:] + _ACROSS[:-1]) / 2  # (k-1,)
     total = grad.sum(axis=3)
@@ -84,8 +82,10 @@ def _one_pass(
     nrm, c, wsum = _fit_lines(xy, valid.astype(float))
     # Robust pass: drop points far off their first line.
     res = np.abs(np.einsum("nkmj,nkj->nkm", xy, nrm) - c[..., None])
-    scale = np.nanmedian(np.where(valid, res, np.nan), axis=2, keepdims=True)
-    keep = valid & (res <= np.maximum(3 * np.nan_to_num(scale), 1e-6))
+    ranked = np.sort(np.where(valid, res, np.inf), axis=2)
+    middle = np.minimum(valid.sum(axis=2, keepdims=True) // 2, m - 1)
+    scale = np.take_along_axis(ranked, middle, axis=2)  # median residual of the valid points
+    keep = valid & (res <= np.maximum(3 * np.where(np.isfinite(scale), scale, 0), 1e-6))
     nrm, c, wsum = _fit_lines(xy, keep.astype(float))
     good = (keep.sum(axis=2) >= _MIN_POINTS).all(axis=1)
     # Corner i is where side i-1 meets side i.
@@ -99,6 +99,23 @@ def _one_pass(
     out = project_points(cal, ray)
     good &= np.isfinite(out).all(axis=(1, 2))
     return np.where(good[:, None, None], out, pts), good
+
+
+def _bilinear(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Image values at sub-pixel points (..., 2), bilinear, clamped to the frame."""
+    h, w = img.shape[:2]
+    x = np.clip(xy[..., 0], 0, w - 1.001)
+    y = np.clip(xy[..., 1], 0, h - 1.001)
+    x0 = x.astype(np.intp)
+    y0 = y.astype(np.intp)
+    fx = x - x0
+    fy = y - y0
+    v00 = img[y0, x0].astype(np.float64)
+    v01 = img[y0, x0 + 1].astype(np.float64)
+    v10 = img[y0 + 1, x0].astype(np.float64)
+    v11 = img[y0 + 1, x0 + 1].astype(np.float64)
+    top = v00 + fx * (v01 - v00)
+    return top + fy * (v10 + fx * (v11 - v10) - top)
 
 
 def _fit_lines(xy: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
