@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -34,7 +35,7 @@ def main() -> None:
     ap.add_argument("--step", type=int, default=3, help="use every n-th frame")
     a = ap.parse_args()
     exp = load_experiment(a.experiment)
-    truth = read_trajectory(_truth_path(a))
+    truth = read_trajectory(Path(a.experiment).parent / "truth.csv")
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
     assert exp.video_start is not None
     for name, cam in exp.rig.cameras.items():
@@ -83,7 +84,9 @@ def main() -> None:
                 for j in range(4):
                     rows.append((side[k], radial[k, j], err[k, j]))
         r = np.array(rows)
-        print(f"{name}: {frames} frames, detection {1000 * spent / max(frames, 1):.2f} ms CPU/frame")
+        print(
+            f"{name}: {frames} frames, detection {1000 * spent / max(frames, 1):.2f} ms CPU/frame"
+        )
         for lo, hi in BINS:
             sel = r[(r[:, 0] >= lo) & (r[:, 0] < hi)]
             if len(sel) == 0:
@@ -94,12 +97,6 @@ def main() -> None:
                 f"  radial {good[:, 1].mean():+.3f} px  median {np.median(good[:, 2]):.3f}"
                 f"  p90 {np.percentile(good[:, 2], 90):.3f}  >3px {len(sel) - len(good)}"
             )
-
-
-def _truth_path(a: argparse.Namespace) -> str:
-    from pathlib import Path
-
-    return str(Path(a.experiment).parent / "truth.csv")
 
 
 def _project(truth, t, cam, world: np.ndarray) -> np.ndarray:  # noqa: ANN001

@@ -68,7 +68,10 @@ def _one_pass(
     flat = grid.reshape(-1, k, 2)
     h, w = img.shape[:2]
     inside = (
-        (flat[..., 0] >= 0) & (flat[..., 0] <= w - 1) & (flat[..., 1] >= 0) & (flat[..., 1] <= h - 1)
+        (flat[..., 0] >= 0)
+        & (flat[..., 0] <= w - 1)
+        & (flat[..., 1] >= 0)
+        & (flat[..., 1] <= h - 1)
     ).all(axis=1)
     prof = _bilinear(img, flat).reshape(n, 4, m, k)
     grad = np.clip(np.diff(prof, axis=3), 0, None)
