@@ -36,8 +36,12 @@ def main() -> None:
     a = ap.parse_args()
     exp = load_experiment(a.experiment)
     truth = read_trajectory(Path(a.experiment).parent / "truth.csv")
+    # A render with errors keeps the true map, rig and lenses in true/: project those.
+    true_path = Path(a.experiment).parent / "true" / "experiment.yaml"
+    geo = load_experiment(true_path) if true_path.exists() else exp
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
-    assert exp.video_start is not None
+    true_room = MarkerRoom.from_map(geo.markers.markers, geo.markers.length)
+    assert geo.video_start is not None
     for name, cam in exp.rig.cameras.items():
         cal = cam.calibration
         settings = DetectorSettings(downscale=a.downscale)
@@ -66,11 +70,13 @@ def main() -> None:
             frames += 1
             if len(d.ids) == 0:
                 continue
-            t = exp.video_start[name] + i / FPS
-            world = room.corners_world[room.index(d.ids)]  # (n, 4, 3)
-            uv = _project(truth, t, cam, world)
-            if cal.readout_s > 0:  # rolling shutter: each corner at its row's time
-                uv = _project(truth, t + cal.readout_s * uv[..., 1:2] / cal.height, cam, world)
+            t = geo.video_start[name] + i / FPS
+            world = true_room.corners_world[true_room.index(d.ids)]  # (n, 4, 3)
+            tcam = geo.rig.cameras[name]
+            uv = _project(truth, t, tcam, world)
+            readout = tcam.calibration.readout_s
+            if readout > 0:  # rolling shutter: each corner at its row's time
+                uv = _project(truth, t + readout * uv[..., 1:2] / cal.height, tcam, world)
             if not np.isfinite(uv).all():
                 continue
             centre = uv.mean(axis=1, keepdims=True)
@@ -89,7 +95,7 @@ def main() -> None:
         )
         for lo, hi in BINS:
             sel = r[(r[:, 0] >= lo) & (r[:, 0] < hi)]
-            if len(sel) == 0:
+            if (sel[:, 2] <= 3).sum() == 0:
                 continue
             good = sel[sel[:, 2] <= 3]
             print(

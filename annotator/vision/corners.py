@@ -25,7 +25,7 @@ _MIN_POINTS = 5  # per side
 
 
 def refine_corners_by_edges(
-    gray: np.ndarray, corners: np.ndarray, cal: CameraCalibration, iterations: int = 2
+    gray: np.ndarray, corners: np.ndarray, cal: CameraCalibration, iterations: int = 1
 ) -> np.ndarray:
     """Corners (n, 4, 2) in distorted pixels of ``gray`` moved onto the fitted border edges.
 
