@@ -5,7 +5,9 @@ the rig and the calibration) and compares the detector's corners with it: mean r
 (positive = outward from the marker's centre), median and p90 corner error, and how many corners
 are off by more than 3 px (a wrong contour), in bins of the marker's side length in pixels.
 
-    python bench/corner_bias.py RENDER/experiment.yaml [--downscale 1] [--old] [--step 3]
+    python bench/corner_bias.py RENDER/experiment.yaml [--downscale 1] [--edges] [--step 3]
+
+A render made with field errors keeps its true map, rig and lenses in true/: those are projected.
 """
 
 from __future__ import annotations
@@ -31,7 +33,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("experiment")
     ap.add_argument("--downscale", type=float, default=None)
-    ap.add_argument("--old", action="store_true", help="window corners, minRepDistance 10 px")
+    ap.add_argument("--edges", action="store_true", help="edge-fit corners (edge_corners)")
+    ap.add_argument(
+        "--board-px", type=float, default=None, help="board_refine_px (default: OpenCV's)"
+    )
     ap.add_argument("--step", type=int, default=3, help="use every n-th frame")
     a = ap.parse_args()
     exp = load_experiment(a.experiment)
@@ -44,12 +49,9 @@ def main() -> None:
     assert geo.video_start is not None
     for name, cam in exp.rig.cameras.items():
         cal = cam.calibration
-        settings = DetectorSettings(downscale=a.downscale)
-        if a.old:
-            s = settings.downscale or (0.5 if cal.width > 1280 else 1.0)
-            settings = DetectorSettings(
-                downscale=a.downscale, edge_corners=False, board_refine_px=10.0 / s
-            )
+        settings = DetectorSettings(
+            downscale=a.downscale, edge_corners=a.edges, board_refine_px=a.board_px
+        )
         det = MarkerDetector(settings, room, cal)
         cap = cv2.VideoCapture(str(exp.videos[name]))
         rows: list[tuple[float, float, float]] = []  # (side px, radial, error)

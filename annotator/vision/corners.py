@@ -54,17 +54,26 @@ def _one_pass(
     a = pts
     d = np.roll(pts, -1, axis=1) - a  # side i runs from corner i to corner i+1
     length = np.linalg.norm(d, axis=2)  # (n, 4)
-    u = d / np.maximum(length, 1e-9)[..., None]
-    normal = np.stack([-u[..., 1], u[..., 0]], axis=-1)
-    mid = a + d / 2
-    outward = np.einsum("nkj,nkj->nk", mid - pts.mean(axis=1, keepdims=True), normal)
+    # Sample along the side as the lens bends it: straight between the undistorted corners.
+    ua = undistort_points(cal, a)
+    ud = np.roll(ua, -1, axis=1) - ua
+    eps = 1e-3
+    along = np.concatenate([_ALONG, _ALONG + eps])
+    ray = ua[:, :, None, :] + along[None, None, :, None] * ud[:, :, None, :]
+    ray3 = np.concatenate([ray, np.ones(ray.shape[:-1] + (1,))], axis=-1)
+    proj = project_points(cal, ray3)
+    m = len(_ALONG)
+    base, ahead = proj[:, :, :m], proj[:, :, m:]  # (n, 4, m, 2)
+    u = ahead - base
+    u /= np.maximum(np.linalg.norm(u, axis=-1, keepdims=True), 1e-12)
+    normal = np.stack([-u[..., 1], u[..., 0]], axis=-1)  # (n, 4, m, 2)
+    outward = np.einsum("nkmj,nkmj->nkm", base - pts.mean(axis=1)[:, None, None, :], normal)
     normal *= np.where(outward < 0, -1.0, 1.0)[..., None]
     # Half-width of the profile: within the one-cell border inside and quiet zone outside.
     half = np.clip(0.6 * length / MARKER_CELLS, 1.0, 8.0)  # (n, 4)
-    base = a[:, :, None, :] + _ALONG[None, None, :, None] * d[:, :, None, :]  # (n, 4, m, 2)
     offs = half[..., None] * _ACROSS  # (n, 4, k)
-    grid = base[:, :, :, None, :] + offs[:, :, None, :, None] * normal[:, :, None, None, :]
-    n, m, k = len(pts), len(_ALONG), len(_ACROSS)
+    grid = base[:, :, :, None, :] + offs[:, :, None, :, None] * normal[:, :, :, None, :]
+    n, k = len(pts), len(_ACROSS)
     flat = grid.reshape(-1, k, 2)
     h, w = img.shape[:2]
     inside = (
@@ -80,7 +89,7 @@ def _one_pass(
     offset = (grad * centres).sum(axis=3) / np.maximum(total, 1e-9) * half[..., None]
     contrast = prof[..., k // 2 + 1 :].mean(axis=3) - prof[..., : k // 2].mean(axis=3)
     valid = (contrast > _MIN_CONTRAST) & inside.reshape(n, 4, m)
-    edge = base + offset[..., None] * normal[:, :, None, :]
+    edge = base + offset[..., None] * normal
     xy = undistort_points(cal, edge)  # (n, 4, m, 2) normalised
     nrm, c, wsum = _fit_lines(xy, valid.astype(float))
     # Robust pass: drop points far off their first line.

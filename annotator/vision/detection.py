@@ -46,12 +46,16 @@ class DetectorSettings:
     board_refine_below: int = 4
     # Keep markers of the dictionary that are not in the map (the refinement maps them from video).
     keep_unknown: bool = False
-    # Finish every corner as the intersection of the square's fitted border edges: unbiased
-    # whatever the marker's size in the image (a corner window is biased by it).
-    edge_corners: bool = True
+    # Finish every corner as the intersection of the square's fitted border edges
+    # (annotator.vision.corners): unbiased whatever the marker's size in the image, where the
+    # corner window is not. Off by default: on clean renders it takes the 1080p self-calibration
+    # from 1.2 cm to 0.01 cm, but on the field renders (lens, blur, rolling shutter, survey and
+    # rig errors) the refined map's datum came out worse (see docs/annotator.md).
+    edge_corners: bool = False
     # Board refinement accepts a projected marker this close (full-resolution pixels) to a
-    # candidate; more lets it take a marker's inner contour, one cell in, on small markers.
-    board_refine_px: float = 6.0
+    # candidate; a wide one lets it take a small marker's inner contour, one cell in.
+    # None: OpenCV's 10 px in the detection image.
+    board_refine_px: float | None = None
 
 
 AUTO_MAX_WIDTH = 1280
@@ -95,7 +99,7 @@ class MarkerDetector:
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, settings.dictionary))
         # When corners are refined at full resolution afterwards, skip the detector's own refinement.
         refine = _REFINE["none" if s < 1 else settings.corner_refine]
-        rep = max(1.0, settings.board_refine_px * s)
+        rep = 10.0 if settings.board_refine_px is None else max(1.0, settings.board_refine_px * s)
         self._detector = _aruco_detector(dictionary, refine, settings.threshold_windows, rep)
         self._retry = (
             None

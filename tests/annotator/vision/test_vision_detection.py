@@ -131,7 +131,7 @@ def test_1080p_frames_are_detected_at_half_size_with_full_resolution_corners():
 
 def test_corners_are_unbiased_for_small_and_large_markers_at_1080p():
     """A corner window is biased by the marker's size (outward on small markers, inward on large
-    ones); the border-edge fit must not be, at half-size and full-size detection alike."""
+    ones: -0.2 to -0.6 px here); the border-edge fit must not be, at half and full size alike."""
     w, h = 1920, 1080
     cal = CameraCalibration(
         np.array([[1400.0, 0, 959.5], [0, 1400.0, 539.5], [0, 0, 1]]), np.zeros(5), w, h
@@ -157,7 +157,8 @@ def test_corners_are_unbiased_for_small_and_large_markers_at_1080p():
     img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
     img = np.clip(img + rng.normal(0, 1.5, img.shape), 0, 255).astype(np.uint8)
     for downscale in (None, 1.0):
-        det = MarkerDetector(DetectorSettings(downscale=downscale), room, cal).detect(img)
+        settings = DetectorSettings(downscale=downscale, edge_corners=True, board_refine_px=6.0)
+        det = MarkerDetector(settings, room, cal).detect(img)
         assert sorted(det.ids.tolist()) == sorted(truth)
         for mid, corners in zip(det.ids, det.corners, strict=True):
             t = truth[int(mid)]
