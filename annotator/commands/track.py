@@ -87,6 +87,14 @@ def track(
             "this is ~2x slower detection for ~1-2 % more markers."
         ),
     ] = False,
+    edge_corners: Annotated[
+        bool,
+        typer.Option(
+            help="Place each corner where the fitted outer edges of the marker's black square meet "
+            "(unbiased for small and large markers; see docs/annotator.md, 'Known problem: clean "
+            "1080p video'). Off by default until the self-calibration's datum with it is understood."
+        ),
+    ] = False,
     joint: Annotated[
         bool,
         typer.Option(
@@ -153,6 +161,8 @@ def track(
                 downscale=downscale,
                 board_refine=board_refine,
                 threshold_windows=(3, 23, 10) if thorough_detect else (7, 7, 10),
+                edge_corners=edge_corners,
+                board_refine_px=6.0 if edge_corners else None,
             ),
             paper=PaperSettings(
                 frames=batch_frames, close=close, keep=keep, q=q, process=process_noise
