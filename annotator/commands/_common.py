@@ -3,14 +3,21 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import Progress, TaskID
+from rich.progress import (
+    BarColumn,
+    Progress,
+    ProgressColumn,
+    TaskID,
+    TextColumn,
+    TimeRemainingColumn,
+)
 
 from annotator.errors import AnnotatorError
 from bgt_core.formats.devices import SiteConfigError
@@ -89,6 +96,28 @@ class LazyProgress:
     def advance(self, task: TaskID, advance: float = 1) -> None:
         if self._bar is not None:
             self._bar.advance(task, advance)
+
+
+def stage_columns(width: int = 12) -> tuple[ProgressColumn, ...]:
+    """Columns of the per-stage bars: name, bar, done/total, time left."""
+    return (
+        TextColumn(f"{{task.description:>{width}}}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeRemainingColumn(),
+    )
+
+
+def stage_progress(bar: Progress | LazyProgress) -> Callable[[str, int, int], None]:
+    """The ``(name, done, total)`` callback long stages report to: one bar per name on ``bar``."""
+    tasks: dict[str, TaskID] = {}
+
+    def progress(name: str, done: int, total: int) -> None:
+        if name not in tasks:
+            tasks[name] = bar.add_task(name, total=total)
+        bar.update(tasks[name], completed=done, total=total)
+
+    return progress
 
 
 def default_jobs() -> int:

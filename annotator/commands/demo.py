@@ -10,10 +10,10 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import Progress
 from rich.table import Table
 
-from annotator.commands._common import console, one_line_errors
+from annotator.commands._common import console, one_line_errors, stage_columns, stage_progress
 
 out_console = Console()
 
@@ -123,19 +123,8 @@ def demo(
         settings = DemoSettings(
             out=out.absolute(), duration_s=duration, end_cover=end_cover, jobs=jobs, seed=seed
         )
-        with Progress(
-            TextColumn("{task.description:>12}"),
-            BarColumn(),
-            TextColumn("{task.completed}/{task.total}"),
-            TimeRemainingColumn(),
-            console=console,
-        ) as bar:
-            tasks: dict[str, Any] = {}
-
-            def progress(name: str, done: int, total: int) -> None:
-                if name not in tasks:
-                    tasks[name] = bar.add_task(name, total=total)
-                bar.update(tasks[name], completed=done, total=total)
+        with Progress(*stage_columns(), console=console) as bar:
+            progress = stage_progress(bar)
 
             def note(text: str) -> None:
                 bar.console.print(escape(text), highlight=False, soft_wrap=True)

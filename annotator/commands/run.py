@@ -8,9 +8,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
-from rich.progress import BarColumn, TaskID, TextColumn, TimeRemainingColumn
 
-from annotator.commands._common import LazyProgress, console, default_jobs, one_line_errors
+from annotator.commands._common import (
+    LazyProgress,
+    console,
+    default_jobs,
+    one_line_errors,
+    stage_columns,
+    stage_progress,
+)
 from annotator.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -139,21 +145,8 @@ def run(
         )
         # Lazy: the bars appear with the first frame, so an error in the RSSI files (read
         # first) is printed alone.
-        with LazyProgress(
-            TextColumn("{task.description:>12}"),
-            BarColumn(),
-            TextColumn("{task.completed}/{task.total}"),
-            TimeRemainingColumn(),
-            console=console,
-        ) as bar:
-            tasks: dict[str, TaskID] = {}
-
-            def progress(name: str, done: int, total: int) -> None:
-                if name not in tasks:
-                    tasks[name] = bar.add_task(name, total=total)
-                bar.update(tasks[name], completed=done, total=total)
-
-            result = run_experiment(exp, settings, progress)
+        with LazyProgress(*stage_columns(), console=console) as bar:
+            result = run_experiment(exp, settings, stage_progress(bar))
         rep = write_run_outputs(out, exp, result, plots=plots)
         for name, cam in rep["sync"]["cameras"].items():
             sig = cam["video_start_sigma_s"]

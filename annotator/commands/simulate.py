@@ -6,9 +6,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeRemainingColumn
+from rich.progress import Progress
 
-from annotator.commands._common import console, one_line_errors
+from annotator.commands._common import console, one_line_errors, stage_columns, stage_progress
 from annotator.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -348,19 +348,8 @@ def simulate(
         except ValueError as err:
             raise ConfigError(f"error magnitudes: {err}") from None
         trajectory = path_trajectory(path, t0, speed, dwell, turn)
-        with Progress(
-            TextColumn("{task.description:>6}"),
-            BarColumn(),
-            TextColumn("{task.completed}/{task.total}"),
-            TimeRemainingColumn(),
-            console=console,
-        ) as bar:
-            tasks: dict[str, TaskID] = {}
-
-            def progress(name: str, done: int, total: int) -> None:
-                if name not in tasks:
-                    tasks[name] = bar.add_task(name, total=total)
-                bar.update(tasks[name], completed=done)
+        with Progress(*stage_columns(6), console=console) as bar:
+            progress = stage_progress(bar)
 
             result = render_experiment(
                 out,
