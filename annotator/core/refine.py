@@ -36,7 +36,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -729,10 +729,18 @@ def _solve(
     # A marker's stated uncertainty includes what its frames cannot average away (the floors): the
     # normal matrix alone, frames taken as independent, claims ~0.7 cm for far markers whose depth
     # is off by 5-9 cm on the field renders.
+    # The propagation into the trajectory takes the joint covariance (cross-block terms and the
+    # rig's gauge, see _rig_gauge) and the floors apart: a floor is common to one marker's frames only.
+    joint = cov + _rig_gauge(layout, prob, v["t_bc"])
     mb = layout.static_slices()["marker"][0]
+    floors = {}
     for k in (int(i) for i in np.flatnonzero(seen)):
         cov[mb + 6 * k : mb + 6 * k + 6, mb + 6 * k : mb + 6 * k + 6] += floor[k]
+        floors[prob.markers[k]] = floor[k].copy()
     covariance, marker_sigma = _covariance(cov, layout, prob, lm)
+    covariance = replace(
+        covariance, joint=joint, joint_index=_joint_index(layout, prob), marker_floor=floors
+    )
     return Solution(
         v["R_m"],
         v["t_m"],
@@ -838,6 +846,53 @@ def _gate(
                 )
                 out.extend(range(i, i + size))
     return out
+
+
+def _rig_gauge(layout: _Layout, prob: Problem, t_bc: np.ndarray) -> np.ndarray:
+    """Covariance of the rig's gauge in the static parameters (zero without a rig block).
+
+    The solve pins the mean change over the cameras to the measured rig (_prior_precision), so its
+    covariance says nothing of the error of that mean; yet the measured rig is off by its cameras'
+    mean error (prior / n per axis), a rigid motion of every camera that the data cannot see: a
+    rotation W about the cameras' mean position and a shift T, i.e. camera c's rotation W and
+    shift W x (t_c - mean t) + T. It moves the beacon (the bundle's origin) in the world.
+    """
+    out = np.zeros((layout.n_static, layout.n_static))
+    sl = layout.static_slices()
+    if RIG not in sl:
+        return out
+    o, n, _ = sl[RIG]
+    pr = prob.priors
+    G = np.zeros((layout.n_static, 6))
+    centre = t_bc.mean(axis=0)
+    for c in range(n):
+        b = o + 6 * c
+        G[b : b + 3, :3] = np.eye(3)
+        d = t_bc[c] - centre
+        G[b + 3 : b + 6, :3] = -np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])
+        G[b + 3 : b + 6, 3:] = np.eye(3)
+    var = np.array([math.radians(pr.rig_sigma_deg) ** 2] * 3 + [pr.rig_sigma_m**2] * 3) / n
+    return (G * var) @ G.T
+
+
+# The refinement's blocks under their names in ParameterCovariance.joint_index.
+_KIND = {RIG: "rig", INTR: "intrinsics", DIST: "distortion", READOUT: "readout", BIAS: "bias"}
+
+
+def _joint_index(layout: _Layout, prob: Problem) -> dict[tuple[str, int | str], np.ndarray]:
+    """Rows of each block of the static covariance, keyed as ParameterCovariance.joint_index."""
+    sl = layout.static_slices()
+    off = sl["marker"][0]
+    index: dict[tuple[str, int | str], np.ndarray] = {}
+    for m, mid in enumerate(prob.markers):
+        if layout.free_markers[m]:
+            index["markers", int(mid)] = np.arange(off + 6 * m, off + 6 * m + 6)
+    for c, cam in enumerate(prob.cameras):
+        for name, kind in _KIND.items():
+            if name in sl:
+                o, _, size = sl[name]
+                index[kind, cam.name] = np.arange(o + c * size, o + (c + 1) * size)
+    return index
 
 
 def _covariance(

@@ -86,6 +86,10 @@ class UncertaintySettings:
     max_scale: float = 4.0
     max_smear_px: float = 10.0  # frames smearing more are down-weighted, beyond 3x dropped
     unmodelled_m: float = 0.0015  # floor added in quadrature to every row's sigma
+    # Propagate a refined record's joint covariance (cross-block terms, the rig's gauge, the map's
+    # datum) instead of each block on its own; off, or without a joint record, blocks are independent.
+    joint_covariance: bool = True
+    marker_floors: bool = True  # add the refinement's per-marker floors (independent per marker)
     default_exposure_frac: float = (
         0.5  # exposure as a share of the frame interval when not calibrated
     )
@@ -203,6 +207,7 @@ class _ViewBlock:
     Br: np.ndarray  # (2m, 6)
     Bi: np.ndarray  # (2m, 4)
     Bro: np.ndarray  # (2m,)
+    Bb: np.ndarray  # (2m,) w.r.t. the detector's corner bias (px along each square's diagonal)
     inner: np.ndarray  # (n,) per marker: residual energy left after its own rigid motion
     speed: np.ndarray  # (m,) image speed, px/s
     n_markers: int
@@ -215,9 +220,10 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
         return None
     ids, pix, idx = v.ids[keep], v.pixels[keep], idx[keep]
     bias = float(getattr(v.cal, "corner_bias_px", 0.0) or 0.0)
+    d_c = pix - pix.mean(axis=1, keepdims=True)
+    diag = d_c / np.maximum(np.linalg.norm(d_c, axis=2, keepdims=True), 1e-9)
     if bias:  # a refined detector corner bias: each corner back along its square's diagonal
-        d_c = pix - pix.mean(axis=1, keepdims=True)
-        pix = pix - bias * d_c / np.maximum(np.linalg.norm(d_c, axis=2, keepdims=True), 1e-9)
+        pix = pix - bias * diag
     K = v.cal.camera_matrix
     focal = float(np.sqrt(K[0, 0] * K[1, 1]))
     xn = _undistort(v.cal, pix).reshape(-1, 2)
@@ -281,6 +287,11 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
     img_vel = J @ v.twist  # (m, 2) pixels per second
     rows_frac = pix.reshape(-1, 2)[:, 1] / v.cal.height
     Bro = -(img_vel * rows_frac[:, None]).reshape(-1)
+    # Corner bias: a larger bias moves every corrected corner further towards its square's centre.
+    h = 0.05
+    Bb = (focal / (2 * h)) * (
+        _undistort(v.cal, pix + h * diag) - _undistort(v.cal, pix - h * diag)
+    ).reshape(-1)
     return _ViewBlock(
         v.camera,
         r.reshape(-1),
@@ -289,6 +300,7 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
         Br,
         Bi,
         Bro,
+        Bb,
         inner,
         np.linalg.norm(img_vel, axis=1),
         len(ids),
@@ -306,6 +318,9 @@ class FrameJacobians:
     L: dict[str, np.ndarray]  # block -> (k, k) square root of the block's covariance
     image_speed: np.ndarray  # (m/2,) px/s
     noise2: float  # corner noise variance, px^2
+    # Covariance over all blocks' columns (BLOCKS order, then the corner bias) when the record
+    # correlates them (refinement); None: the blocks are independent, L alone describes them.
+    joint: np.ndarray | None = None
 
 
 def frame_jacobians(
@@ -400,7 +415,82 @@ def frame_jacobians(
         else np.array([[readout_sigma_s]])
     )
     speeds = np.concatenate([b.speed for b in blocks])
-    return FrameJacobians(r, w, J, B, L, speeds, float(e_inner.sum()) / max(2 * len(e_inner), 1))
+    joint = None
+    if settings.joint_covariance and params.joint is not None and params.joint_index:
+        joint = _row_joint(params, B, L, blocks, starts, mids, cams, width, settings, n0)
+    noise2 = float(e_inner.sum()) / max(2 * len(e_inner), 1)
+    return FrameJacobians(r, w, J, B, L, speeds, noise2, joint)
+
+
+def _joint_rows(
+    params: ParameterCovariance, kind: str, keys: Sequence[int | str], size: Sequence[int]
+) -> np.ndarray:
+    """Rows of the joint record for each key's block in turn (-1 where the record has none)."""
+    out = [np.zeros(0, int)]
+    for key, n in zip(keys, size, strict=True):
+        idx = params.joint_index.get((kind, key))
+        out.append(
+            np.asarray(idx[:n], int) if idx is not None and len(idx) >= n else np.full(n, -1)
+        )
+    return np.concatenate(out)
+
+
+def _row_joint(
+    params: ParameterCovariance,
+    B: dict[str, np.ndarray],
+    L: dict[str, np.ndarray],
+    blocks: Sequence[_ViewBlock],
+    starts: np.ndarray,
+    mids: Sequence[int],
+    cams: Sequence[str],
+    width: Mapping[str, int],
+    settings: UncertaintySettings,
+    n0: int,
+) -> np.ndarray:
+    """The row's parameter covariance over the columns of B (BLOCKS order, then the corner bias,
+    added to B here): each block's own L L^T, overwritten wherever the joint record has the rows
+    (cross-block terms included); the markers' floors on their diagonal blocks."""
+    assert params.joint is not None
+    where = [
+        _joint_rows(params, "markers", mids, [6] * len(mids)),
+        _joint_rows(params, "rig", cams, [6] * len(cams)),
+        np.concatenate(
+            [
+                np.concatenate(
+                    [
+                        _joint_rows(params, "intrinsics", [c], [4]),
+                        _joint_rows(params, "distortion", [c], [width[c] - 4]),
+                    ]
+                )
+                for c in cams
+            ]
+        ),
+        _joint_rows(params, "readout", cams, [1] * len(cams))
+        if B["readout"].shape[1] == len(cams) and _readout(params)
+        else np.full(B["readout"].shape[1], -1),
+    ]
+    roots = [L[b] if b in L else np.zeros((0, 0)) for b in BLOCKS]
+    bias_at = _joint_rows(params, "bias", cams, [1] * len(cams))
+    if (bias_at >= 0).any():
+        Bb = np.zeros((n0, len(cams)))
+        for b, a0 in zip(blocks, starts, strict=False):
+            Bb[a0 : a0 + len(b.r), list(cams).index(b.camera)] = b.Bb
+        B["bias"] = Bb
+        roots.append(np.zeros((len(cams), len(cams))))
+        where.append(bias_at)
+    cov = block_diag(*[Lk @ Lk.T for Lk in roots])
+    idx = np.concatenate(
+        [np.zeros(0, int)] + [w for w, Lk in zip(where, roots, strict=True) if Lk.shape[0]]
+    )
+    idx = idx.astype(int)
+    have = np.flatnonzero(idx >= 0)
+    cov[np.ix_(have, have)] = params.joint[np.ix_(idx[have], idx[have])]
+    if settings.marker_floors and params.marker_floor:
+        for k, mid in enumerate(mids):
+            fl = params.marker_floor.get(mid)
+            if fl is not None:
+                cov[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] += fl
+    return cov
 
 
 def propagate(jac: FrameJacobians) -> tuple[np.ndarray, np.ndarray, float, float] | None:
@@ -432,6 +522,18 @@ def propagate(jac: FrameJacobians) -> tuple[np.ndarray, np.ndarray, float, float
         var[k] = float(np.sum(A[3:] ** 2)) / 3
         resid = BL - Jw @ A
         q[k] = float(np.sum(resid**2))
+    if jac.joint is not None:
+        # Correlated blocks (refinement): the pose error is A theta over all parameters at once,
+        # so errors the refinement tied together cancel or add. Each block keeps its share of the
+        # joint total (the cross terms spread in proportion to the blocks' own variances).
+        names = [b for b in (*BLOCKS, "bias") if b in jac.B and (b == "bias" or b in jac.L)]
+        Bw = np.concatenate([jac.B[b] for b in names], axis=1) * sw[:, None]
+        A = Hinv @ (Jw.T @ Bw)
+        resid = Bw - Jw @ A
+        tot_var = max(float(np.trace(A[3:] @ jac.joint @ A[3:].T)) / 3, 0.0)
+        tot_q = max(float(np.trace(resid @ jac.joint @ resid.T)), 0.0)
+        var = var * (tot_var / var.sum()) if var.sum() > 0 else np.array([tot_var, 0, 0, 0])
+        q = q * (tot_q / q.sum()) if q.sum() > 0 else np.array([tot_q, 0, 0, 0])
     return var, q, e_obs - jac.noise2 * dof, dof
 
 
