@@ -15,9 +15,8 @@ Perturbation conventions (shared by refinement and propagation):
 
 After refinement the blocks are correlated: the same corners fit the map, the rig and the lenses,
 and the surveyed markers together fix where the map sits in the room (an error common to every
-marker). The record then also carries the refinement's joint covariance, the rows of each block
-in it, and each marker's floor (errors common to all of one marker's frames, see
-``refine.marker_floors``). Priors alone are independent: no joint covariance.
+marker). The record then also carries the refinement's joint covariance and the rows of each
+block in it. Priors alone are independent: no joint covariance.
 """
 
 from __future__ import annotations
@@ -152,13 +151,13 @@ class ParameterCovariance:
     # the calibration's order, and camera -> (1, 1) over the rolling-shutter readout (s^2).
     distortion: dict[str, np.ndarray] = field(default_factory=dict)
     readout: dict[str, np.ndarray] = field(default_factory=dict)
-    # After refinement: the joint covariance of the refined parameters (the rig's gauge included),
-    # the rows of each block in it keyed (kind, marker id or camera) with kind one of markers, rig,
-    # intrinsics, distortion, readout, bias (the detector's corner bias, px), and each seen
-    # marker's floor (6, 6), not in ``joint``. A block without an entry is independent of the rest.
+    # After refinement: the joint covariance of the refined parameters as the trajectory sees them
+    # (refine._solve: the rig's gauge and the markers' floors included), and the rows of each block
+    # in it keyed (kind, marker id or camera) with kind one of markers, rig, intrinsics,
+    # distortion, readout, bias (the detector's corner bias, px). A block without an entry is
+    # independent of the rest.
     joint: np.ndarray | None = None
     joint_index: dict[tuple[str, int | str], np.ndarray] = field(default_factory=dict)
-    marker_floor: dict[int, np.ndarray] = field(default_factory=dict)
 
     @classmethod
     def from_priors(

@@ -544,12 +544,20 @@ class _LM:
         dxp = -(Hinvg + HinvB @ dxs)
         return np.concatenate([dxp.ravel(), dxs])
 
-    def static_covariance(self, Hpp: np.ndarray, Hps: np.ndarray, Hss: np.ndarray) -> np.ndarray:
+    def static_covariance(
+        self, Hpp: np.ndarray, Hps: np.ndarray, Hss: np.ndarray, stretch: float = 1.0
+    ) -> np.ndarray:
+        """Covariance of the static parameters: the inverse of the reduced normal matrix, its data
+        part divided by ``stretch`` (>= 1: the corners' errors are correlated, see
+        _correlation_stretch), the priors' part as it is."""
         L = self.L
         Hinv = np.linalg.inv(Hpp + 1e-12 * np.eye(6))
         B = Hps.reshape(L.K, 6, -1)
         Bf = B.reshape(-1, B.shape[2])
         S = Hss - Bf.T @ (Hinv @ B).reshape(Bf.shape)
+        if stretch != 1.0:
+            prior = np.diag(self.prec) + self.aspect_prec * self.A.T @ self.A
+            S = (S - prior) / stretch + prior
         return np.linalg.pinv(S)
 
     def solve(self, x: np.ndarray, iterations: int) -> tuple[np.ndarray, int]:
@@ -668,6 +676,7 @@ def _solve(
     _, uv = lm.cost(x)
     Hpp, _, Hps, Hss, _ = lm.normal_equations(x, uv)
     cov = lm.static_covariance(Hpp, Hps, Hss)
+    post = cov  # the posterior of the final solve, before what the gate holds back
     has_prior = np.isfinite(prob.marker_sigma[:, 1]) & ~lm.skip
     gated = _gate(x, cov, layout, s, has_prior)
     held = np.zeros(layout.n_static)  # the corrections the data asked for and that were not applied
@@ -681,7 +690,7 @@ def _solve(
         lm._priors()
         _, uv = lm.cost(x)
         Hpp, _, Hps, Hss, _ = lm.normal_equations(x, uv)
-        cov = lm.static_covariance(Hpp, Hps, Hss)
+        cov = post = lm.static_covariance(Hpp, Hps, Hss)
         # A held block is not at its posterior mean but at its prior: its error is the posterior
         # spread plus the correction it was denied (mean square error = P + d d^T). Without this the
         # held blocks claim the data's precision while keeping the survey's error (over-confident).
@@ -729,18 +738,22 @@ def _solve(
     # A marker's stated uncertainty includes what its frames cannot average away (the floors): the
     # normal matrix alone, frames taken as independent, claims ~0.7 cm for far markers whose depth
     # is off by 5-9 cm on the field renders.
-    # The propagation into the trajectory takes the joint covariance (cross-block terms and the
-    # rig's gauge, see _rig_gauge) and the floors apart: a floor is common to one marker's frames only.
-    joint = cov + _rig_gauge(layout, prob, v["t_bc"])
+    # What the trajectory inherits (uncertainty.py): the joint covariance with the cross-block
+    # terms (the map's datum is common to every marker), its data part widened by the correlation
+    # of consecutive keyframes' corner errors, plus what the gate held back and the rig's gauge.
+    # The markers' floors stay out: they are errors common to all of a marker's frames, and the
+    # tracker sees the same frames (docs/annotator.md, "What sigma_m means").
+    stretch = _correlation_stretch(prob, uv, lm.sigma_px)
+    joint = (
+        lm.static_covariance(Hpp, Hps, Hss, stretch)
+        + (cov - post)
+        + _rig_gauge(layout, prob, v["t_bc"])
+    )
     mb = layout.static_slices()["marker"][0]
-    floors = {}
     for k in (int(i) for i in np.flatnonzero(seen)):
         cov[mb + 6 * k : mb + 6 * k + 6, mb + 6 * k : mb + 6 * k + 6] += floor[k]
-        floors[prob.markers[k]] = floor[k].copy()
     covariance, marker_sigma = _covariance(cov, layout, prob, lm)
-    covariance = replace(
-        covariance, joint=joint, joint_index=_joint_index(layout, prob), marker_floor=floors
-    )
+    covariance = replace(covariance, joint=joint, joint_index=_joint_index(layout, prob))
     return Solution(
         v["R_m"],
         v["t_m"],
@@ -846,6 +859,31 @@ def _gate(
                 )
                 out.extend(range(i, i + size))
     return out
+
+
+def _correlation_stretch(prob: Problem, uv: np.ndarray, sigma_px: float) -> float:
+    """How many times fewer independent corners the keyframes hold than their count: the errors
+    of one marker corner seen by one camera in consecutive keyframes are correlated (lag-one
+    correlation rho of the residuals left by the solve, pooled over the corners; residuals beyond
+    3 sigma clipped), and for errors correlated like that the variance of an average is
+    (1 + rho) / (1 - rho) times the independent one's. 1 when they are not correlated."""
+    o = prob.obs
+    r = np.clip(uv - o.uv, -3 * sigma_px, 3 * sigma_px)
+    key = (o.marker * len(prob.cameras) + o.camera) * 4 + o.corner
+    order = np.lexsort((o.keyframe, key))
+    k, kf, r = key[order], o.keyframe[order], r[order]
+    pair = (k[1:] == k[:-1]) & (kf[1:] - kf[:-1] == 1)
+    if pair.sum() < 20:
+        return 1.0
+    a, b = r[:-1][pair], r[1:][pair]
+    rho = float(np.sum(a * b) / max(0.5 * float(np.sum(a * a + b * b)), 1e-12))
+    rho = min(max(rho, 0.0), 0.95)
+    log.info(
+        "refine: keyframe residual correlation %.2f (information / %.1f)",
+        rho,
+        (1 + rho) / (1 - rho),
+    )
+    return (1 + rho) / (1 - rho)
 
 
 def _rig_gauge(layout: _Layout, prob: Problem, t_bc: np.ndarray) -> np.ndarray:

@@ -89,7 +89,6 @@ class UncertaintySettings:
     # Propagate a refined record's joint covariance (cross-block terms, the rig's gauge, the map's
     # datum) instead of each block on its own; off, or without a joint record, blocks are independent.
     joint_covariance: bool = True
-    marker_floors: bool = True  # add the refinement's per-marker floors (independent per marker)
     default_exposure_frac: float = (
         0.5  # exposure as a share of the frame interval when not calibrated
     )
@@ -416,7 +415,7 @@ def frame_jacobians(
     )
     speeds = np.concatenate([b.speed for b in blocks])
     joint = None
-    if settings.joint_covariance and params.joint is not None and params.joint_index:
+    if settings.joint_covariance and getattr(params, "joint", None) is not None:
         joint = _row_joint(params, B, L, blocks, starts, mids, cams, width, settings, n0)
     noise2 = float(e_inner.sum()) / max(2 * len(e_inner), 1)
     return FrameJacobians(r, w, J, B, L, speeds, noise2, joint)
@@ -449,7 +448,7 @@ def _row_joint(
 ) -> np.ndarray:
     """The row's parameter covariance over the columns of B (BLOCKS order, then the corner bias,
     added to B here): each block's own L L^T, overwritten wherever the joint record has the rows
-    (cross-block terms included); the markers' floors on their diagonal blocks."""
+    (cross-block terms included)."""
     assert params.joint is not None
     where = [
         _joint_rows(params, "markers", mids, [6] * len(mids)),
@@ -485,11 +484,6 @@ def _row_joint(
     idx = idx.astype(int)
     have = np.flatnonzero(idx >= 0)
     cov[np.ix_(have, have)] = params.joint[np.ix_(idx[have], idx[have])]
-    if settings.marker_floors and params.marker_floor:
-        for k, mid in enumerate(mids):
-            fl = params.marker_floor.get(mid)
-            if fl is not None:
-                cov[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] += fl
     return cov
 
 

@@ -296,3 +296,58 @@ def test_distortion_covariance_from_a_refined_record_is_propagated():
         markers=base.markers, rig=base.rig, intrinsics={"front": zero4, "back": zero4}
     )
     assert _propagated(room, rig, R, p, dets, params=without)["intrinsics"] == 0.0
+
+
+def _map_record(room, rig, common_m: float, own_m: float) -> ParameterCovariance:
+    """A refined-like record whose markers share one position error (the map's datum, common_m per
+    axis) on top of their own (own_m): cross-covariances between every pair of markers."""
+    ids = [int(i) for i in room.ids]
+    n = len(ids)
+    joint = np.zeros((6 * n, 6 * n))
+    pos = np.concatenate([6 * k + np.arange(3, 6) for k in range(n)])
+    joint[np.ix_(pos, pos)] = common_m**2 * np.tile(np.eye(3), (n, n))
+    joint += np.diag(np.tile([np.radians(0.1) ** 2] * 3 + [own_m**2] * 3, n))
+    zero = {name: np.zeros((6, 6)) for name in rig}
+    return ParameterCovariance(
+        markers={m: joint[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] for k, m in enumerate(ids)},
+        rig=zero,
+        intrinsics={name: np.zeros((4, 4)) for name in rig},
+        joint=joint,
+        joint_index={("markers", m): np.arange(6 * k, 6 * k + 6) for k, m in enumerate(ids)},
+    )
+
+
+def _map_sigma(room, rig, R, p, dets, record, joint: bool) -> float:
+    jac = frame_jacobians(
+        _views(room, rig, R, p, dets),
+        room,
+        record,
+        0.0,
+        UncertaintySettings(joint_covariance=joint),
+    )
+    var, *_ = propagate(jac)
+    return float(np.sqrt(var.sum()))
+
+
+def test_a_map_error_shared_by_every_marker_is_not_averaged_away():
+    """The refinement's markers share the error of the map's datum (where the survey puts the map
+    as a whole): the pose follows it in full, however many markers a frame sees. The joint record
+    predicts the spread of real solves over maps drawn from it; the markers' marginals taken as
+    independent do not (each marker's centimetre then also turns the pose, which a shared shift
+    does not)."""
+    room, rig, R, p, dets = _scene()
+    record = _map_record(room, rig, common_m=0.01, own_m=0.002)
+    want = _map_sigma(room, rig, R, p, dets, record, joint=True)
+    rng = np.random.default_rng(5)
+    errs = []
+    for _ in range(N_DRAWS):
+        d = rng.multivariate_normal(np.zeros(len(record.joint)), record.joint).reshape(-1, 6)
+        Rs = Rotation.from_rotvec(d[:, :3]).as_matrix() @ room.R_world_marker
+        ts = room.t_world_marker + d[:, 3:]
+        corners = np.einsum("mij,kj->mki", Rs, marker_corners_local(room.length)) + ts[:, None]
+        moved = MarkerRoom(room.ids, Rs, ts, corners, room.length)
+        errs.append(_solve(moved, rig, dets, R, p) - p)
+    spread = _per_axis(errs)
+    assert want == pytest.approx(spread, rel=0.15)
+    assert want > 0.009  # the shared centimetre, in full
+    assert _map_sigma(room, rig, R, p, dets, record, joint=False) != pytest.approx(spread, rel=0.2)
