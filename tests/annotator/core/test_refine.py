@@ -14,6 +14,7 @@ from annotator.core.refine import (
     FrameView,
     Keyframe,
     RefineSettings,
+    _correlation_stretch,
     build_problem,
     marker_floors,
     solve,
@@ -393,3 +394,46 @@ def test_stated_marker_sigma_includes_the_floor():
     C = sol.covariance.markers[target][3:, 3:]
     assert los @ C @ los >= los @ floors[m, 3:, 3:] @ los
     assert np.linalg.eigvalsh(C - floors[m, 3:, 3:]).min() > -1e-12
+
+
+def test_joint_record_keeps_the_rig_gauge_the_solve_pins():
+    """The solve pins the rig's mean to the measured rig (a motion common to every camera moves no
+    camera), so the rig blocks of its posterior claim that mean exactly; but the measured rig is
+    off by its cameras' mean error, which moves the beacon. The joint record the trajectory's sigma
+    is built from keeps it: the mean camera position has the prior's variance over the cameras."""
+    truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=3)
+    prob, sol = _solve(survey_map, cams, keyframes, length)
+    cov = sol.covariance
+    assert cov.joint is not None
+    n = len(cams)
+    for axis in range(3):
+        rows = [cov.joint_index["rig", c.name][3 + axis] for c in cams]
+        mean_var = cov.joint[np.ix_(rows, rows)].sum() / n**2
+        assert np.sqrt(mean_var) == pytest.approx(0.003 / np.sqrt(n), rel=0.1)
+        pinned = sum(cov.rig[c.name][3 + axis, 3 + axis] for c in cams) / n**2
+        assert pinned < 0.5 * mean_var  # the marginals as if independent: far less
+    # The blocks sit where the index says: the joint's marker block is the posterior's before the
+    # floors (the marginal record adds them), so it is never larger.
+    for mid, rows in ((k[1], v) for k, v in cov.joint_index.items() if k[0] == "markers"):
+        assert np.trace(cov.joint[np.ix_(rows, rows)]) <= np.trace(cov.markers[mid]) + 1e-12
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.6])
+def test_correlated_keyframe_errors_stretch_the_covariance(rho):
+    """Residuals that follow each corner from keyframe to keyframe (lag-one correlation rho) carry
+    (1 + rho) / (1 - rho) times less information than their count; independent ones: 1."""
+    truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=4)
+    prob, _ = build_problem(survey_map, length, cams, keyframes, Priors())
+    o = prob.obs
+    rng = np.random.default_rng(7)
+    key = (o.marker * len(prob.cameras) + o.camera) * 4 + o.corner
+    noise = np.zeros((len(key), 2))
+    for k in np.unique(key):
+        sel = np.flatnonzero(key == k)
+        sel = sel[np.argsort(o.keyframe[sel])]
+        e = rng.normal(0, 0.3, 2)
+        for i in sel:  # AR(1) over the keyframe sequence, unit variance 0.3 px
+            e = rho * e + np.sqrt(1 - rho**2) * rng.normal(0, 0.3, 2)
+            noise[i] = e
+    got = _correlation_stretch(prob, o.uv + noise, 0.5)
+    assert got == pytest.approx((1 + rho) / (1 - rho), rel=0.2, abs=0.15)
