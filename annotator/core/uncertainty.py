@@ -26,6 +26,14 @@ the exposure; frames smearing more than ``max_smear_px`` are down-weighted (drop
 times that). The time within the exposure at which the detector places a smeared corner is
 unknown: ``sigma_blur_m`` = speed x exposure / sqrt(12).
 
+With a refinement's record (``ParameterCovariance.joint``), A Sigma A^T runs over every block at
+once (markers, rig, intrinsics and distortion, readout, and the detector's corner bias), with the
+refinement's cross-covariances: the surveyed markers fix where the map sits in the room together,
+so that error is common to every marker and a frame that sees many markers keeps all of it, while
+a principal point shift and a turn of that camera in the rig, fitted to the same corners, largely
+cancel. Each block's column is its share of the joint total. Without a joint record (priors) the
+blocks are independent.
+
 ``sigma_unmodelled_m`` is a floor for what no model here covers (the detector's corner bias on
 small markers, the renderer's or a real lens's residual distortion), added in quadrature.
 """
@@ -416,7 +424,7 @@ def frame_jacobians(
     speeds = np.concatenate([b.speed for b in blocks])
     joint = None
     if settings.joint_covariance and getattr(params, "joint", None) is not None:
-        joint = _row_joint(params, B, L, blocks, starts, mids, cams, width, settings, n0)
+        joint = _row_joint(params, B, L, blocks, starts, mids, cams, width, n0)
     noise2 = float(e_inner.sum()) / max(2 * len(e_inner), 1)
     return FrameJacobians(r, w, J, B, L, speeds, noise2, joint)
 
@@ -443,7 +451,6 @@ def _row_joint(
     mids: Sequence[int],
     cams: Sequence[str],
     width: Mapping[str, int],
-    settings: UncertaintySettings,
     n0: int,
 ) -> np.ndarray:
     """The row's parameter covariance over the columns of B (BLOCKS order, then the corner bias,
