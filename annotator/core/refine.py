@@ -740,7 +740,7 @@ def _solve(
     # is off by 5-9 cm on the field renders.
     # What the trajectory inherits (uncertainty.py): the joint covariance with the cross-block
     # terms (the map's datum is common to every marker), its data part widened by the correlation
-    # of consecutive keyframes' corner errors, plus what the gate held back and the rig's gauge.
+    # of the keyframes' corner errors over time, plus what the gate held back and the rig's gauge.
     # The markers' floors stay out: they are errors common to all of a marker's frames, and the
     # tracker sees the same frames (docs/annotator.md, "What sigma_m means").
     stretch = _correlation_stretch(prob, uv, lm.sigma_px)
@@ -861,29 +861,49 @@ def _gate(
     return out
 
 
-def _correlation_stretch(prob: Problem, uv: np.ndarray, sigma_px: float) -> float:
-    """How many times fewer independent corners the keyframes hold than their count: the errors
-    of one marker corner seen by one camera in consecutive keyframes are correlated (lag-one
-    correlation rho of the residuals left by the solve, pooled over the corners; residuals beyond
-    3 sigma clipped), and for errors correlated like that the variance of an average is
-    (1 + rho) / (1 - rho) times the independent one's. 1 when they are not correlated."""
+def _correlation_stretch(
+    prob: Problem, uv: np.ndarray, sigma_px: float, max_lag: int = 40
+) -> float:
+    """How many times fewer independent corners the keyframes hold than their count.
+
+    The errors of one marker corner seen by one camera are alike from keyframe to keyframe (the
+    same view, blur, print) and stay so while the view changes little. For errors with
+    autocorrelation rho_k at a lag of k keyframes the variance of an average is tau = 1 + 2 sum_k
+    rho_k times the independent one's (the integrated autocorrelation time; (1 + rho) / (1 - rho)
+    for a first-order process). rho_k: the solve's residuals (beyond 3 sigma clipped), pooled
+    over the corners; the sum stops at the first lag whose correlation is not positive (the noise
+    of the estimates beyond). 1 when the errors are independent.
+    """
     o = prob.obs
     r = np.clip(uv - o.uv, -3 * sigma_px, 3 * sigma_px)
     key = (o.marker * len(prob.cameras) + o.camera) * 4 + o.corner
     order = np.lexsort((o.keyframe, key))
     k, kf, r = key[order], o.keyframe[order], r[order]
-    pair = (k[1:] == k[:-1]) & (kf[1:] - kf[:-1] == 1)
-    if pair.sum() < 20:
+    num = np.zeros(max_lag + 1)
+    den = np.zeros(max_lag + 1)
+    pairs = np.zeros(max_lag + 1)
+    for j in range(1, max_lag + 1):  # j-th next observation of the same corner track
+        lag = kf[j:] - kf[:-j]
+        ok = (k[j:] == k[:-j]) & (lag <= max_lag)
+        if not ok.any():
+            break
+        a, b = r[:-j][ok], r[j:][ok]
+        num += np.bincount(lag[ok], np.sum(a * b, axis=1), max_lag + 1)
+        den += np.bincount(lag[ok], 0.5 * np.sum(a * a + b * b, axis=1), max_lag + 1)
+        pairs += np.bincount(lag[ok], minlength=max_lag + 1)
+    if pairs[1] < 20:
         return 1.0
-    a, b = r[:-1][pair], r[1:][pair]
-    rho = float(np.sum(a * b) / max(0.5 * float(np.sum(a * a + b * b)), 1e-12))
-    rho = min(max(rho, 0.0), 0.95)
+    tau = 1.0
+    for n, d in zip(num[1:], den[1:], strict=True):
+        rho = n / d if d > 0 else 0.0
+        if rho <= 0:
+            break
+        tau += 2.0 * min(rho, 0.99)
+    tau = min(tau, 50.0)
     log.info(
-        "refine: keyframe residual correlation %.2f (information / %.1f)",
-        rho,
-        (1 + rho) / (1 - rho),
+        "refine: keyframe residuals' correlation time %.1f keyframes (information / %.1f)", tau, tau
     )
-    return (1 + rho) / (1 - rho)
+    return tau
 
 
 def _rig_gauge(layout: _Layout, prob: Problem, t_bc: np.ndarray) -> np.ndarray:

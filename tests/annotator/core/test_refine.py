@@ -420,8 +420,9 @@ def test_joint_record_keeps_the_rig_gauge_the_solve_pins():
 
 @pytest.mark.parametrize("rho", [0.0, 0.6])
 def test_correlated_keyframe_errors_stretch_the_covariance(rho):
-    """Residuals that follow each corner from keyframe to keyframe (lag-one correlation rho) carry
-    (1 + rho) / (1 - rho) times less information than their count; independent ones: 1."""
+    """Residuals that follow each corner from keyframe to keyframe (a first-order process with
+    lag-one correlation rho: integrated correlation time (1 + rho) / (1 - rho)) carry that many
+    times less information than their count; independent ones: 1."""
     truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=4)
     prob, _ = build_problem(survey_map, length, cams, keyframes, Priors())
     o = prob.obs
