@@ -34,7 +34,9 @@ video map fitted (rotation and shift) to the written positions of the surveyed m
 saw (`markers_seen` of the refinement's report) is off by their mean survey error. Likewise the
 beacon sits where the rig file puts the cameras around it: a shift common to every camera of the
 rig moves no camera (the gauge), so the bundle's origin is off by the rig's mean position error,
-turned with the bundle. The floor is the sum of the two. No estimator can do better than this on
+turned with the bundle. The floor is the sum of the two. 'rot fl' (deg, median over the walk)
+is the same for the orientation: the bundle's is the cameras' (which the video measures, in the
+frame the survey gives the map) times the written rig's inverse, off by the rig's mean turn. No estimator can do better than this on
 average (one capture may land a little below it when the map's own errors cancel part of it, or
 the markers' orientation priors turn the frame the other way); a seed whose floor exceeds a target
 is not expected to meet it.
