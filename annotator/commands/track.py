@@ -91,9 +91,9 @@ def track(
         bool | None,
         typer.Option(
             help="Place each corner where the fitted outer edges of the marker's black square meet "
-            "(unbiased for small and large markers; see docs/annotator.md, 'Known problem: clean "
-            "1080p video'). Default: on where detection runs on a downscaled copy (frames wider "
-            "than 1280 px), off otherwise.",
+            "(unbiased for small and large markers; see docs/annotator.md, 'Clean 1080p video "
+            "with half-size detection'). Default: on where detection runs on a downscaled copy "
+            "(frames wider than 1280 px), off otherwise.",
             show_default=False,
         ),
     ] = None,

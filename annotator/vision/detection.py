@@ -52,7 +52,7 @@ class DetectorSettings:
     # AUTO_MAX_WIDTH, e.g. 1080p), where cornerSubPix's size-dependent bias made the
     # self-calibration take a clean 1080p capture from 0.04 to ~1 cm; off at full-size detection,
     # where on the 960x540 field renders it is a wash (better on average over five seeds, worse on
-    # some). See docs/annotator.md, "Known problem: clean 1080p video".
+    # some). See docs/annotator.md, "Clean 1080p video with half-size detection".
     edge_corners: bool | None = None
     # Board refinement accepts a projected marker this close (full-resolution pixels) to a
     # candidate; a wide one lets it take a small marker's inner contour, one cell in.
