@@ -7,6 +7,8 @@ import logging
 
 import typer
 
+from bgt_core.cli_help import flow_command_help
+
 app = typer.Typer(
     name="annotator",
     help="Offline annotation: camera-tracked ground truth for BLE RSSI captures.",
@@ -38,6 +40,7 @@ for _name in COMMAND_MODULES:
             raise
         continue
     _mod.register(app)
+flow_command_help(app)
 
 
 @app.callback()

@@ -5,7 +5,7 @@ the rig and the calibration) and compares the detector's corners with it: mean r
 (positive = outward from the marker's centre), median and p90 corner error, and how many corners
 are off by more than 3 px (a wrong contour), in bins of the marker's side length in pixels.
 
-    python bench/corner_bias.py RENDER/experiment.yaml [--downscale 1] [--edges] [--step 3]
+    python bench/corner_bias.py RENDER/experiment.yaml [--downscale 1] [--edges | --no-edges] [--step 3]
 
 A render made with field errors keeps its true map, rig and lenses in true/: those are projected.
 """
@@ -33,9 +33,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("experiment")
     ap.add_argument("--downscale", type=float, default=None)
-    ap.add_argument("--edges", action="store_true", help="edge-fit corners (edge_corners)")
     ap.add_argument(
-        "--board-px", type=float, default=None, help="board_refine_px (default: OpenCV's)"
+        "--edges",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="edge-fit corners on / off (default: the detector's, on at downscaled detection)",
+    )
+    ap.add_argument(
+        "--board-px", type=float, default=None, help="board_refine_px (default: the detector's)"
     )
     ap.add_argument("--step", type=int, default=3, help="use every n-th frame")
     a = ap.parse_args()

@@ -34,7 +34,9 @@ video map fitted (rotation and shift) to the written positions of the surveyed m
 saw (`markers_seen` of the refinement's report) is off by their mean survey error. Likewise the
 beacon sits where the rig file puts the cameras around it: a shift common to every camera of the
 rig moves no camera (the gauge), so the bundle's origin is off by the rig's mean position error,
-turned with the bundle. The floor is the sum of the two. No estimator can do better than this on
+turned with the bundle. The floor is the sum of the two. 'rot fl' (deg, median over the walk)
+is the same for the orientation: the bundle's is the cameras' (which the video measures, in the
+frame the survey gives the map) times the written rig's inverse, off by the rig's mean turn. No estimator can do better than this on
 average (one capture may land a little below it when the map's own errors cancel part of it, or
 the markers' orientation priors turn the frame the other way); a seed whose floor exceeds a target
 is not expected to meet it.
@@ -59,6 +61,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 import annotator.render as render_pkg
 from annotator.commands.simulate import ERROR_PRESETS
@@ -259,6 +262,7 @@ class Row:
     floor_cm: float = float(
         "nan"
     )  # median error of the survey's datum alone (see the module's doc)
+    rot_floor_deg: float = float("nan")  # the same for the bundle's orientation
 
 
 def _rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -272,19 +276,26 @@ def _rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, cb - R @ ca
 
 
-def datum_floor_cm(exp: Path, refined: Path) -> float:
-    """Median over the true walk of the error a perfect video map fitted to the written survey of
-    the surveyed markers the refinement saw, and the written rig's mean camera position, would
-    leave (NaN without a refinement record)."""
+@dataclass(frozen=True)
+class DatumFloor:
+    position_cm: float  # median over the walk
+    rotation_deg: float
+
+
+def datum_floor(exp: Path, refined: Path) -> DatumFloor:
+    """The error a perfect video map fitted to the written survey of the surveyed markers the
+    refinement saw, and the written rig's mean camera pose, would leave: position (median over
+    the true walk) and orientation (NaN without a refinement record)."""
+    nan = DatumFloor(float("nan"), float("nan"))
     record = refined / "refinement.json"
     if not record.is_file():
-        return float("nan")
+        return nan
     seen = set(json.loads(record.read_text(encoding="utf-8")).get("markers_seen", []))
     written = read_marker_map(exp.parent / "marker_positions.dat")
     true = read_marker_map(exp.parent / "true" / "marker_positions.dat")
     ids = sorted(i for i in written if i in seen and i in true)
     if not ids:
-        return float("nan")
+        return nan
     R, t = _rigid_fit(
         np.array([true[i].position for i in ids], float),
         np.array([written[i].position for i in ids], float),
@@ -299,7 +310,21 @@ def datum_floor_cm(exp: Path, refined: Path) -> float:
         [written_rig[n].t_bundle_camera - true_rig[n].t_bundle_camera for n in true_rig], axis=0
     )
     err = p @ R.T + t - p - truth.rotation @ d_rig
-    return 100 * float(np.median(np.linalg.norm(err, axis=1)))
+    # Orientation: the video measures the cameras' world orientation (in the frame the survey
+    # gives the map); the bundle's is that times the written rig's inverse, whose mean turn over
+    # the cameras no image can tell (the gauge). Bundle error = R_map . R_wb (R_bc R_bc'^T) R_wb^T.
+    rig_turn = Rotation.concatenate(
+        [
+            Rotation.from_matrix(true_rig[n].R_bundle_camera @ written_rig[n].R_bundle_camera.T)
+            for n in true_rig
+        ]
+    ).mean()
+    body = Rotation.from_matrix(truth.rotation)
+    turn = Rotation.from_matrix(R) * body * rig_turn * body.inv()
+    return DatumFloor(
+        100 * float(np.median(np.linalg.norm(err, axis=1))),
+        float(np.degrees(np.median(turn.magnitude()))),
+    )
 
 
 def track_and_score(
@@ -358,7 +383,7 @@ def fmt(v: float, spec: str) -> str:
 
 HEADER = (
     f"{'condition':11} {'seed':>4} {'refine':8} {'posed':>6} {'median':>7} {'p95':>7} {'rot med':>8} "
-    f"{'<2.8sig':>8} {'err/sig':>7} {'time':>6} {'floor':>6}"
+    f"{'<2.8sig':>8} {'err/sig':>7} {'time':>6} {'floor':>6} {'rot fl':>6}"
 )
 
 
@@ -366,7 +391,8 @@ def row_text(r: Row) -> str:
     return (
         f"{r.condition:11} {r.seed:4d} {r.refine:8} {fmt(100 * r.posed, '5.1f')}% {fmt(r.median_cm, '7.2f')} "
         f"{fmt(r.p95_cm, '7.2f')} {fmt(r.rot_median_deg, '8.3f')} {fmt(100 * r.within, '7.1f')}% "
-        f"{fmt(r.z_median, '7.2f')} {r.seconds:5.0f}s {fmt(r.floor_cm, '6.2f')}"
+        f"{fmt(r.z_median, '7.2f')} {r.seconds:5.0f}s {fmt(r.floor_cm, '6.2f')} "
+        f"{fmt(r.rot_floor_deg, '6.3f')}"
     )
 
 
@@ -478,9 +504,9 @@ def main() -> None:
                 for mode in modes:
                     out = exp.parent / f"track-{mode or 'default'}"
                     mine.append(track_and_score(exp, out, mode, args.jobs, name, seed))
-                floor = datum_floor_cm(exp, exp.parent / "track-default" / "refined")
+                floor = datum_floor(exp, exp.parent / "track-default" / "refined")
                 for r in mine:
-                    r.floor_cm = floor
+                    r.floor_cm, r.rot_floor_deg = floor.position_cm, floor.rotation_deg
                     print(row_text(r), flush=True)
                 rows += mine
     finally:
@@ -497,7 +523,7 @@ def main() -> None:
         f"conditions: {', '.join(names)} (see --help); errors in cm against the exact truth at the same time; "
         f"'<2.8sig' = share of posed rows with 3-D error < {COVERAGE_K} x sigma_m (~95 % if sigma is honest); "
         f"'err/sig' = median of 3-D error / sigma_m (~1.5 if honest); 'floor' = median error the survey's datum and the "
-        f"rig's mean position error leave (cm, see --help)."
+        f"rig's mean position error leave (cm, see --help); 'rot fl' = the same for the orientation (deg)."
     )
     print()
     print("pooled over seeds (errors of one capture are correlated: judge sigma over many seeds):")

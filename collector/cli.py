@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from bgt_core.cli_help import flow_command_help
 from bgt_core.wire import WireError
 from collector.errors import CollectorError
 from collector.fleet import app as fleet_app
@@ -207,7 +208,7 @@ def _client(connect: str, site: str, root_ca: Path | None, cert: Path | None, ke
     return CollectorClient(connect, site, tls=tls)
 
 
-@app.command()
+@app.command(short_help="Start a capture run on a running collector; prints the run id.")
 def start(
     name: Annotated[
         str | None, typer.Option("--name", help="Run name (part of the run id).")
@@ -344,7 +345,7 @@ def live(
         raise _fail(e) from None
 
 
-@app.command()
+@app.command(short_help="Write a run in the published layout: one <sensor_mac>.mbd per sensor.")
 def export(
     run_dir: Annotated[
         Path, typer.Argument(help="A run directory (holds run.yaml and rssi/<agent>/).")
@@ -370,6 +371,9 @@ def export(
         highlight=False,
         soft_wrap=True,
     )
+
+
+flow_command_help(app)  # after every command is declared
 
 
 def main() -> None:

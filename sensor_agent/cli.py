@@ -10,6 +10,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from bgt_core.cli_help import flow_command_help
 from sensor_agent.config import AgentConfig, load_config, with_overrides
 from sensor_agent.errors import AgentError
 
@@ -169,6 +170,9 @@ def check(config: ConfigOpt = None) -> None:
     except AgentError as e:
         raise _fail(e) from None
     out.print(dump(cfg.to_dict(), sort_keys=False), end="", highlight=False)
+
+
+flow_command_help(app)  # after every command is declared
 
 
 def main() -> None:

@@ -112,4 +112,6 @@ def calibrate(
 
 
 def register(app: typer.Typer) -> None:
-    app.command("calibrate")(calibrate)
+    app.command("calibrate", short_help="Calibrate a camera from views of a ChArUco board.")(
+        calibrate
+    )

@@ -154,4 +154,6 @@ def _json_safe(v: object) -> object:
 
 
 def register(app: typer.Typer) -> None:
-    app.command("evaluate")(evaluate)
+    app.command(
+        "evaluate", short_help="Compare a trajectory with the exact truth or with the planned path."
+    )(evaluate)

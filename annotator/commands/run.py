@@ -164,4 +164,6 @@ def run(
 
 
 def register(app: typer.Typer) -> None:
-    app.command("run")(run)
+    app.command(
+        "run", short_help="Track, synchronise and label every RSSI reading: the annotated dataset."
+    )(run)

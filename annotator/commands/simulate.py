@@ -383,4 +383,6 @@ def simulate(
 
 
 def register(app: typer.Typer) -> None:
-    app.command("simulate")(simulate)
+    app.command(
+        "simulate", short_help="Render a capture of the marker room with known truth (no hardware)."
+    )(simulate)

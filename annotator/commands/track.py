@@ -88,13 +88,15 @@ def track(
         ),
     ] = False,
     edge_corners: Annotated[
-        bool,
+        bool | None,
         typer.Option(
             help="Place each corner where the fitted outer edges of the marker's black square meet "
-            "(unbiased for small and large markers; see docs/annotator.md, 'Known problem: clean "
-            "1080p video'). Off by default until the self-calibration's datum with it is understood."
+            "(unbiased for small and large markers; see docs/annotator.md, 'Clean 1080p video "
+            "with half-size detection'). Default: on where detection runs on a downscaled copy "
+            "(frames wider than 1280 px), off otherwise.",
+            show_default=False,
         ),
-    ] = False,
+    ] = None,
     joint: Annotated[
         bool,
         typer.Option(
@@ -162,7 +164,6 @@ def track(
                 board_refine=board_refine,
                 threshold_windows=(3, 23, 10) if thorough_detect else (7, 7, 10),
                 edge_corners=edge_corners,
-                board_refine_px=6.0 if edge_corners else None,
             ),
             paper=PaperSettings(
                 frames=batch_frames, close=close, keep=keep, q=q, process=process_noise

@@ -681,10 +681,21 @@ def _solve(
     gated = _gate(x, cov, layout, s, has_prior)
     held = np.zeros(layout.n_static)  # the corrections the data asked for and that were not applied
     if gated:
-        held[gated] = x[layout.n_pose + np.array(gated)]
-        # Hold those at the prior and let the rest settle without them.
-        x[layout.n_pose + np.array(gated)] = 0.0
-        lm.prec[gated] = 1e12
+        g = layout.n_pose + np.array(gated)
+        before = x[g].copy()
+        # Hold those at the prior and let the rest settle without them. A held camera block is
+        # pinned; held surveyed markers keep their surveyed shape but move together, as one rigid
+        # body, with the rest of the map: pinning them would make the few markers that pass the
+        # gate the map's datum (their mean survey error, not that of all the surveyed markers).
+        x[g] = 0.0
+        mb, mn, _ = layout.static_slices()["marker"]
+        in_map = (np.array(gated) >= mb) & (np.array(gated) < mb + 6 * mn)
+        lm.prec[np.array(gated)[~in_map]] = 1e12
+        held_markers = sorted({(i - mb) // 6 for i in np.array(gated)[in_map]})
+        log.debug(
+            "refine: markers held at their survey: %s", [prob.markers[m] for m in held_markers]
+        )
+        lm.A = np.vstack([lm.A, _rigid_rows(prob, layout, held_markers)])
         x, it3 = lm.solve(x, s.iterations)
         it2 += it3
         lm._priors()
@@ -694,6 +705,7 @@ def _solve(
         # A held block is not at its posterior mean but at its prior: its error is the posterior
         # spread plus the correction it was denied (mean square error = P + d d^T). Without this the
         # held blocks claim the data's precision while keeping the survey's error (over-confident).
+        held[gated] = before - x[g]
         cov = cov + np.outer(held, held)
     _, uv = lm.cost(x)
     v = lm.model.static_values(x)
@@ -770,6 +782,30 @@ def _solve(
         time.perf_counter() - t0,
         rejected,
     )
+
+
+def _rigid_rows(prob: Problem, layout: _Layout, markers: Sequence[int]) -> np.ndarray:
+    """Rows A (cost |A x|^2 / 2, stiff) that hold the deltas of ``markers`` to one common small
+    rigid motion (a world rotation w about their centre and a shift t): per marker the rotation
+    delta is w and the position delta t + w x (p - centre). Fewer than two markers: no rows."""
+    if len(markers) < 2:
+        return np.zeros((0, layout.n_static))
+    p = prob.t_m[list(markers)]
+    d = p - p.mean(axis=0)
+    basis = np.zeros((6 * len(markers), 6))
+    for k, dk in enumerate(d):
+        basis[6 * k : 6 * k + 3, :3] = np.eye(3)
+        # w x d = -[d]x w
+        basis[6 * k + 3 : 6 * k + 6, :3] = -np.array(
+            [[0, -dk[2], dk[1]], [dk[2], 0, -dk[0]], [-dk[1], dk[0], 0]]
+        )
+        basis[6 * k + 3 : 6 * k + 6, 3:] = np.eye(3)
+    q, _ = np.linalg.qr(basis)
+    mb = layout.static_slices()["marker"][0]
+    cols = (mb + 6 * np.asarray(markers)[:, None] + np.arange(6)).ravel()
+    rows = np.zeros((len(cols), layout.n_static))
+    rows[:, cols] = np.eye(len(cols)) - q @ q.T
+    return rows * 1e5
 
 
 def _mahalanobis(d: np.ndarray, cov: np.ndarray) -> float:

@@ -48,16 +48,19 @@ class DetectorSettings:
     keep_unknown: bool = False
     # Finish every corner as the intersection of the square's fitted border edges
     # (annotator.vision.corners): unbiased whatever the marker's size in the image, where the
-    # corner window is not. Off by default: on clean renders it takes the 1080p self-calibration
-    # from 1.2 cm to 0.01 cm, but on the field renders (lens, blur, rolling shutter, survey and
-    # rig errors) the refined map's datum came out worse (see docs/annotator.md).
-    edge_corners: bool = False
+    # corner window is not. None: on when detection runs on a downscaled copy (frames wider than
+    # AUTO_MAX_WIDTH, e.g. 1080p), where cornerSubPix's size-dependent bias made the
+    # self-calibration take a clean 1080p capture from 0.04 to ~1 cm; off at full-size detection,
+    # where on the 960x540 field renders it is a wash (better on average over five seeds, worse on
+    # some). See docs/annotator.md, "Clean 1080p video with half-size detection".
+    edge_corners: bool | None = None
     # Board refinement accepts a projected marker this close (full-resolution pixels) to a
     # candidate; a wide one lets it take a small marker's inner contour, one cell in.
-    # None: OpenCV's 10 px in the detection image.
+    # None: EDGE_BOARD_REFINE_PX with edge corners, else OpenCV's 10 px in the detection image.
     board_refine_px: float | None = None
 
 
+EDGE_BOARD_REFINE_PX = 6.0
 AUTO_MAX_WIDTH = 1280
 
 
@@ -94,12 +97,16 @@ class MarkerDetector:
             raise ValueError("downscale must be in (0, 1]")
         self.settings = settings
         self.scale = s
+        self.edge_corners = s < 1 if settings.edge_corners is None else settings.edge_corners
         self.room = room
         self.calibration = calibration
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, settings.dictionary))
         # When corners are refined at full resolution afterwards, skip the detector's own refinement.
         refine = _REFINE["none" if s < 1 else settings.corner_refine]
-        rep = 10.0 if settings.board_refine_px is None else max(1.0, settings.board_refine_px * s)
+        board_px = settings.board_refine_px
+        if board_px is None and self.edge_corners:
+            board_px = EDGE_BOARD_REFINE_PX
+        rep = 10.0 if board_px is None else max(1.0, board_px * s)
         self._detector = _aruco_detector(dictionary, refine, settings.threshold_windows, rep)
         self._retry = (
             None
@@ -154,7 +161,7 @@ class MarkerDetector:
             win = max(2, int(round(2.5 / s)))
             cv2.cornerSubPix(gray, flat, (win, win), (-1, -1), _SUBPIX_CRITERIA)
             pts = flat.reshape(-1, 4, 2)
-        if self.settings.edge_corners:
+        if self.edge_corners:
             pts = refine_corners_by_edges(gray, pts, self.calibration).astype(np.float32)
         # A marker detected twice (reflections, refine) keeps its first copy only.
         _, first = np.unique(ids, return_index=True)

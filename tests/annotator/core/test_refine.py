@@ -438,3 +438,39 @@ def test_correlated_keyframe_errors_stretch_the_covariance(rho):
             noise[i] = e
     got = _correlation_stretch(prob, o.uv + noise, 0.5)
     assert got == pytest.approx((1 + rho) / (1 - rho), rel=0.2, abs=0.15)
+
+
+def test_markers_held_at_their_survey_do_not_become_the_datum():
+    """The gate holds a surveyed marker whose correction is within noise at its survey; held that
+    way it must keep its surveyed shape but not pin the map: markers that pass the gate with a
+    common survey error would otherwise shift the whole refined map by that error (seen on the
+    field renders with the edge-fit corners: the datum went from the survey's mean error to that
+    of the two markers the gate held)."""
+    truth, survey_map, cams, _, keyframes, length = _scene(seed=3)
+    counts: dict[int, int] = {}
+    for kf in keyframes:
+        for v in kf.views:
+            for i in v.ids:
+                counts[int(i)] = counts.get(int(i), 0) + 1
+    # The five markers seen most surveyed 1.1 cm off, all the same way, their orientations exact:
+    # within the gate's 5 mm floor per axis over six degrees of freedom, so the gate holds them.
+    held_ids = sorted(sorted(counts, key=lambda i: -counts[i])[:5])
+    for mid in held_ids:
+        survey_map[mid] = (truth[mid][0], truth[mid][1] + np.array([0.008, -0.008, 0.0]))
+    prob, sol = _solve(survey_map, cams, keyframes, length)
+    seen = np.unique(prob.obs.marker)
+    ids = [prob.markers[m] for m in seen]
+    true = np.array([truth[i][1] for i in ids])
+    surveyed = np.array([survey_map[i][1] for i in ids]) - true
+    refined = sol.t_m[seen] - true
+    # The held markers kept their surveyed shape: a rigid motion takes survey to refined.
+    a = np.array([survey_map[i][1] for i in held_ids])
+    b = np.array([sol.t_m[prob.markers.index(i)] for i in held_ids])
+    u, _, vt = np.linalg.svd((a - a.mean(axis=0)).T @ (b - b.mean(axis=0)))
+    R = vt.T @ u.T
+    assert np.abs(b - b.mean(axis=0) - (a - a.mean(axis=0)) @ R.T).max() < 1e-3
+    # ... and the map sits at the survey's mean error, not at the held markers'.
+    datum_sd = 0.015 / np.sqrt(len(ids))
+    d_refined, d_survey = refined.mean(axis=0), surveyed.mean(axis=0)
+    print(f"held {held_ids}: datum {100 * d_survey} (survey) vs {100 * d_refined} cm (refined)")
+    assert np.linalg.norm(d_refined - d_survey) < 0.3 * datum_sd

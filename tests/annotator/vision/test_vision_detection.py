@@ -156,8 +156,9 @@ def test_corners_are_unbiased_for_small_and_large_markers_at_1080p():
         truth[int(mid)] = px
     img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
     img = np.clip(img + rng.normal(0, 1.5, img.shape), 0, 255).astype(np.uint8)
-    for downscale in (None, 1.0):
-        settings = DetectorSettings(downscale=downscale, edge_corners=True, board_refine_px=6.0)
+    # The default at 1080p (half-size detection) is the edge fit; at full size it is asked for.
+    for downscale, edges in ((None, None), (1.0, True)):
+        settings = DetectorSettings(downscale=downscale, edge_corners=edges)
         det = MarkerDetector(settings, room, cal).detect(img)
         assert sorted(det.ids.tolist()) == sorted(truth)
         for mid, corners in zip(det.ids, det.corners, strict=True):
@@ -168,3 +169,17 @@ def test_corners_are_unbiased_for_small_and_large_markers_at_1080p():
             err = np.linalg.norm(corners - t, axis=1)
             assert abs(radial.mean()) < 0.12, (downscale, mid, radial)  # old code: -0.2..-0.6
             assert err.max() < 0.35, (downscale, mid, err)
+
+
+def test_edge_corners_default_to_on_only_where_detection_is_downscaled():
+    """cornerSubPix after half-size detection is what the self-calibration misread on clean 1080p
+    video; at full-size detection the window corners stay the default."""
+    room = make_room()
+    for width, scale, edges in ((960, 1.0, False), (1280, 1.0, False), (1920, 0.5, True)):
+        height = width * 9 // 16
+        K = np.array([[width, 0, width / 2], [0, width, height / 2], [0, 0, 1.0]])
+        cal = CameraCalibration(K, np.zeros(5), width, height)
+        det = MarkerDetector(DetectorSettings(), room, cal)
+        assert (det.scale, det.edge_corners) == (scale, edges)
+        forced = MarkerDetector(DetectorSettings(edge_corners=not edges), room, cal)
+        assert forced.edge_corners is (not edges)
