@@ -25,6 +25,8 @@ from scipy.spatial.transform import Rotation
 
 from annotator.core import refine as rf
 from annotator.core.priors import Priors
+from annotator.core.refine import model as rf_model
+from annotator.core.refine.solver import _LM
 from annotator.render import default_cameras
 from annotator.render.camera import RIG_EXTRINSICS
 from annotator.vision.geometry import MarkerRoom
@@ -139,15 +141,15 @@ def main() -> None:
     settings = rf.RefineSettings()
     seen = np.zeros(len(prob.markers), bool)
     seen[np.unique(prob.obs.marker)] = True
-    layout = rf._Layout(
+    layout = rf_model._Layout(
         len(prob.R_k),
         len(prob.markers),
         len(prob.cameras),
         5,
         seen,
-        (rf.RIG, rf.INTR, rf.DIST, rf.READOUT),
+        (rf_model.RIG, rf_model.INTR, rf_model.DIST, rf_model.READOUT),
     )
-    lm = rf._LM(prob, layout, settings)  # one stage, noise 1 px, the same priors for both solvers
+    lm = _LM(prob, layout, settings)  # one stage, noise 1 px, the same priors for both solvers
     n_pose, n_static = layout.n_pose, layout.n_static
     x0 = np.zeros(n_pose + n_static)
 

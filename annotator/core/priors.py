@@ -152,7 +152,7 @@ class ParameterCovariance:
     distortion: dict[str, np.ndarray] = field(default_factory=dict)
     readout: dict[str, np.ndarray] = field(default_factory=dict)
     # After refinement: the joint covariance of the refined parameters as the trajectory sees them
-    # (refine._solve: the rig's gauge and the markers' floors included), and the rows of each block
+    # (refine.solver._solve: the rig's gauge and the markers' floors included), and the rows of each block
     # in it keyed (kind, marker id or camera) with kind one of markers, rig, intrinsics,
     # distortion, readout, bias (the detector's corner bias, px). A block without an entry is
     # independent of the rest.

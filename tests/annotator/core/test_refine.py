@@ -14,11 +14,11 @@ from annotator.core.refine import (
     FrameView,
     Keyframe,
     RefineSettings,
-    _correlation_stretch,
     build_problem,
     marker_floors,
     solve,
 )
+from annotator.core.refine.solver import _correlation_stretch
 from track_helpers import make_path, make_rig, make_room, project
 
 N_KF = 60
