@@ -3,7 +3,9 @@
 Projects every true marker corner into each frame (truth.csv bundle pose at the frame's time,
 the rig and the calibration) and compares the detector's corners with it: mean radial error
 (positive = outward from the marker's centre), median and p90 corner error, and how many corners
-are off by more than 3 px (a wrong contour), in bins of the marker's side length in pixels.
+are off by more than 3 px (a wrong contour), in bins of the marker's side length in pixels; and
+the outward error along image x and along image y (out-x, out-y; negative = the square looks
+narrower / shorter), also in bins of the square's on-screen width / height (foreshortening).
 
     python bench/corner_bias.py RENDER/experiment.yaml [--downscale 1] [--edges | --no-edges] [--step 3]
 
@@ -26,6 +28,7 @@ from annotator.vision.geometry import MarkerRoom
 from annotator.vision.lens import project_points
 
 BINS = [(0, 35), (35, 60), (60, 1e9)]
+ASPECTS = [(0.0, 0.6), (0.6, 0.8), (0.8, 0.95), (0.95, 1.05), (1.05, 10.0)]
 FPS = 30.0
 
 
@@ -59,7 +62,7 @@ def main() -> None:
         )
         det = MarkerDetector(settings, room, cal)
         cap = cv2.VideoCapture(str(exp.videos[name]))
-        rows: list[tuple[float, float, float]] = []  # (side px, radial, error)
+        rows: list[tuple[float, ...]] = []  # (side px, radial, error, out-x, out-y, aspect)
         spent = 0.0
         frames = 0
         i = -1
@@ -93,9 +96,16 @@ def main() -> None:
             side = np.linalg.norm(uv - np.roll(uv, -1, axis=1), axis=2).mean(axis=1)
             radial = (diff * out).sum(axis=2)
             err = np.linalg.norm(diff, axis=2)
+            # Outward error along image x and y, and the square's on-screen width / height.
+            sign = np.sign(uv - centre)
+            outx, outy = (diff * sign)[..., 0], (diff * sign)[..., 1]
+            span = uv.max(axis=1) - uv.min(axis=1)
+            aspect = span[:, 0] / np.maximum(span[:, 1], 1e-9)
             for k in range(len(d.ids)):
                 for j in range(4):
-                    rows.append((side[k], radial[k, j], err[k, j]))
+                    rows.append(
+                        (side[k], radial[k, j], err[k, j], outx[k, j], outy[k, j], aspect[k])
+                    )
         r = np.array(rows)
         print(
             f"{name}: {frames} frames, detection {1000 * spent / max(frames, 1):.2f} ms CPU/frame"
@@ -109,6 +119,17 @@ def main() -> None:
                 f"  side {lo:>3.0f}-{hi if hi < 1e9 else 'inf':>4} px: {len(sel) // 4:5d} markers"
                 f"  radial {good[:, 1].mean():+.3f} px  median {np.median(good[:, 2]):.3f}"
                 f"  p90 {np.percentile(good[:, 2], 90):.3f}  >3px {len(sel) - len(good)}"
+                f"  out-x {good[:, 3].mean():+.3f} out-y {good[:, 4].mean():+.3f}"
+            )
+        good = r[r[:, 2] <= 3]
+        for a_lo, a_hi in ASPECTS:
+            sel = good[(good[:, 5] >= a_lo) & (good[:, 5] < a_hi)]
+            if len(sel) == 0:
+                continue
+            print(
+                f"  width/height {a_lo:.2f}-{a_hi:.2f}: {len(sel) // 4:5d} markers"
+                f"  out-x {sel[:, 3].mean():+.3f} px  out-y {sel[:, 4].mean():+.3f} px"
+                f"  (side {sel[:, 0].mean():.0f} px)"
             )
 
 
