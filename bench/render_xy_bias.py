@@ -8,7 +8,7 @@ narrower / shorter than it is), the mean side of the square on screen and the me
 the whole square (x, y).
 
     python bench/render_xy_bias.py [--frames 40] [--yaw 0] [--pitch 0] [--dist 3]
-        [--level0] [--no-lens] [--mp4] [--supersample 4] [--noise 0]
+        [--level0] [--no-lens] [--mp4] [--supersample 4] [--noise 0] [--id 7]
 
 --level0 forces the finest texture; --no-lens renders a distortion-free camera; --mp4 passes the
 frames through the mp4v codec; --supersample N renders N times larger and area-averages down
@@ -71,13 +71,13 @@ def render_frames(a: argparse.Namespace, cam: CameraModel, markers: dict[int, Ma
     frames, truths = [], []
     for r_wc, c_w in views(a):
         truth = small_fr.scene.expected_corners(cam, r_wc, c_w)
-        if MARKER_ID not in truth:
+        if a.id not in truth:
             continue
         img = fr.render(r_wc, c_w)
         if s > 1:
             img = cv2.resize(img, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
         frames.append(img)
-        truths.append(truth[MARKER_ID])
+        truths.append(truth[a.id])
     if a.mp4:
         with tempfile.TemporaryDirectory() as tmp:
             path = str(Path(tmp) / "x.mp4")
@@ -104,6 +104,7 @@ def main() -> None:
     ap.add_argument("--mp4", action="store_true", help="through the mp4v codec")
     ap.add_argument("--supersample", type=int, default=1)
     ap.add_argument("--noise", type=float, default=0.0)
+    ap.add_argument("--id", type=int, default=MARKER_ID, help="marker id (its bit pattern)")
     a = ap.parse_args()
     if a.level0:
         MarkerTextures.level_for = staticmethod(lambda side_px: 0)  # type: ignore[method-assign]
@@ -111,7 +112,7 @@ def main() -> None:
     if a.no_lens:
         cam = dataclasses.replace(cam, dist=(0.0,) * 5)
     euler = (np.pi / 2 + np.radians(a.pitch), 0.0, np.radians(a.yaw))
-    markers = {MARKER_ID: MarkerPose(MARKER_ID, (0.0, 0.0, 0.0), euler)}
+    markers = {a.id: MarkerPose(a.id, (0.0, 0.0, 0.0), euler)}
     cal = CameraCalibration(cam.K, cam.dist_array, cam.width, cam.height)
     room = MarkerRoom.from_map(markers, a.length)
     frames, truths = render_frames(a, cam, markers)
@@ -124,9 +125,9 @@ def main() -> None:
         ex, ey, sides, shift = [], [], [], []
         for img, uv in zip(frames, truths, strict=True):
             d = det.detect(img)
-            if MARKER_ID not in d.ids:
+            if a.id not in d.ids:
                 continue
-            got = d.corners[list(d.ids).index(MARKER_ID)]
+            got = d.corners[list(d.ids).index(a.id)]
             sign = np.sign(uv - uv.mean(axis=0))
             err = (got - uv) * sign
             ex.append(err[:, 0].mean())
