@@ -295,10 +295,14 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
     rows_frac = pix.reshape(-1, 2)[:, 1] / v.cal.height
     Bro = -(img_vel * rows_frac[:, None]).reshape(-1)
     # Corner bias: a larger bias moves every corrected corner further towards its square's centre.
+    # Only a refinement's joint record correlates the bias with the rest (see _row_joint).
     h = 0.05
-    Bb = (focal / (2 * h)) * (
-        _undistort(v.cal, pix + h * diag) - _undistort(v.cal, pix - h * diag)
-    ).reshape(-1)
+    Bb = (
+        (focal / (2 * h))
+        * (_undistort(v.cal, pix + h * diag) - _undistort(v.cal, pix - h * diag)).reshape(-1)
+        if getattr(params, "joint", None) is not None
+        else np.zeros(pix.size)
+    )
     return _ViewBlock(
         v.camera,
         r.reshape(-1),

@@ -470,6 +470,20 @@ def _solve(
     )
 
 
+def _rigid_basis(offsets: np.ndarray) -> np.ndarray:
+    """(6k, 6): how k (rotation, position) deltas follow one small rigid motion (a rotation w
+    about a centre, then a shift t) of points at ``offsets`` (k, 3) from that centre: each
+    rotation delta is w and each position delta t + w x d = t - [d]x w."""
+    basis = np.zeros((6 * len(offsets), 6))
+    for k, d in enumerate(offsets):
+        basis[6 * k : 6 * k + 3, :3] = np.eye(3)
+        basis[6 * k + 3 : 6 * k + 6, :3] = -np.array(
+            [[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]]
+        )
+        basis[6 * k + 3 : 6 * k + 6, 3:] = np.eye(3)
+    return basis
+
+
 def _rigid_rows(prob: Problem, layout: _Layout, markers: Sequence[int]) -> np.ndarray:
     """Rows A (cost |A x|^2 / 2, stiff) that hold the deltas of ``markers`` to one common small
     rigid motion (a world rotation w about their centre and a shift t): per marker the rotation
@@ -477,15 +491,7 @@ def _rigid_rows(prob: Problem, layout: _Layout, markers: Sequence[int]) -> np.nd
     if len(markers) < 2:
         return np.zeros((0, layout.n_static))
     p = prob.t_m[list(markers)]
-    d = p - p.mean(axis=0)
-    basis = np.zeros((6 * len(markers), 6))
-    for k, dk in enumerate(d):
-        basis[6 * k : 6 * k + 3, :3] = np.eye(3)
-        # w x d = -[d]x w
-        basis[6 * k + 3 : 6 * k + 6, :3] = -np.array(
-            [[0, -dk[2], dk[1]], [dk[2], 0, -dk[0]], [-dk[1], dk[0], 0]]
-        )
-        basis[6 * k + 3 : 6 * k + 6, 3:] = np.eye(3)
+    basis = _rigid_basis(p - p.mean(axis=0))
     q, _ = np.linalg.qr(basis)
     mb = layout.static_slices()["marker"][0]
     cols = (mb + 6 * np.asarray(markers)[:, None] + np.arange(6)).ravel()
@@ -644,13 +650,7 @@ def _rig_gauge(layout: _Layout, prob: Problem, t_bc: np.ndarray) -> np.ndarray:
     o, n, _ = sl[RIG]
     pr = prob.priors
     G = np.zeros((layout.n_static, 6))
-    centre = t_bc.mean(axis=0)
-    for c in range(n):
-        b = o + 6 * c
-        G[b : b + 3, :3] = np.eye(3)
-        d = t_bc[c] - centre
-        G[b + 3 : b + 6, :3] = -np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])
-        G[b + 3 : b + 6, 3:] = np.eye(3)
+    G[o : o + 6 * n] = _rigid_basis(t_bc - t_bc.mean(axis=0))
     var = np.array([math.radians(pr.rig_sigma_deg) ** 2] * 3 + [pr.rig_sigma_m**2] * 3) / n
     return (G * var) @ G.T
 
