@@ -12,7 +12,7 @@ from annotator.commands._common import console, one_line_errors, stage_columns, 
 from annotator.errors import ConfigError
 
 if TYPE_CHECKING:
-    from annotator.render.trajectory import LoopTrajectory, PolylineTrajectory
+    from annotator.render.trajectory import LoopTrajectory, PolylineTrajectory, RestFirst
 
 
 def parse_cover(text: str) -> tuple[float, float]:
@@ -144,6 +144,15 @@ def simulate(
         ),
     ] = None,
     jobs: Annotated[int, typer.Option(help="Render the two cameras in this many processes.")] = 1,
+    jig: Annotated[
+        float,
+        typer.Option(
+            help="Seconds the bundle first rests on a jig at the path's start pose; the jig's pose "
+            "goes into experiment.yaml (refine: jig:), off by its 1 mm / 0.1 deg sigma when the "
+            "files carry errors. `track` then takes the rig's gauge from the rest. 0 = no jig.",
+            min=0.0,
+        ),
+    ] = 0.0,
     errors: Annotated[
         str,
         typer.Option(
@@ -286,8 +295,11 @@ def simulate(
     files are kept under true/ (true/experiment.yaml tracks the same videos) and
     perturbation.yaml lists true and written values per marker and per camera."""
     with one_line_errors():
+        from dataclasses import asdict
+
         from annotator.render import render_experiment
         from annotator.render.errors import FileErrors
+        from annotator.render.trajectory import RestFirst
 
         covers = [parse_cover(c) for c in cover or []]
         e = resolve_errors(
@@ -347,7 +359,10 @@ def simulate(
             )
         except ValueError as err:
             raise ConfigError(f"error magnitudes: {err}") from None
-        trajectory = path_trajectory(path, t0, speed, dwell, turn)
+        walk = path_trajectory(path, t0, speed, dwell, turn)
+        trajectory = RestFirst(walk, jig) if jig > 0 else walk
+        if jig > 0 and jig >= duration - start_offset:
+            raise ConfigError(f"--jig {jig}: the rest must end before the video (--duration)")
         with Progress(*stage_columns(6), console=console) as bar:
             progress = stage_progress(bar)
 
@@ -372,6 +387,9 @@ def simulate(
                 errors=file_errors,
                 progress=progress,
             )
+        if jig > 0:
+            perturbed = any(float(v) > 0 for k, v in asdict(file_errors).items() if k != "seed")
+            write_jig(result.experiment, trajectory, t0, t0 + jig, seed, perturbed)
         frames = ", ".join(f"{k} {v} frames" for k, v in result.frames.items())
         extra = " and path.yaml" if (result.out_dir / "path.yaml").exists() else ""
         console.print(
@@ -380,6 +398,41 @@ def simulate(
             soft_wrap=True,
             markup=False,
         )
+
+
+def write_jig(
+    experiment: Path,
+    trajectory: LoopTrajectory | PolylineTrajectory | RestFirst,
+    start: float,
+    end: float,
+    seed: int,
+    perturbed: bool,
+) -> None:
+    """Add the rest's jig to experiment.yaml (``refine: jig:``) and its written error to
+    perturbation.yaml; the true experiment under true/ gets the exact jig."""
+    import numpy as np
+    import yaml
+
+    from annotator.core.priors import JIG_SIGMA_DEG, JIG_SIGMA_M
+    from annotator.render.errors import jig_entry
+
+    pos, rot = trajectory(np.array([start]))
+    for path, off in (
+        (experiment, perturbed),
+        (experiment.parent / "true" / experiment.name, False),
+    ):
+        if not path.is_file():
+            continue
+        entry, error = jig_entry(pos[0], rot[0], start, end, JIG_SIGMA_M, JIG_SIGMA_DEG, seed, off)
+        text = path.read_text(encoding="utf-8")
+        path.write_text(
+            text
+            + yaml.safe_dump({"refine": {"jig": entry}}, default_flow_style=None, sort_keys=False),
+            encoding="utf-8",
+        )
+        if path == experiment:
+            with (path.parent / "perturbation.yaml").open("a", encoding="utf-8") as f:
+                f.write(yaml.safe_dump({"jig": error}, default_flow_style=None))
 
 
 def register(app: typer.Typer) -> None:

@@ -41,6 +41,25 @@ class MarkerPrior:
     known: bool = True
 
 
+@dataclass(frozen=True, eq=False, slots=True)
+class Jig:
+    """A rest of the bundle at a known pose: the rig's gauge (docs/annotator.md, "The rig jig").
+
+    From ``start`` to ``end`` (the trajectory's times, s) the bundle sat still on a jig whose pose
+    in the room is known: ``position`` (the bundle's origin, m) and ``rotation`` (R_world_bundle),
+    each to ``sigma_m`` / ``sigma_deg`` per axis (1-sigma)."""
+
+    start: float
+    end: float
+    position: np.ndarray  # (3,)
+    rotation: np.ndarray  # (3, 3)
+    sigma_m: float = 0.001  # = JIG_SIGMA_M
+    sigma_deg: float = 0.1  # = JIG_SIGMA_DEG
+
+
+JIG_SIGMA_M, JIG_SIGMA_DEG = 0.001, 0.1  # Jig's defaults: a levelled plate, squared to a wall
+
+
 @dataclass(frozen=True, slots=True)
 class Priors:
     """1-sigma uncertainties of the inputs the user measured (defaults: a tape-measured room)."""
@@ -56,6 +75,7 @@ class Priors:
     distortion_sigma: float = 0.05  # each distortion coefficient
     readout_sigma_s: float = 0.02  # rolling-shutter readout time (prior mean: the calibration's)
     aspect_sigma_rel: float = 0.001  # fx / fy (pixel aspect: a property of the sensor, well known)
+    jig: Jig | None = None  # a rest at a known pose, which fixes the rig's gauge
 
     def marker(self, marker_id: int) -> MarkerPrior:
         return self.markers.get(marker_id, MarkerPrior(self.survey_sigma_m, self.survey_sigma_deg))
@@ -92,6 +112,7 @@ def parse_priors(obj: Any, source: str) -> Priors:
         "distortion_sigma",
         "readout_sigma_s",
         "aspect_sigma_rel",
+        "jig",
     }
     unknown = sorted(set(map(str, obj)) - known_keys)
     if unknown:
@@ -137,6 +158,50 @@ def parse_priors(obj: Any, source: str) -> Priors:
         distortion_sigma=_positive(obj, "distortion_sigma", d.distortion_sigma, where),
         readout_sigma_s=_positive(obj, "readout_sigma_s", d.readout_sigma_s, where),
         aspect_sigma_rel=_positive(obj, "aspect_sigma_rel", d.aspect_sigma_rel, where),
+        jig=_jig(obj.get("jig"), f"{where}.jig"),
+    )
+
+
+def _vector(value: Any, where: str, shape: tuple[int, ...]) -> np.ndarray:
+    try:
+        a = np.asarray(value, float)
+    except (TypeError, ValueError, OverflowError):
+        a = np.zeros(0)
+    if a.shape != shape or not np.isfinite(a).all():
+        want = {(): "a number", (3,): "3 numbers"}.get(shape, "3 rows of 3 numbers")
+        raise ConfigError(f"{where}: must be {want}, not {value!r}")
+    return a
+
+
+def _jig(obj: Any, where: str) -> Jig | None:
+    """``refine: jig:`` -> Jig: from, to (s), position [x, y, z] (m), R_world_bundle (3x3),
+    optional sigma_m and sigma_deg."""
+    if obj is None:
+        return None
+    if not isinstance(obj, dict):
+        raise ConfigError(f"{where}: must be a mapping with from, to, position, R_world_bundle")
+    keys = {"from", "to", "position", "R_world_bundle", "sigma_m", "sigma_deg"}
+    unknown = sorted(set(map(str, obj)) - keys)
+    missing = sorted({"from", "to", "position", "R_world_bundle"} - set(map(str, obj)))
+    if unknown or missing:
+        what = (
+            f"unknown key(s) {', '.join(unknown)}" if unknown else f"missing {', '.join(missing)}"
+        )
+        raise ConfigError(f"{where}: {what} (keys: {', '.join(sorted(keys))})")
+    start, end = (float(_vector(obj[k], f"{where}.{k}", ())) for k in ("from", "to"))
+    if not end > start:
+        raise ConfigError(f"{where}: 'to' ({end}) must come after 'from' ({start})")
+    R = _vector(obj["R_world_bundle"], f"{where}.R_world_bundle", (3, 3))
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-5 or np.linalg.det(R) < 0:
+        raise ConfigError(f"{where}.R_world_bundle: not a rotation (need R^T R = I and det +1)")
+    u, _, vt = np.linalg.svd(R)
+    return Jig(
+        start,
+        end,
+        _vector(obj["position"], f"{where}.position", (3,)),
+        u @ vt,
+        _positive(obj, "sigma_m", JIG_SIGMA_M, where),
+        _positive(obj, "sigma_deg", JIG_SIGMA_DEG, where),
     )
 
 

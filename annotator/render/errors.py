@@ -20,7 +20,7 @@ from annotator.render.camera import CameraModel
 from bgt_core.formats.markers import MarkerPose
 
 # Stream numbers of the kinds of error (part of the seed: do not renumber).
-_SURVEY, _RIG, _INTRINSICS, _SKIPPED = 1, 2, 3, 5
+_SURVEY, _RIG, _INTRINSICS, _SKIPPED, _JIG = 1, 2, 3, 5, 6
 
 
 @dataclass(frozen=True)
@@ -205,3 +205,35 @@ def perturbation_record(
             "dist_offset": [float(b - a) for a, b in zip(tc.dist, wc.dist, strict=True)],
         }
     return {"settings": settings, "markers": markers, "cameras": cameras}
+
+
+def jig_entry(
+    position: np.ndarray,
+    rotation: Rotation,
+    start: float,
+    end: float,
+    sigma_m: float,
+    sigma_deg: float,
+    seed: int,
+    perturb: bool,
+) -> tuple[dict[str, object], dict[str, list[float]]]:
+    """experiment.yaml's ``refine: jig:`` for a rest at the true pose (``position``, ``rotation``:
+    R_world_bundle), written off by the jig's stated sigmas when ``perturb``; and the error
+    written (offset_m, rotation_offset_deg: world-frame rotation vector) for perturbation.yaml."""
+    rng = _stream(seed, _JIG)
+    d_pos = sigma_m * rng.standard_normal(3) if perturb else np.zeros(3)
+    d_rot = np.radians(sigma_deg) * rng.standard_normal(3) if perturb else np.zeros(3)
+    R = (Rotation.from_rotvec(d_rot) * rotation).as_matrix()
+    entry = {
+        "from": float(start),
+        "to": float(end),
+        "position": [round(float(v), 6) for v in np.asarray(position) + d_pos],
+        "R_world_bundle": [[round(float(v), 9) for v in row] for row in R],
+        "sigma_m": float(sigma_m),
+        "sigma_deg": float(sigma_deg),
+    }
+    error = {
+        "offset_m": [float(v) for v in d_pos],
+        "rotation_offset_deg": [float(v) for v in np.degrees(d_rot)],
+    }
+    return entry, error

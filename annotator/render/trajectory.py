@@ -166,3 +166,20 @@ class PolylineTrajectory:
             yaw = np.full(len(t), heading[0])
         z = _height(tau, self.height, self.height_swing)
         return np.column_stack([xy, z]), _wobbly_rotation(yaw, tau, self.wobble_deg)
+
+
+@dataclass(frozen=True)
+class RestFirst:
+    """``walk`` preceded by a rest: for ``rest`` s from ``walk``'s t0 the bundle sits still at the
+    walk's start pose (on a jig, see annotator.core.jig), then walks it from the start."""
+
+    walk: LoopTrajectory | PolylineTrajectory
+    rest: float
+
+    @property
+    def t0(self) -> float:
+        return self.walk.t0
+
+    def __call__(self, t: np.ndarray) -> tuple[np.ndarray, Rotation]:
+        t = np.atleast_1d(np.asarray(t, float))
+        return self.walk(np.where(t < self.t0 + self.rest, self.t0, t - self.rest))

@@ -1,0 +1,116 @@
+"""The rig's gauge from a rest on a jig: pure arrays, no I/O.
+
+The video fixes every camera's pose in the room, and the cameras' poses relative to each other,
+but not where the cameras sit on the bundle as a whole: a common turn or shift of every camera in
+the bundle frame moves each bundle pose by the same rigid motion and leaves every image alike.
+That gauge comes from rig.yaml, measured by hand (~1 deg, ~3 mm), and its error is the floor of
+the bundle's orientation error. While the bundle rests at a known pose (a jig: a levelled plate
+squared to a wall of the room) the tracked pose T_i of each row and the jig's pose T_jig give that
+common correction C = T_i^-1 T_jig in the bundle frame; then every bundle pose becomes T C and
+every camera's place on the bundle C^-1 T_bundle_camera, and the cameras' poses in the room stay
+exactly as the video says.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from annotator.core.priors import Jig
+
+
+@dataclass(frozen=True, eq=False)
+class JigCorrection:
+    """C: bundle-frame rotation ``R`` and shift ``t`` (m) that take a tracked pose to the true one."""
+
+    R: np.ndarray  # (3, 3)
+    t: np.ndarray  # (3,)
+    rows: int  # trajectory rows on the jig that gave it
+    spread_deg: float  # RMS scatter of the per-row corrections (how still the bundle sat)
+    spread_m: float
+    world_R: np.ndarray  # (3, 3) the jig's R_world_bundle
+
+    @property
+    def angle_deg(self) -> float:
+        return float(np.degrees(Rotation.from_matrix(self.R).magnitude()))
+
+    def record(self) -> dict[str, object]:
+        """The correction as report.json's ``jig`` entry."""
+        return {
+            "rows": self.rows,
+            "rotation_deg": round(self.angle_deg, 4),
+            "rotation_vector_deg": np.round(
+                np.degrees(Rotation.from_matrix(self.R).as_rotvec()), 4
+            ).tolist(),
+            "shift_m": np.round(self.t, 5).tolist(),
+            "spread_deg": round(self.spread_deg, 4),
+            "spread_m": round(self.spread_m, 5),
+        }
+
+
+def jig_correction(
+    t: np.ndarray, position: np.ndarray, rotation: np.ndarray, jig: Jig
+) -> JigCorrection | None:
+    """C from the posed rows within the jig's time window; None when none was posed there."""
+    sel = (
+        (t >= jig.start)
+        & (t <= jig.end)
+        & np.isfinite(position).all(axis=1)
+        & np.isfinite(rotation.reshape(len(t), 9)).all(axis=1)
+    )
+    if not sel.any():
+        return None
+    R_i, p_i = rotation[sel], position[sel]
+    rots = Rotation.from_matrix(np.swapaxes(R_i, 1, 2) @ jig.rotation)  # R_i^T R_jig
+    shifts = np.einsum("nji,nj->ni", R_i, jig.position - p_i)  # R_i^T (p_jig - p_i)
+    mean = rots.mean()
+    shift = shifts.mean(axis=0)
+    spread_deg = math.degrees(float(np.sqrt(np.mean((mean.inv() * rots).magnitude() ** 2))))
+    spread_m = float(np.sqrt(np.mean(np.sum((shifts - shift) ** 2, axis=1))))
+    return JigCorrection(
+        mean.as_matrix(), shift, int(sel.sum()), spread_deg, spread_m, jig.rotation
+    )
+
+
+def shift_shares(var_rig: float, var_datum: float, var_jig: float) -> tuple[float, float, float]:
+    """How to split the jig's position discrepancy: (share for the rig, share for the map's datum,
+    the rig's variance left after it), per axis.
+
+    A rest at a known position cannot tell a rig shift (in the bundle frame: it turns with the
+    bundle) from a shift of the whole map (the survey's mean error: in the room frame) or from the
+    jig's own error; each is credited with its share of the variance (the best linear estimate).
+    A rotation is all the rig's: the map's datum turns by hundredths of a degree.
+    """
+    total = var_rig + var_datum + var_jig
+    if total <= 0:
+        return 0.0, 0.0, 0.0
+    return var_rig / total, var_datum / total, var_rig * (var_datum + var_jig) / total
+
+
+def split_shift(
+    c: JigCorrection, rig_share: float, datum_share: float
+) -> tuple[JigCorrection, np.ndarray]:
+    """C with only the rig's share of its shift, and the map's share as a room-frame shift (m)
+    (every position and marker moves by it; both taken at the jig's orientation)."""
+    world = datum_share * (c.world_R @ c.t)
+    return (
+        JigCorrection(c.R, rig_share * c.t, c.rows, c.spread_deg, c.spread_m, c.world_R),
+        world,
+    )
+
+
+def correct_poses(
+    position: np.ndarray, rotation: np.ndarray, c: JigCorrection
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every bundle pose T -> T C (rows without a pose stay NaN)."""
+    return position + rotation @ c.t, rotation @ c.R
+
+
+def correct_camera(
+    R_bundle_camera: np.ndarray, t_bundle_camera: np.ndarray, c: JigCorrection
+) -> tuple[np.ndarray, np.ndarray]:
+    """A camera's place on the bundle T_bc -> C^-1 T_bc."""
+    return c.R.T @ R_bundle_camera, c.R.T @ (t_bundle_camera - c.t)
