@@ -283,7 +283,7 @@ def _track_rig(
         if not refinement.mapped:
             break  # a second round only helps when markers were mapped from a trajectory with gaps
     if exp.priors.jig is not None:
-        exp, pos, R, refinement = _apply_jig(exp, t_out, pos, R, refinement)
+        exp, pos, R, refinement = _apply_jig(exp, given, t_out, pos, R, refinement)
     posterior = (
         params
         if params is not None
@@ -313,13 +313,15 @@ JIG_MAX_CORRECTION = (5.0, 50.0)
 
 def _apply_jig(
     exp: Experiment,
+    given: Experiment,
     t_out: np.ndarray,
     pos: np.ndarray,
     R: np.ndarray,
     refinement: Refinement | None,
 ) -> tuple[Experiment, np.ndarray, np.ndarray, Refinement | None]:
     """The rig's gauge from the rest on the jig (annotator.core.jig): every pose and the rig
-    corrected by one common bundle-frame motion; the refinement's experiment and report say so."""
+    corrected by one common bundle-frame motion; the refinement's experiment and report say so.
+    ``given``: the experiment as written (which markers were surveyed)."""
     jig = exp.priors.jig
     assert jig is not None
     c = jig_correction(t_out, pos, R, jig)
@@ -358,7 +360,7 @@ def _apply_jig(
     seen = (
         refinement.report["markers_seen"] if refinement is not None else list(exp.markers.markers)
     )
-    surveyed = [m for m in seen if m in exp.markers.markers and pr.marker(m).known]
+    surveyed = [m for m in seen if m in given.markers.markers and pr.marker(m).known]
     rig_share, datum_share, _ = shift_shares(
         pr.rig_sigma_m**2 / len(exp.rig.cameras),
         float(np.mean([pr.marker(m).sigma_m ** 2 for m in surveyed])) / max(len(surveyed), 1),
