@@ -34,13 +34,7 @@ import cv2
 import numpy as np
 
 from annotator.core.experiment import Experiment, MarkerSetup, RigCamera
-from annotator.core.jig import (
-    correct_camera,
-    correct_poses,
-    jig_correction,
-    shift_shares,
-    split_shift,
-)
+from annotator.core.jig import correct_experiment, datum_variance, jig_correction
 from annotator.core.priors import ParameterCovariance
 from annotator.core.refine import Refinement, RefineSettings, refine_capture
 from annotator.core.tracking import (
@@ -62,7 +56,6 @@ from annotator.vision.detection import MarkerDetector
 from annotator.vision.geometry import MarkerRoom
 from annotator.vision.paper import marker_poses
 from annotator.vision.pose import observe, solve_bundle_pose
-from bgt_core.formats.markers import MarkerPose
 
 if TYPE_CHECKING:
     from annotator.core.labeling import Labels
@@ -305,12 +298,6 @@ def _track_rig(
     return TrackResult(traj, refinement, params)
 
 
-# A rest whose tracked poses scatter more than this (deg, mm) was not still; a correction beyond
-# this (deg, mm) is not a hand-measured rig's error but a wrong jig entry. Both only warn.
-JIG_MAX_SCATTER = (0.3, 10.0)
-JIG_MAX_CORRECTION = (5.0, 50.0)
-
-
 def _apply_jig(
     exp: Experiment,
     given: Experiment,
@@ -319,9 +306,9 @@ def _apply_jig(
     R: np.ndarray,
     refinement: Refinement | None,
 ) -> tuple[Experiment, np.ndarray, np.ndarray, Refinement | None]:
-    """The rig's gauge from the rest on the jig (annotator.core.jig): every pose and the rig
-    corrected by one common bundle-frame motion; the refinement's experiment and report say so.
-    ``given``: the experiment as written (which markers were surveyed)."""
+    """The rig's gauge from the rest on the jig (annotator.core.jig): every pose, the rig and the
+    map corrected; the refinement's experiment and report say so. ``given``: the experiment as
+    written (which markers were surveyed)."""
     jig = exp.priors.jig
     assert jig is not None
     c = jig_correction(t_out, pos, R, jig)
@@ -332,59 +319,17 @@ def _apply_jig(
             jig.end,
         )
         return exp, pos, R, refinement
-    shift_mm = 1000 * float(np.linalg.norm(c.t))
-    log.info(
-        "jig: rig turned by %.3f deg and shifted by %.1f mm (%d rows, scatter %.3f deg)",
-        c.angle_deg,
-        shift_mm,
-        c.rows,
-        c.spread_deg,
-    )
-    if c.spread_deg > JIG_MAX_SCATTER[0] or 1000 * c.spread_m > JIG_MAX_SCATTER[1]:
-        log.warning(
-            "jig: the bundle did not sit still from %.2f to %.2f s (scatter %.2f deg, %.1f mm): "
-            "check the window",
-            jig.start,
-            jig.end,
-            c.spread_deg,
-            1000 * c.spread_m,
-        )
-    if c.angle_deg > JIG_MAX_CORRECTION[0] or shift_mm > JIG_MAX_CORRECTION[1]:
-        log.warning(
-            "jig: a correction of %.1f deg / %.0f mm is far beyond a hand-measured rig: check the "
-            "jig's pose and window",
-            c.angle_deg,
-            shift_mm,
-        )
-    pr = exp.priors
+    for problem in c.problems():
+        log.warning("jig: %s", problem)
     seen = (
-        refinement.report["markers_seen"] if refinement is not None else list(exp.markers.markers)
+        refinement.report["markers_seen"] if refinement is not None else list(given.markers.markers)
     )
+    pr = exp.priors
     surveyed = [m for m in seen if m in given.markers.markers and pr.marker(m).known]
-    rig_share, datum_share, _ = shift_shares(
-        pr.rig_sigma_m**2 / len(exp.rig.cameras),
-        float(np.mean([pr.marker(m).sigma_m ** 2 for m in surveyed])) / max(len(surveyed), 1),
-        jig.sigma_m**2,
+    exp, pos, R, record = correct_experiment(
+        exp, pos, R, c, datum_variance([pr.marker(m).sigma_m for m in surveyed])
     )
-    record = c.record()
-    c, world = split_shift(c, rig_share, datum_share)
-    cams = {}
-    for name, cam in exp.rig.cameras.items():
-        R_bc, t_bc = correct_camera(cam.R_bundle_camera, cam.t_bundle_camera, c)
-        cams[name] = dataclasses.replace(cam, R_bundle_camera=R_bc, t_bundle_camera=t_bc)
-    markers = {
-        i: MarkerPose.from_values(i, np.add(m.position, world), m.euler_xyz)
-        for i, m in exp.markers.markers.items()
-    }
-    exp = dataclasses.replace(
-        exp,
-        rig=dataclasses.replace(exp.rig, cameras=cams),
-        markers=dataclasses.replace(exp.markers, markers=markers),
-    )
-    pos, R = correct_poses(pos, R, c)
-    pos = pos + world
     if refinement is not None:
-        record.update(rig_shift_share=round(rig_share, 3), map_shift_m=np.round(world, 5).tolist())
         refinement.report["jig"] = record
         refinement = dataclasses.replace(refinement, experiment=exp)
     return exp, pos, R, refinement

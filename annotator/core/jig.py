@@ -14,12 +14,19 @@ exactly as the video says.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from annotator.core.experiment import Experiment
 from annotator.core.priors import Jig
+from bgt_core.formats.markers import MarkerPose
+
+# A rest whose tracked poses scatter more than this (deg, m) was not still; a correction beyond
+# this (deg, m) is not a hand-measured rig's error but a wrong jig entry. Both only warn.
+MAX_SCATTER = (0.3, 0.010)
+MAX_CORRECTION = (5.0, 0.050)
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,6 +43,22 @@ class JigCorrection:
     @property
     def angle_deg(self) -> float:
         return float(np.degrees(Rotation.from_matrix(self.R).magnitude()))
+
+    def problems(self) -> list[str]:
+        """What looks wrong with the rest (for a warning each)."""
+        out = []
+        if self.spread_deg > MAX_SCATTER[0] or self.spread_m > MAX_SCATTER[1]:
+            out.append(
+                f"the bundle did not sit still on the jig (scatter {self.spread_deg:.2f} deg, "
+                f"{1000 * self.spread_m:.1f} mm over {self.rows} rows): check the window"
+            )
+        shift = float(np.linalg.norm(self.t))
+        if self.angle_deg > MAX_CORRECTION[0] or shift > MAX_CORRECTION[1]:
+            out.append(
+                f"a correction of {self.angle_deg:.1f} deg / {1000 * shift:.0f} mm is far beyond a "
+                "hand-measured rig: check the jig's pose and window"
+            )
+        return out
 
     def record(self) -> dict[str, object]:
         """The correction as report.json's ``jig`` entry."""
@@ -114,3 +137,45 @@ def correct_camera(
 ) -> tuple[np.ndarray, np.ndarray]:
     """A camera's place on the bundle T_bc -> C^-1 T_bc."""
     return c.R.T @ R_bundle_camera, c.R.T @ (t_bundle_camera - c.t)
+
+
+def datum_variance(sigma_m: list[float] | np.ndarray) -> float:
+    """Per-axis variance of where the map sits: the mean survey variance of the surveyed markers
+    the walk saw over their count (0 without any)."""
+    s = np.asarray(sigma_m, float)
+    return float(np.mean(s**2)) / len(s) if len(s) else 0.0
+
+
+def correct_experiment(
+    exp: Experiment,
+    position: np.ndarray,
+    rotation: np.ndarray,
+    c: JigCorrection,
+    var_datum: float,
+) -> tuple[Experiment, np.ndarray, np.ndarray, dict[str, object]]:
+    """The experiment (rig and map), the poses and report.json's ``jig`` record after the jig:
+    the rotation and the rig's share of the shift in the bundle frame, the map's share in the
+    room (``var_datum``: see datum_variance; shift_shares splits)."""
+    pr = exp.priors
+    assert pr.jig is not None
+    rig_share, datum_share, _ = shift_shares(
+        pr.rig_sigma_m**2 / len(exp.rig.cameras), var_datum, pr.jig.sigma_m**2
+    )
+    record = c.record()
+    c, world = split_shift(c, rig_share, datum_share)
+    cams = {}
+    for name, cam in exp.rig.cameras.items():
+        R_bc, t_bc = correct_camera(cam.R_bundle_camera, cam.t_bundle_camera, c)
+        cams[name] = replace(cam, R_bundle_camera=R_bc, t_bundle_camera=t_bc)
+    markers = {
+        i: MarkerPose.from_values(i, np.add(m.position, world), m.euler_xyz)
+        for i, m in exp.markers.markers.items()
+    }
+    exp = replace(
+        exp,
+        rig=replace(exp.rig, cameras=cams),
+        markers=replace(exp.markers, markers=markers),
+    )
+    position, rotation = correct_poses(position, rotation, c)
+    record.update(rig_shift_share=round(rig_share, 3), map_shift_m=np.round(world, 5).tolist())
+    return exp, position + world, rotation, record

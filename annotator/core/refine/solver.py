@@ -14,7 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
-from annotator.core.jig import shift_shares
+from annotator.core.jig import datum_variance, shift_shares
 from annotator.core.priors import ParameterCovariance
 from annotator.core.refine.model import (
     _FD_STEP,
@@ -660,9 +660,9 @@ def _rig_gauge(layout: _Layout, prob: Problem, t_bc: np.ndarray) -> np.ndarray:
     var = np.array([math.radians(pr.rig_sigma_deg) ** 2] * 3 + [pr.rig_sigma_m**2] * 3) / n
     if pr.jig is not None:  # the pipeline sets the gauge from a rest on the jig (core/jig.py)
         rot = 1 / (1 / var[0] + 1 / math.radians(pr.jig.sigma_deg) ** 2)
-        datum = prob.marker_sigma[layout.free_markers & np.isfinite(prob.marker_sigma[:, 1]), 1]
+        surveyed = layout.free_markers & np.isfinite(prob.marker_sigma[:, 1])
         _, _, shift = shift_shares(
-            var[3], float(np.mean(datum**2)) / len(datum) if len(datum) else 0.0, pr.jig.sigma_m**2
+            var[3], datum_variance(prob.marker_sigma[surveyed, 1]), pr.jig.sigma_m**2
         )
         var = np.array([rot] * 3 + [shift] * 3)
     return (G * var) @ G.T

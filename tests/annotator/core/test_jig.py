@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from annotator.core.jig import (
     correct_camera,
     correct_poses,
+    datum_variance,
     jig_correction,
     shift_shares,
     split_shift,
@@ -132,3 +133,25 @@ def test_a_bad_jig_entry_is_one_clear_error(entry: object, message: str) -> None
         parse_priors({"jig": entry}, "e.yaml")
     assert "\n" not in str(err.value)
     assert str(err.value).startswith("e.yaml: refine.jig")
+
+
+def test_a_restless_bundle_or_a_wrong_jig_pose_is_named() -> None:
+    t, R_true, p_true, _, _, R_est, p_est = _scene(np.random.default_rng(4))
+    jig = Jig(t[0], t[14], p_true[0], R_true[0])
+    c = jig_correction(t, p_est, R_est, jig)
+    assert c is not None
+    assert c.problems() == []  # a 1.4 deg, 5 mm rig error on a still bundle
+    p_est[3:6] += [0.03, 0, 0]
+    c = jig_correction(t, p_est, R_est, jig)
+    assert c is not None
+    assert [p.split(" (")[0] for p in c.problems()] == ["the bundle did not sit still on the jig"]
+    turned = Rotation.from_rotvec([0, 0, np.radians(10)]).as_matrix() @ R_true[0]
+    c = jig_correction(t, p_est, R_est, Jig(t[0], t[14], p_true[0], turned))
+    assert c is not None
+    assert any("far beyond a hand-measured rig" in p for p in c.problems())
+
+
+def test_the_datum_variance_is_the_mean_survey_variance_over_the_count() -> None:
+    assert datum_variance([0.015] * 9) == pytest.approx(0.015**2 / 9)
+    assert datum_variance([0.01, 0.02]) == pytest.approx((0.01**2 + 0.02**2) / 2 / 2)
+    assert datum_variance([]) == 0.0
