@@ -365,7 +365,7 @@ def _solve(
     cov = lm.static_covariance(Hpp, Hps, Hss)
     post = cov  # the posterior of the final solve, before what the gate holds back
     has_prior = np.isfinite(prob.marker_sigma[:, 1]) & ~lm.skip
-    gated = _gate(x, cov, layout, s, has_prior, floor)
+    gated = _gate(x, cov, layout, s, has_prior)
     held = np.zeros(layout.n_static)  # the corrections the data asked for and that were not applied
     if gated:
         g = layout.n_pose + np.array(gated)
@@ -540,21 +540,14 @@ def marker_floors(prob: Problem, s: RefineSettings) -> np.ndarray:
 
 
 def _gate(
-    x: np.ndarray,
-    cov: np.ndarray,
-    layout: _Layout,
-    s: RefineSettings,
-    has_prior: np.ndarray,
-    floors: np.ndarray,
+    x: np.ndarray, cov: np.ndarray, layout: _Layout, s: RefineSettings, has_prior: np.ndarray
 ) -> list[int]:
     """Static indices of the blocks whose correction is within noise of their prior.
 
     Per-camera blocks: no component beyond ``gate_sigma`` posterior sigmas. The rig as a whole
     (its gauge is pinned to the mean of the cameras, so one camera cannot be judged alone).
     Surveyed markers: the correction's Mahalanobis distance per degree of freedom below
-    ``marker_gate_sigma``, against the posterior plus the marker's ``floors`` (marker_floors: the
-    same noise the moved-since-the-survey test counts; a small far marker's depth correction
-    within its size floor is the corner's bias, not evidence).
+    ``marker_gate_sigma``.
     """
     out: list[int] = []
     if s.gate_sigma <= 0:
@@ -568,7 +561,10 @@ def _gate(
                 if not (layout.free_markers[m] and has_prior[m]):
                     continue
                 d = xs[i : i + 6]
-                if _mahalanobis(d, cov[i : i + 6, i : i + 6] + floors[m]) < s.marker_gate_sigma:
+                floor = np.diag(
+                    [math.radians(s.marker_floor_deg) ** 2] * 3 + [s.marker_floor_m**2] * 3
+                )
+                if _mahalanobis(d, cov[i : i + 6, i : i + 6] + floor) < s.marker_gate_sigma:
                     out.extend(range(i, i + 6))
             continue
         if name == RIG:
