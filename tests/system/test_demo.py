@@ -273,6 +273,9 @@ def test_ctrl_c_during_capture_stops_every_child(tmp_path: Path) -> None:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        # A shell without job control starts background jobs with SIGINT ignored, and Python then
+        # leaves it ignored: restore the default so the test does not depend on how it was started.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         # Wait until the collector and all three agents run (their configs and logs exist).
