@@ -8,7 +8,8 @@ the bundle's orientation error. While the bundle rests at a known pose (a jig: a
 squared to a wall of the room) the tracked pose T_i of each row and the jig's pose T_jig give that
 common correction C = T_i^-1 T_jig in the bundle frame; then every bundle pose becomes T C and
 every camera's place on the bundle C^-1 T_bundle_camera, and the cameras' poses in the room stay
-exactly as the video says.
+exactly as the video says. C's turn is the rig's; its shift is split (shift_shares) between the
+rig, the map's datum (a shift of every marker and position in the room) and the jig's own error.
 """
 
 from __future__ import annotations
