@@ -39,7 +39,6 @@ class JigCorrection:
     rows: int  # trajectory rows on the jig that gave it
     spread_deg: float  # RMS scatter of the per-row corrections (how still the bundle sat)
     spread_m: float
-    world_R: np.ndarray  # (3, 3) the jig's R_world_bundle
 
     @property
     def angle_deg(self) -> float:
@@ -94,9 +93,7 @@ def jig_correction(
     shift = shifts.mean(axis=0)
     spread_deg = math.degrees(float(np.sqrt(np.mean((mean.inv() * rots).magnitude() ** 2))))
     spread_m = float(np.sqrt(np.mean(np.sum((shifts - shift) ** 2, axis=1))))
-    return JigCorrection(
-        mean.as_matrix(), shift, int(sel.sum()), spread_deg, spread_m, jig.rotation
-    )
+    return JigCorrection(mean.as_matrix(), shift, int(sel.sum()), spread_deg, spread_m)
 
 
 def shift_shares(var_rig: float, var_datum: float, var_jig: float) -> tuple[float, float, float]:
@@ -115,15 +112,11 @@ def shift_shares(var_rig: float, var_datum: float, var_jig: float) -> tuple[floa
 
 
 def split_shift(
-    c: JigCorrection, rig_share: float, datum_share: float
+    c: JigCorrection, rig_share: float, datum_share: float, R_world_bundle: np.ndarray
 ) -> tuple[JigCorrection, np.ndarray]:
     """C with only the rig's share of its shift, and the map's share as a room-frame shift (m)
-    (every position and marker moves by it; both taken at the jig's orientation)."""
-    world = datum_share * (c.world_R @ c.t)
-    return (
-        JigCorrection(c.R, rig_share * c.t, c.rows, c.spread_deg, c.spread_m, c.world_R),
-        world,
-    )
+    (every position and marker moves by it), both taken at the jig's orientation R_world_bundle."""
+    return replace(c, t=rig_share * c.t), datum_share * (R_world_bundle @ c.t)
 
 
 def correct_poses(
@@ -163,7 +156,7 @@ def correct_experiment(
         pr.rig_sigma_m**2 / len(exp.rig.cameras), var_datum, pr.jig.sigma_m**2
     )
     record = c.record()
-    c, world = split_shift(c, rig_share, datum_share)
+    c, world = split_shift(c, rig_share, datum_share, pr.jig.rotation)
     cams = {}
     for name, cam in exp.rig.cameras.items():
         R_bc, t_bc = correct_camera(cam.R_bundle_camera, cam.t_bundle_camera, c)

@@ -85,7 +85,7 @@ def test_the_shift_is_split_by_variance_between_rig_map_and_jig() -> None:
     t, R_true, p_true, _, _, R_est, p_est = _scene(np.random.default_rng(3))
     c = jig_correction(t, p_est, R_est, Jig(t[0], t[14], p_true[0], R_true[0]))
     assert c is not None
-    part, world = split_shift(c, 0.25, 0.5)
+    part, world = split_shift(c, 0.25, 0.5, R_true[0])
     assert np.allclose(part.t, 0.25 * c.t)
     assert np.allclose(part.R, c.R)
     # The map's share is the same displacement, in the room frame at the jig's orientation.
