@@ -34,12 +34,19 @@ import cv2
 import numpy as np
 
 from annotator.core.experiment import Experiment, MarkerSetup, RigCamera
-from annotator.core.jig import correct_experiment, datum_variance, jig_correction
+from annotator.core.jig import (
+    correct_experiment,
+    datum_variance,
+    jig_correction,
+    rest_rows,
+    rest_variance,
+)
 from annotator.core.priors import ParameterCovariance
 from annotator.core.refine import Refinement, RefineSettings, refine_capture
 from annotator.core.tracking import (
     CameraFrames,
     TrackSettings,
+    anchor_unresolved,
     joint_measurements,
     mapped_poses,
     measurement_quality,
@@ -49,7 +56,12 @@ from annotator.core.tracking import (
     track_paper,
 )
 from annotator.core.trajectory import Trajectory
-from annotator.core.uncertainty import row_uncertainty, sync_time_sigma, total_sigma
+from annotator.core.uncertainty import (
+    condition_on_rest,
+    row_uncertainty,
+    sync_time_sigma,
+    total_sigma,
+)
 from annotator.errors import NoDataError
 from annotator.io.video import iter_frames, video_info
 from annotator.vision.detection import MarkerDetector
@@ -230,6 +242,8 @@ def _track_rig(
     ]
     if not singles:
         raise NoDataError(f"{exp.path}: no marker from the map was detected in any video")
+    seen = len(singles)
+    singles = anchor_unresolved(singles, frames, exp, room, settings.solver, s)
     meas = stack_poses(resolve_ambiguities(singles, s.max_gap_s))
     pos, R, sig = smooth(meas, t_out, s, pool)
     if settings.joint and len(frames) > 1:
@@ -238,6 +252,12 @@ def _track_rig(
         )
         meas = stack_poses(joint)
         pos, R, sig = smooth(meas, t_out, s, pool)
+    if not np.isfinite(pos).all(1).any():
+        raise NoDataError(
+            f"{exp.path}: no frame could be posed: {seen} frames saw markers of the map, never "
+            "enough of them for a sure pose (a lone far marker is ambiguous); add markers near "
+            "the walk to the map"
+        )
     refinement = None
     given = exp
     rounds = 2 if settings.refine != "none" else 0
@@ -282,6 +302,21 @@ def _track_rig(
         if params is not None
         else (refinement.covariance if refinement is not None else None)
     )
+    if posterior is not None and refinement is not None and "jig" in refinement.report:
+        # The rest pinned the rig's gauge and where the map sits near it: condition on it.
+        jig = exp.priors.jig
+        assert jig is not None
+        posterior = condition_on_rest(
+            frames,
+            exp,
+            t_out,
+            pos,
+            R,
+            posterior,
+            rest_rows(t_out, pos, R, jig),
+            rest_variance(jig),
+            settings.uncertainty,
+        )
     if posterior is not None:
         params = posterior
     else:

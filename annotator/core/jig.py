@@ -10,6 +10,8 @@ common correction C = T_i^-1 T_jig in the bundle frame; then every bundle pose b
 every camera's place on the bundle C^-1 T_bundle_camera, and the cameras' poses in the room stay
 exactly as the video says. C's turn is the rig's; its shift is split (shift_shares) between the
 rig, the map's datum (a shift of every marker and position in the room) and the jig's own error.
+sigma_m is then conditioned on the rest (uncertainty.condition_on_rest, rows ``rest_rows``,
+variance ``rest_variance``).
 """
 
 from __future__ import annotations
@@ -74,16 +76,26 @@ class JigCorrection:
         }
 
 
-def jig_correction(
-    t: np.ndarray, position: np.ndarray, rotation: np.ndarray, jig: Jig
-) -> JigCorrection | None:
-    """C from the posed rows within the jig's time window; None when none was posed there."""
-    sel = (
+def rest_rows(t: np.ndarray, position: np.ndarray, rotation: np.ndarray, jig: Jig) -> np.ndarray:
+    """Mask of the posed rows within the jig's time window."""
+    return (
         (t >= jig.start)
         & (t <= jig.end)
         & np.isfinite(position).all(axis=1)
         & np.isfinite(rotation.reshape(len(t), 9)).all(axis=1)
     )
+
+
+def rest_variance(jig: Jig) -> np.ndarray:
+    """(6,) per-axis variance of the jig's pose: rotation (rad^2), then position (m^2)."""
+    return np.array([math.radians(jig.sigma_deg) ** 2] * 3 + [jig.sigma_m**2] * 3)
+
+
+def jig_correction(
+    t: np.ndarray, position: np.ndarray, rotation: np.ndarray, jig: Jig
+) -> JigCorrection | None:
+    """C from the posed rows within the jig's time window; None when none was posed there."""
+    sel = rest_rows(t, position, rotation, jig)
     if not sel.any():
         return None
     R_i, p_i = rotation[sel], position[sel]
@@ -96,9 +108,9 @@ def jig_correction(
     return JigCorrection(mean.as_matrix(), shift, int(sel.sum()), spread_deg, spread_m)
 
 
-def shift_shares(var_rig: float, var_datum: float, var_jig: float) -> tuple[float, float, float]:
-    """How to split the jig's position discrepancy: (share for the rig, share for the map's datum,
-    the rig's variance left after it), per axis.
+def shift_shares(var_rig: float, var_datum: float, var_jig: float) -> tuple[float, float]:
+    """How to split the jig's position discrepancy: (share for the rig, share for the map's datum),
+    per axis.
 
     A rest at a known position cannot tell a rig shift (in the bundle frame: it turns with the
     bundle) from a shift of the whole map (the survey's mean error: in the room frame) or from the
@@ -107,8 +119,8 @@ def shift_shares(var_rig: float, var_datum: float, var_jig: float) -> tuple[floa
     """
     total = var_rig + var_datum + var_jig
     if total <= 0:
-        return 0.0, 0.0, 0.0
-    return var_rig / total, var_datum / total, var_rig * (var_datum + var_jig) / total
+        return 0.0, 0.0
+    return var_rig / total, var_datum / total
 
 
 def split_shift(
@@ -152,7 +164,7 @@ def correct_experiment(
     room (``var_datum``: see datum_variance; shift_shares splits)."""
     pr = exp.priors
     assert pr.jig is not None
-    rig_share, datum_share, _ = shift_shares(
+    rig_share, datum_share = shift_shares(
         pr.rig_sigma_m**2 / len(exp.rig.cameras), var_datum, pr.jig.sigma_m**2
     )
     record = c.record()

@@ -121,6 +121,74 @@ def resolve_ambiguities(
     return sorted(out, key=lambda it: it[0])
 
 
+def _position_sigma(p: BundlePose) -> float:
+    return float(np.sqrt(np.trace(p.cov[3:, 3:]) / 3))
+
+
+def anchor_unresolved(
+    singles: list[tuple[float, BundlePose]],
+    frames: list[CameraFrames],
+    exp: Experiment,
+    room: MarkerRoom,
+    solver: SolverSettings,
+    smoother: SmootherSettings,
+) -> list[tuple[float, BundlePose]]:
+    """``singles`` plus still joint solves where no single-camera pose is both unambiguous and
+    precise enough for the smoother (``smoother.max_meas_sigma_m``) within ``smoother.max_gap_s``.
+
+    With a sparse map (a few surveyed markers) each camera often sees one known marker, far away:
+    its pose is a mirror pair, metres deep. Two cameras looking different ways fix the pose
+    together: those frames of the first camera are solved jointly with the other cameras' nearest
+    frames (within half a frame), the bundle taken as still between them. The later passes redo
+    these solves with the motion; this only gives them a start. A frame's own single pose is
+    replaced by the joint one.
+    """
+    if len(frames) < 2:
+        return singles
+    t_good = np.sort(
+        [
+            t
+            for t, p in singles
+            if not p.alternatives and _position_sigma(p) <= smoother.max_meas_sigma_m
+        ]
+    )
+    base = frames[0]
+    found: dict[float, BundlePose] = {}
+    for k, t in enumerate(base.t):
+        t = float(t)
+        if len(t_good) and float(np.min(np.abs(t_good - t))) <= smoother.max_gap_s:
+            continue
+        obs = []
+        for cf in frames:
+            j = k if cf is base else int(np.argmin(np.abs(cf.t - t))) if len(cf.t) else -1
+            if (
+                j < 0
+                or abs(cf.t[j] - t) > 0.5 * base.frame_interval
+                or not len(cf.detections[j].ids)
+            ):
+                continue
+            cam = exp.rig.cameras[cf.camera]
+            obs.append(
+                observe(
+                    cf.detections[j],
+                    room,
+                    cam.calibration,
+                    cam.R_bundle_camera,
+                    cam.t_bundle_camera,
+                )
+            )
+        if sum(1 for o in obs if len(o.ids)) < 2:
+            continue  # one camera alone gave its single pose already
+        pose = solve_bundle_pose(obs, room, solver)
+        if pose is not None and not pose.alternatives:
+            found[t] = pose
+    if not found:
+        return singles
+    log.info("%d frames posed by still joint solves (no precise single pose near)", len(found))
+    kept = [(t, p) for t, p in singles if t not in found]
+    return sorted(kept + list(found.items()), key=lambda it: it[0])
+
+
 def smooth(
     meas: Trajectory,
     t_out: np.ndarray,

@@ -332,6 +332,8 @@ class FrameJacobians:
     # Covariance over all blocks' columns (BLOCKS order, then the corner bias) when the record
     # correlates them (refinement); None: the blocks are independent, L alone describes them.
     joint: np.ndarray | None = None
+    # For each of those columns its row in the record's joint covariance (-1: not in the record).
+    joint_rows: np.ndarray | None = None
 
 
 def frame_jacobians(
@@ -426,11 +428,11 @@ def frame_jacobians(
         else np.array([[readout_sigma_s]])
     )
     speeds = np.concatenate([b.speed for b in blocks])
-    joint = None
+    joint, rows = None, None
     if settings.joint_covariance and getattr(params, "joint", None) is not None:
-        joint = _row_joint(params, B, L, blocks, starts, mids, cams, width, n0)
+        joint, rows = _row_joint(params, B, L, blocks, starts, mids, cams, width, n0)
     noise2 = float(e_inner.sum()) / max(2 * len(e_inner), 1)
-    return FrameJacobians(r, w, J, B, L, speeds, noise2, joint)
+    return FrameJacobians(r, w, J, B, L, speeds, noise2, joint, rows)
 
 
 def _joint_rows(
@@ -456,10 +458,10 @@ def _row_joint(
     cams: Sequence[str],
     width: Mapping[str, int],
     n0: int,
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """The row's parameter covariance over the columns of B (BLOCKS order, then the corner bias,
     added to B here): each block's own L L^T, overwritten wherever the joint record has the rows
-    (cross-block terms included)."""
+    (cross-block terms included); and each column's row in the record (-1: none)."""
     assert params.joint is not None
     where = [
         _joint_rows(params, "markers", mids, [6] * len(mids)),
@@ -495,7 +497,7 @@ def _row_joint(
     idx = idx.astype(int)
     have = np.flatnonzero(idx >= 0)
     cov[np.ix_(have, have)] = params.joint[np.ix_(idx[have], idx[have])]
-    return cov
+    return cov, idx
 
 
 def propagate(jac: FrameJacobians) -> tuple[np.ndarray, np.ndarray, float, float] | None:
@@ -531,15 +533,72 @@ def propagate(jac: FrameJacobians) -> tuple[np.ndarray, np.ndarray, float, float
         # Correlated blocks (refinement): the pose error is A theta over all parameters at once,
         # so errors the refinement tied together cancel or add. Each block keeps its share of the
         # joint total (the cross terms spread in proportion to the blocks' own variances).
-        names = [b for b in (*BLOCKS, "bias") if b in jac.B and (b == "bias" or b in jac.L)]
-        Bw = np.concatenate([jac.B[b] for b in names], axis=1) * sw[:, None]
-        A = Hinv @ (Jw.T @ Bw)
+        A, Bw = _joint_sensitivity(jac, sw, Jw, Hinv)
         resid = Bw - Jw @ A
         tot_var = max(float(np.trace(A[3:] @ jac.joint @ A[3:].T)) / 3, 0.0)
         tot_q = max(float(np.trace(resid @ jac.joint @ resid.T)), 0.0)
         var = var * (tot_var / var.sum()) if var.sum() > 0 else np.array([tot_var, 0, 0, 0])
         q = q * (tot_q / q.sum()) if q.sum() > 0 else np.array([tot_q, 0, 0, 0])
     return var, q, e_obs - jac.noise2 * dof, dof
+
+
+def _joint_sensitivity(
+    jac: FrameJacobians, sw: np.ndarray, Jw: np.ndarray, Hinv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(6, k) pose change (rotation, position) per unit error of each column of jac.joint, and
+    those columns' weighted residual Jacobian (m, k)."""
+    names = [b for b in (*BLOCKS, "bias") if b in jac.B and (b == "bias" or b in jac.L)]
+    Bw = np.concatenate([jac.B[b] for b in names], axis=1) * sw[:, None]
+    return Hinv @ (Jw.T @ Bw), Bw
+
+
+def condition_on_rest(
+    frames: Sequence[VideoFrames],
+    exp: Experiment,
+    t_out: np.ndarray,
+    pos: np.ndarray,
+    R: np.ndarray,
+    params: ParameterCovariance,
+    rows: np.ndarray,
+    variance: np.ndarray,
+    settings: UncertaintySettings | None = None,
+) -> ParameterCovariance:
+    """``params`` after the bundle's pose over ``rows`` (a rest) was measured independently with
+    per-axis ``variance`` (6,: rotation rad^2, then position m^2): a Kalman update of the record's
+    joint covariance. The rest's mean pose error is H theta (H: the rows' mean sensitivity to the
+    parameters); every parameter correlated with it (the rig's gauge, the map's datum and turn)
+    loses what the rest pins down. Without a joint record, or no usable row, ``params`` as is."""
+    s = settings or UncertaintySettings()
+    P = params.joint
+    if P is None or not s.joint_covariance or not rows.any():
+        return params
+    omega, vel = trajectory_twist(t_out, pos, R)
+    sel = np.flatnonzero(rows)
+    views = _views_at(frames, exp, t_out[sel], pos[sel], R[sel], omega[sel], vel[sel])
+    room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
+    H = np.zeros((6, P.shape[0]))
+    used = 0
+    cache: dict[int, _ViewBlock | None] = {}
+    for vs in views:
+        jac = (
+            frame_jacobians(vs, room, params, exp.priors.readout_sigma_s, s, cache) if vs else None
+        )
+        if jac is None or jac.joint_rows is None:
+            continue
+        sw = np.sqrt(jac.w)
+        Jw = jac.J * sw[:, None]
+        Hinv = np.linalg.pinv(Jw.T @ Jw)
+        A, _ = _joint_sensitivity(jac, sw, Jw, Hinv)
+        have = jac.joint_rows >= 0
+        np.add.at(H.T, jac.joint_rows[have], A[:, have].T)
+        used += 1
+    if not used:
+        return params
+    H /= used
+    PH = P @ H.T
+    S = H @ PH + np.diag(variance)
+    P_after = P - PH @ np.linalg.solve(S, PH.T)
+    return replace(params, joint=0.5 * (P_after + P_after.T))
 
 
 def _views_at(

@@ -14,7 +14,6 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
-from annotator.core.jig import datum_variance, shift_shares
 from annotator.core.priors import ParameterCovariance
 from annotator.core.refine.model import (
     _FD_STEP,
@@ -643,7 +642,8 @@ def _rig_gauge(layout: _Layout, prob: Problem, t_bc: np.ndarray) -> np.ndarray:
     mean error (prior / n per axis), a rigid motion of every camera that the data cannot see: a
     rotation W about the cameras' mean position and a shift T, i.e. camera c's rotation W and
     shift W x (t_c - mean t) + T. It moves the beacon (the bundle's origin) in the world. With a
-    jig (priors.jig) the pipeline sets that motion from the rest; its error is then the jig's.
+    jig (priors.jig) the pipeline sets that motion from the rest and conditions this covariance on
+    it (uncertainty.condition_on_rest).
     """
     out = np.zeros((layout.n_static, layout.n_static))
     sl = layout.static_slices()
@@ -654,13 +654,6 @@ def _rig_gauge(layout: _Layout, prob: Problem, t_bc: np.ndarray) -> np.ndarray:
     G = np.zeros((layout.n_static, 6))
     G[o : o + 6 * n] = _rigid_basis(t_bc - t_bc.mean(axis=0))
     var = np.array([math.radians(pr.rig_sigma_deg) ** 2] * 3 + [pr.rig_sigma_m**2] * 3) / n
-    if pr.jig is not None:  # the pipeline sets the gauge from a rest on the jig (core/jig.py)
-        rot = 1 / (1 / var[0] + 1 / math.radians(pr.jig.sigma_deg) ** 2)
-        surveyed = layout.free_markers & np.isfinite(prob.marker_sigma[:, 1])
-        _, _, shift = shift_shares(
-            var[3], datum_variance(prob.marker_sigma[surveyed, 1]), pr.jig.sigma_m**2
-        )
-        var = np.array([rot] * 3 + [shift] * 3)
     return (G * var) @ G.T
 
 
