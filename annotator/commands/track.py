@@ -226,6 +226,15 @@ def _report_refinement(out: Path, refinement: Refinement, console: Console) -> N
             style="yellow",
             highlight=False,
         )
+    jig = rep.get("jig")
+    if jig is not None:
+        shift_mm = 1000 * math.hypot(*jig["shift_m"])
+        console.print(
+            f"jig: {jig['rows']} rows at rest; the rig turned by {jig['rotation_deg']:.2f} deg and "
+            f"shifted by {jig['rig_shift_share'] * shift_mm:.1f} mm, the map by "
+            f"{1000 * math.hypot(*jig['map_shift_m']):.1f} mm",
+            highlight=False,
+        )
 
 
 def register(app: typer.Typer) -> None:

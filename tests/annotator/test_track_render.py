@@ -159,6 +159,7 @@ def test_a_rest_on_a_jig_sets_the_rig_gauge_that_the_video_cannot(tmp_path):
             app, ["track", str(out / f"{name}.yaml"), "--out", str(out / name), "--jobs", "2"]
         )
         assert res.exit_code == 0, res.output
+        assert ("rows at rest; the rig turned by" in res.output) == (name == "experiment")
         traj = read_trajectory(out / name / "trajectory.csv")
         cmp = compare_to_truth(
             traj.t, traj.position, traj.rotation, truth.t, truth.position, truth.rotation
