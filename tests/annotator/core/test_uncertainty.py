@@ -3,16 +3,20 @@ and the motion-blur measure against the image speed of a known motion."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from annotator.core.experiment import CameraCalibration
+from annotator.core.experiment import CameraCalibration, Experiment, MarkerSetup, Rig
 from annotator.core.priors import ParameterCovariance, Priors
 from annotator.core.uncertainty import (
     BLOCKS,
     FrameView,
     UncertaintySettings,
+    condition_on_rest,
     frame_jacobians,
     image_speed,
     propagate,
@@ -21,6 +25,8 @@ from annotator.core.uncertainty import (
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom, marker_corners_local
 from annotator.vision.pose import observe, solve_bundle_pose
+from bgt_core.formats.markers import read_marker_map
+from bgt_core.sites import site_dir
 from track_helpers import make_path, make_rig, make_room, project
 
 READOUT_SIGMA = 0.02
@@ -351,3 +357,39 @@ def test_a_map_error_shared_by_every_marker_is_not_averaged_away():
     assert want == pytest.approx(spread, rel=0.15)
     assert want > 0.009  # the shared centimetre, in full
     assert _map_sigma(room, rig, R, p, dets, record, joint=False) != pytest.approx(spread, rel=0.2)
+
+
+def test_a_rest_at_a_known_pose_takes_out_what_it_pins():
+    """A still bundle whose pose is known to 1 mm / 0.1 deg (a jig) conditions the record: the map's
+    datum, shared by every marker, is what it pins, so the pose's sigma at the rest drops from the
+    datum's centimetre to about the jig's millimetre. Without a joint record nothing changes."""
+    room, rig, R, p, dets = _scene()
+    record = _map_record(room, rig, common_m=0.01, own_m=0.002)
+    exp = Experiment(
+        Path("experiment.yaml"),
+        MarkerSetup(read_marker_map(site_dir("tetam") / "marker_positions.dat"), "", room.length),
+        Rig(rig),
+        {},
+        None,
+        None,
+    )
+    t = np.arange(3) / 30.0  # three frames at 30 fps
+    frames = [
+        SimpleNamespace(camera=n, t=t, detections=[dets[n]] * 3, frame_interval=1 / 30) for n in rig
+    ]
+    rows = np.ones(3, bool)
+    var = np.array([np.radians(0.1) ** 2] * 3 + [0.001**2] * 3)
+    after = condition_on_rest(
+        frames, exp, t, np.tile(p, (3, 1)), np.tile(R, (3, 1, 1)), record, rows, var
+    )
+    before_m = _map_sigma(room, rig, R, p, dets, record, joint=True)
+    after_m = _map_sigma(room, rig, R, p, dets, after, joint=True)
+    assert before_m > 0.009
+    assert 0.0003 < after_m < 0.0012
+    # The datum (the markers' common shift) is what went: each marker keeps its own 2 mm.
+    own = np.sqrt(np.diag(after.joint)[3::6])
+    assert np.all(own > 0.0015)
+    assert np.all(own < np.sqrt(np.diag(record.joint)[3::6]))
+    none = ParameterCovariance(record.markers, record.rig, record.intrinsics)
+    pos, Rs = np.tile(p, (3, 1)), np.tile(R, (3, 1, 1))
+    assert condition_on_rest(frames, exp, t, pos, Rs, none, rows, var) is none
