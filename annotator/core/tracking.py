@@ -121,6 +121,22 @@ def resolve_ambiguities(
     return sorted(out, key=lambda it: it[0])
 
 
+def _nearest(sorted_t: np.ndarray, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each query time the index of the nearest of ``sorted_t`` and its distance (inf when
+    ``sorted_t`` is empty)."""
+    query = np.asarray(query, float)
+    if not len(sorted_t):
+        return np.zeros(len(query), int), np.full(len(query), np.inf)
+    hi = (
+        np.clip(np.searchsorted(sorted_t, query), 1, len(sorted_t) - 1)
+        if len(sorted_t) > 1
+        else np.zeros(len(query), int)
+    )
+    lo = np.maximum(hi - 1, 0)
+    pick = np.where(np.abs(sorted_t[lo] - query) <= np.abs(sorted_t[hi] - query), lo, hi)
+    return pick, np.abs(sorted_t[pick] - query)
+
+
 def _position_sigma(p: BundlePose) -> float:
     return float(np.sqrt(np.trace(p.cov[3:, 3:]) / 3))
 
@@ -153,19 +169,15 @@ def anchor_unresolved(
         ]
     )
     base = frames[0]
+    _, gap = _nearest(t_good, base.t)
+    nearest = [_nearest(np.asarray(cf.t, float), base.t) for cf in frames]
     found: dict[float, BundlePose] = {}
-    for k, t in enumerate(base.t):
-        t = float(t)
-        if len(t_good) and float(np.min(np.abs(t_good - t))) <= smoother.max_gap_s:
-            continue
+    for k in np.flatnonzero(gap > smoother.max_gap_s):
+        t = float(base.t[k])
         obs = []
-        for cf in frames:
-            j = k if cf is base else int(np.argmin(np.abs(cf.t - t))) if len(cf.t) else -1
-            if (
-                j < 0
-                or abs(cf.t[j] - t) > 0.5 * base.frame_interval
-                or not len(cf.detections[j].ids)
-            ):
+        for cf, (at, dist) in zip(frames, nearest, strict=True):
+            j = int(at[k])
+            if dist[k] > 0.5 * base.frame_interval or not len(cf.detections[j].ids):
                 continue
             cam = exp.rig.cameras[cf.camera]
             obs.append(
