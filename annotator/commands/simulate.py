@@ -295,8 +295,6 @@ def simulate(
     files are kept under true/ (true/experiment.yaml tracks the same videos) and
     perturbation.yaml lists true and written values per marker and per camera."""
     with one_line_errors():
-        from dataclasses import asdict
-
         from annotator.render import render_experiment
         from annotator.render.errors import FileErrors
         from annotator.render.trajectory import RestFirst
@@ -388,8 +386,7 @@ def simulate(
                 progress=progress,
             )
         if jig > 0:
-            perturbed = any(float(v) > 0 for k, v in asdict(file_errors).items() if k != "seed")
-            write_jig(result.experiment, trajectory, t0, t0 + jig, seed, perturbed)
+            write_jig(result.experiment, trajectory, t0, t0 + jig, seed, file_errors.perturbs)
         frames = ", ".join(f"{k} {v} frames" for k, v in result.frames.items())
         extra = " and path.yaml" if (result.out_dir / "path.yaml").exists() else ""
         console.print(

@@ -41,6 +41,9 @@ class MarkerPrior:
     known: bool = True
 
 
+JIG_SIGMA_M, JIG_SIGMA_DEG = 0.001, 0.1  # Jig's defaults: a levelled plate, squared to a wall
+
+
 @dataclass(frozen=True, eq=False, slots=True)
 class Jig:
     """A rest of the bundle at a known pose: the rig's gauge (docs/annotator.md, "The rig jig").
@@ -53,11 +56,8 @@ class Jig:
     end: float
     position: np.ndarray  # (3,)
     rotation: np.ndarray  # (3, 3)
-    sigma_m: float = 0.001  # = JIG_SIGMA_M
-    sigma_deg: float = 0.1  # = JIG_SIGMA_DEG
-
-
-JIG_SIGMA_M, JIG_SIGMA_DEG = 0.001, 0.1  # Jig's defaults: a levelled plate, squared to a wall
+    sigma_m: float = JIG_SIGMA_M
+    sigma_deg: float = JIG_SIGMA_DEG
 
 
 @dataclass(frozen=True, slots=True)

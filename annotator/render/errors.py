@@ -42,14 +42,22 @@ class FileErrors:
     )
     seed: int = 0
 
+    def _magnitudes(self) -> dict[str, float]:
+        return {
+            k: v for k, v in asdict(self).items() if k not in ("write_readout", "seed", "surveyed")
+        }
+
     def __post_init__(self) -> None:
-        for key, value in asdict(self).items():
-            if key not in ("write_readout", "seed", "surveyed") and not (
-                np.isfinite(value) and value >= 0
-            ):
+        for key, value in self._magnitudes().items():
+            if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{key} must be a finite number >= 0, not {value!r}")
         if self.surveyed is not None and self.surveyed < 1:
             raise ValueError(f"surveyed must be at least 1, not {self.surveyed}")
+
+    @property
+    def perturbs(self) -> bool:
+        """Whether any written value is off (a marker subset alone is not)."""
+        return any(v > 0 for v in self._magnitudes().values())
 
 
 def _stream(seed: int, kind: int) -> np.random.Generator:

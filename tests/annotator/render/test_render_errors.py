@@ -212,6 +212,26 @@ def test_a_surveyor_who_skipped_markers(tmp_path: Path) -> None:
     assert read_marker_map(tmp_path / "true" / "marker_positions.dat") == SITE_MAP
 
 
+def test_a_jig_on_exact_files_is_written_exactly(tmp_path: Path) -> None:
+    """No file error (a marker subset is not one): the jig goes into experiment.yaml at its true
+    pose; with an error, off by its stated sigma (recorded in perturbation.yaml)."""
+    assert not FileErrors(surveyed=8).perturbs
+    assert FileErrors(focal_rel=0.004).perturbs
+    res = CliRunner().invoke(
+        app,
+        ["simulate", "--out", str(tmp_path), "--duration", "0.6", "--start-offset", "0.1"]
+        + ["--jig", "0.3", "--width", "160", "--height", "96"],
+    )
+    assert res.exit_code == 0, res.output
+    jig = load_experiment(tmp_path / "experiment.yaml").priors.jig
+    true_jig = load_experiment(tmp_path / "true" / "experiment.yaml").priors.jig
+    assert jig is not None
+    assert true_jig is not None
+    np.testing.assert_allclose(jig.position, true_jig.position)
+    np.testing.assert_allclose(jig.rotation, true_jig.rotation, atol=1e-8)
+    assert load_perturbation(tmp_path)["jig"]["offset_m"] == [0.0, 0.0, 0.0]
+
+
 def test_bad_error_options_are_one_line(tmp_path: Path) -> None:
     for args, needle in (
         (["--errors", "lab"], "--errors 'lab'"),
