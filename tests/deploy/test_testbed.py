@@ -126,9 +126,20 @@ def start_unit(h, unit: str, timeout: float = 90) -> None:
         raise AssertionError(f"{e}\n{log}") from None
 
 
+def failed_run(r) -> str:
+    """A failed playbook run's message: the output's tail and, per host, its unit's journal
+    (the test bed, and with it the journals, is gone once the session ends)."""
+    parts = [r.output[-4000:]]
+    for h in tb.HOSTS:
+        unit = unit_of(h)
+        log = on(h, "journalctl", "-u", unit, "-n", "40", "--no-pager", check=False)
+        parts.append(f"--- {unit} on {h.name} ---\n{log}")
+    return "\n".join(parts)
+
+
 def test_first_playbook_run_succeeds(fleet: Fleet) -> None:
     r = fleet.first
-    assert r.returncode == 0, r.output[-4000:]
+    assert r.returncode == 0, failed_run(r)
     for h in tb.HOSTS:
         assert r.recap[h.name]["failed"] == 0, r.output[-4000:]
         assert r.recap[h.name]["unreachable"] == 0, r.output[-4000:]
@@ -370,7 +381,7 @@ def test_second_run_changes_nothing(fleet: Fleet) -> None:
     r = tb.deploy([])
     fleet.figures["playbook_second_s"] = r.seconds
     print(f"\nFIGURES playbook first {fleet.first.seconds:.0f} s, second {r.seconds:.0f} s")
-    assert r.returncode == 0, r.output[-4000:]
+    assert r.returncode == 0, failed_run(r)
     for name, c in r.recap.items():
         assert c["failed"] == 0, (name, c, r.output[-4000:])
         assert c["changed"] == 0, (name, c, changed_tasks(r.output, name))
@@ -448,7 +459,7 @@ def test_upgrade_with_a_newer_wheel_keeps_spool_and_runs(fleet: Fleet, tmp_path:
     spool = "/var/lib/ble-groundtruth/spool"
     before = {h.name: show(h, unit_of(h), "InvocationID")["InvocationID"] for h in tb.HOSTS}
     r = tb.deploy(["-e", f"bgt_src_dir={src}"])
-    assert r.returncode == 0, r.output[-4000:]
+    assert r.returncode == 0, failed_run(r)
     for h in tb.HOSTS:
         shown = on(
             h, "/opt/ble-groundtruth/venv/bin/python", "-m", "pip", "show", "ble-groundtruth"
