@@ -123,3 +123,40 @@ def stage_progress(bar: Progress | LazyProgress) -> Callable[[str, int, int], No
 def default_jobs() -> int:
     """Worker processes when --jobs is not given: one per core (the pool serves every stage)."""
     return max(os.cpu_count() or 1, 1)
+
+
+# What to change in the capture when one part of sigma_m holds most of its variance.
+_SIGMA_HINTS = {
+    "sigma_params_m": "most of it is how well the map, rig and lenses are known: survey more "
+    "markers along the walk, or start it on a jig (docs/annotator.md, 'Field procedure')",
+    "sigma_smoother_m": "most of it is frame noise: few or far markers in view; add markers "
+    "along the walk",
+    "sigma_blur_m": "most of it is motion blur: a shorter exposure or a slower walk",
+}
+_UNREFINED_HINT = (
+    "most of it is how well the map, rig and lenses are known, as the experiment states: "
+    "self-calibration (--refine all) measures them from the video"
+)
+
+
+def print_sigma_budget(console: Console, quality: dict[str, Any], *, refined: bool) -> None:
+    """One line on how good the trajectory says it is (sigma_m and its parts), and a hint when
+    one part holds more than half of its variance (``refined``: a self-calibration ran)."""
+    from annotator.core.uncertainty import SIGMA_PARTS, sigma_budget
+
+    budget = sigma_budget(quality)
+    if budget is None:
+        return
+    parts = sorted(budget.parts_m.items(), key=lambda kv: -kv[1])
+    console.print(
+        f"sigma_m (per axis): median {1000 * budget.median_m:.1f} mm, p95 "
+        f"{1000 * budget.p95_m:.1f} mm; its parts' medians: "
+        + ", ".join(f"{SIGMA_PARTS[c]} {1000 * v:.1f}" for c, v in parts)
+        + " mm",
+        highlight=False,
+        soft_wrap=True,
+    )
+    top = budget.largest
+    if top in _SIGMA_HINTS and budget.parts_m[top] ** 2 > 0.5 * budget.median_m**2:
+        hint = _SIGMA_HINTS[top] if refined or top != "sigma_params_m" else _UNREFINED_HINT
+        console.print(f"  {hint}", highlight=False, soft_wrap=True)

@@ -14,6 +14,7 @@ from annotator.commands._common import (
     console,
     default_jobs,
     one_line_errors,
+    print_sigma_budget,
     stage_columns,
     stage_progress,
 )
@@ -32,6 +33,7 @@ def write_run_outputs(
     """What `annotator run` writes into ``out_dir``: trajectory.csv, annotated/, annotated.parquet,
     the plots, refined/ (after a self-calibration) and report.json. Returns the report as
     written: ``result.report`` plus the names of the plot and refined files."""
+    from annotator.core.uncertainty import sigma_budget
     from annotator.io.outputs import write_annotated_mbd, write_parquet, write_report
     from annotator.io.trajectory import write_trajectory
 
@@ -59,6 +61,9 @@ def write_run_outputs(
             markers=exp.markers.markers,
         )
         report["plots"] = {k: p.name for k, p in written.items()}
+    budget = sigma_budget(traj.quality)
+    if budget is not None:  # the trajectory's rows; pos_sigma_m is the labelled readings'
+        report["quality"] = {**report.get("quality", {}), "trajectory_sigma_m": budget.as_dict()}
     if result.refinement is not None:
         from annotator.io.refined import write_refined
 
@@ -160,6 +165,9 @@ def run(
             f"labelled {c['labelled']} of {c['readings_of_beacon']} readings of {rep['beacon']} "
             f"({rep['coverage']['labelled_of_tracked_span']:.1%} of the tracked span) -> {out}",
             highlight=False,
+        )
+        print_sigma_budget(
+            console, result.trajectory.quality, refined=result.refinement is not None
         )
 
 

@@ -10,7 +10,12 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, TaskID, TextColumn, TimeRemainingColumn
 
-from annotator.commands._common import LazyProgress, default_jobs, one_line_errors
+from annotator.commands._common import (
+    LazyProgress,
+    default_jobs,
+    one_line_errors,
+    print_sigma_budget,
+)
 
 if TYPE_CHECKING:
     from annotator.core.refine import Refinement
@@ -197,6 +202,7 @@ def track(
             f"({100 * n_ok / max(len(traj), 1):.0f} %), method {method.value}",
             highlight=False,
         )
+        print_sigma_budget(console, traj.quality, refined=result.refinement is not None)
 
 
 def _report_refinement(out: Path, refinement: Refinement, console: Console) -> None:

@@ -896,6 +896,49 @@ def total_sigma(
     return out
 
 
+# sigma_m's parts (total_sigma's columns) in the words a user reads them in.
+SIGMA_PARTS = {
+    "sigma_params_m": "map, rig and lenses",
+    "sigma_smoother_m": "frame noise",
+    "sigma_blur_m": "motion blur",
+    "sigma_unmodelled_m": "unmodelled",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class SigmaBudget:
+    """What sigma_m says of a trajectory: its median and p95 over the posed rows, and the median
+    of each part (per-axis 1-sigma, m)."""
+
+    median_m: float
+    p95_m: float
+    parts_m: dict[str, float]  # SIGMA_PARTS' columns present in the trajectory
+
+    @property
+    def largest(self) -> str:
+        """The column of the part that weighs most."""
+        return max(self.parts_m, key=lambda k: self.parts_m[k])
+
+    def as_dict(self) -> dict[str, object]:
+        return {"median": self.median_m, "p95": self.p95_m, "parts_median": dict(self.parts_m)}
+
+
+def sigma_budget(quality: Mapping[str, np.ndarray]) -> SigmaBudget | None:
+    """sigma_m's median, p95 and parts over the rows where it is finite; None without any."""
+    if "sigma_m" not in quality:
+        return None
+    total = np.asarray(quality["sigma_m"], float)
+    ok = np.isfinite(total)
+    if not ok.any():
+        return None
+    parts = {
+        col: float(np.nanmedian(np.asarray(quality[col], float)[ok]))
+        for col in SIGMA_PARTS
+        if col in quality and np.isfinite(np.asarray(quality[col], float)[ok]).any()
+    }
+    return SigmaBudget(float(np.median(total[ok])), float(np.percentile(total[ok], 95)), parts)
+
+
 def sync_time_sigma(clocks: Mapping[str, VideoClock], t_rssi: np.ndarray) -> np.ndarray:
     """1-sigma uncertainty (s) of each RSSI time against the video clock: the worst camera's clock
     map at that time (``annotator.core.sync.ClockMap.sigma_at``); 0 where no camera states one (manual

@@ -25,7 +25,7 @@ PARTS = ("sigma_smoother_m", "sigma_params_m", "sigma_blur_m", "sigma_unmodelled
 
 
 @pytest.fixture(scope="module", params=[0, 1])
-def field_track(request, tmp_path_factory) -> tuple[Path, Path]:
+def field_track(request, tmp_path_factory) -> tuple[Path, Path, str]:
     out = tmp_path_factory.mktemp(f"field{request.param}")
     res = CliRunner().invoke(
         app,
@@ -48,7 +48,7 @@ def field_track(request, tmp_path_factory) -> tuple[Path, Path]:
         app, ["track", str(out / "experiment.yaml"), "--out", str(out / "track"), "--jobs", "2"]
     )
     assert res.exit_code == 0, res.output
-    return out / "track" / "trajectory.csv", out / "truth.csv"
+    return out / "track" / "trajectory.csv", out / "truth.csv", res.output
 
 
 def test_sigma_covers_field_errors_without_being_useless(field_track):
@@ -85,3 +85,16 @@ def test_sigma_columns_add_up_and_keep_the_format(field_track):
     assert np.allclose(traj.quality["sigma_m"][ok], total, rtol=1e-4)
     assert np.all(traj.quality["sigma_params_m"][ok] > traj.quality["sigma_smoother_m"][ok])
     assert np.all(np.isnan(traj.quality["sigma_m"][~ok]))
+
+
+def test_track_prints_sigma_and_what_limits_it(field_track):
+    """The console's sigma line states the CSV's figures, and the hint names the part that
+    dominates a field capture without a jig: the map's and rig's stated sigmas."""
+    traj = read_trajectory(field_track[0])
+    sigma = traj.quality["sigma_m"][np.isfinite(traj.quality["sigma_m"])]
+    line = next(s for s in field_track[2].splitlines() if s.startswith("sigma_m (per axis)"))
+    params = np.nanmedian(traj.quality["sigma_params_m"][np.isfinite(traj.quality["sigma_m"])])
+    assert f"median {1000 * np.median(sigma):.1f} mm" in line, line
+    assert f"p95 {1000 * np.percentile(sigma, 95):.1f} mm" in line, line
+    assert f"map, rig and lenses {1000 * params:.1f}" in line, line
+    assert "survey more markers along the walk, or start it on a jig" in field_track[2]

@@ -121,6 +121,16 @@ def test_auto_sync_run_labels_readings_with_centimetre_error(
         assert (tmp_path / "out" / rep["refinement"]["files"]["marker_positions"]).is_file()
     assert result.params is not None
     assert result.params.rig
+    # The trajectory's sigma budget, as `annotator track` prints it.
+    sig = result.trajectory.quality["sigma_m"]
+    budget = rep["quality"]["trajectory_sigma_m"]
+    assert budget["median"] == pytest.approx(np.nanmedian(sig))
+    assert set(budget["parts_median"]) == {
+        "sigma_params_m",
+        "sigma_smoother_m",
+        "sigma_blur_m",
+        "sigma_unmodelled_m",
+    }
 
     # Labels: every reading in the tracked span, position error against the truth at its own time.
     labels, table = result.labels, result.rssi

@@ -20,6 +20,7 @@ from annotator.core.uncertainty import (
     frame_jacobians,
     image_speed,
     propagate,
+    sigma_budget,
     smear_weights,
 )
 from annotator.vision.detection import Detections
@@ -393,3 +394,23 @@ def test_a_rest_at_a_known_pose_takes_out_what_it_pins():
     none = ParameterCovariance(record.markers, record.rig, record.intrinsics)
     pos, Rs = np.tile(p, (3, 1)), np.tile(R, (3, 1, 1))
     assert condition_on_rest(frames, exp, t, pos, Rs, none, rows, var) is none
+
+
+def test_sigma_budget_summarises_the_posed_rows() -> None:
+    nan = np.nan
+    quality = {
+        "sigma_m": np.array([0.005, 0.006, nan, 0.007, 0.010]),
+        "sigma_params_m": np.array([0.004, 0.005, nan, 0.006, 0.009]),
+        "sigma_smoother_m": np.array([0.002, 0.002, 0.5, 0.002, 0.003]),
+        "markers": np.array([3, 3, 0, 4, 2]),
+    }
+    b = sigma_budget(quality)
+    assert b is not None
+    assert b.median_m == pytest.approx(0.0065)
+    assert b.p95_m == pytest.approx(np.percentile([0.005, 0.006, 0.007, 0.010], 95))
+    # Only the posed rows count (the unposed row's 0.5 m of smoother noise does not), and only
+    # the parts the trajectory has.
+    assert b.parts_m == pytest.approx({"sigma_params_m": 0.0055, "sigma_smoother_m": 0.002})
+    assert b.largest == "sigma_params_m"
+    assert sigma_budget({"sigma_m": np.full(3, nan)}) is None
+    assert sigma_budget({"markers": np.ones(3)}) is None
