@@ -128,7 +128,7 @@ def default_jobs() -> int:
 # What to change in the capture when one part of sigma_m holds most of its variance.
 _SIGMA_HINTS = {
     "sigma_params_m": "most of it is how well the map, rig and lenses are known: survey more "
-    "markers along the walk, or start it on a jig (docs/annotator.md, 'Field procedure')",
+    "markers along the walk{jig} (docs/annotator.md, 'Field procedure')",
     "sigma_smoother_m": "most of it is frame noise: few or far markers in view; add markers "
     "along the walk",
     "sigma_blur_m": "most of it is motion blur: a shorter exposure or a slower walk",
@@ -139,9 +139,12 @@ _UNREFINED_HINT = (
 )
 
 
-def print_sigma_budget(console: Console, quality: dict[str, Any], *, refined: bool) -> None:
+def print_sigma_budget(
+    console: Console, quality: dict[str, Any], *, refined: bool, jig: bool
+) -> None:
     """One line on how good the trajectory says it is (sigma_m and its parts), and a hint when
-    one part holds more than half of its variance (``refined``: a self-calibration ran)."""
+    one part holds more than half of its variance (``refined``: a self-calibration ran; ``jig``:
+    the walk started on a jig)."""
     from annotator.core.uncertainty import SIGMA_PARTS, sigma_budget
 
     budget = sigma_budget(quality)
@@ -159,4 +162,5 @@ def print_sigma_budget(console: Console, quality: dict[str, Any], *, refined: bo
     top = budget.largest
     if top in _SIGMA_HINTS and budget.parts_m[top] ** 2 > 0.5 * budget.median_m**2:
         hint = _SIGMA_HINTS[top] if refined or top != "sigma_params_m" else _UNREFINED_HINT
+        hint = hint.format(jig="" if jig else ", or start it on a jig")
         console.print(f"  {hint}", highlight=False, soft_wrap=True)

@@ -167,7 +167,10 @@ def run(
             highlight=False,
         )
         print_sigma_budget(
-            console, result.trajectory.quality, refined=result.refinement is not None
+            console,
+            result.trajectory.quality,
+            refined=result.refinement is not None,
+            jig=exp.priors.jig is not None,
         )
 
 

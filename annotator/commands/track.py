@@ -202,7 +202,12 @@ def track(
             f"({100 * n_ok / max(len(traj), 1):.0f} %), method {method.value}",
             highlight=False,
         )
-        print_sigma_budget(console, traj.quality, refined=result.refinement is not None)
+        print_sigma_budget(
+            console,
+            traj.quality,
+            refined=result.refinement is not None,
+            jig=exp.priors.jig is not None,
+        )
 
 
 def _report_refinement(out: Path, refinement: Refinement, console: Console) -> None:
