@@ -9,40 +9,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
-from annotator.cli import app
 from annotator.io.trajectory import read_trajectory
-from track_helpers import errors_against_truth
+from track_helpers import errors_against_truth, simulate_and_track
 
 pytestmark = pytest.mark.slow
 
 
 def test_clean_1080p_render_keeps_its_accuracy_through_the_default_refinement(tmp_path: Path):
-    res = CliRunner().invoke(
-        app,
-        [
-            "simulate",
-            "--out",
-            str(tmp_path),
-            "--duration",
-            "2",
-            "--width",
-            "1920",
-            "--height",
-            "1080",
-            "--seed",
-            "0",
-            "--jobs",
-            "2",
-        ],
+    out = simulate_and_track(
+        tmp_path, "--duration", "2", "--width", "1920", "--height", "1080", "--seed", "0"
     )
-    assert res.exit_code == 0, res.output
-    out = tmp_path / "track"
-    res = CliRunner().invoke(
-        app, ["track", str(tmp_path / "experiment.yaml"), "--out", str(out), "--jobs", "2"]
-    )
-    assert res.exit_code == 0, res.output
     traj, truth = read_trajectory(out / "trajectory.csv"), read_trajectory(tmp_path / "truth.csv")
     pos, _ = errors_against_truth(traj, truth)
     report = json.loads((out / "refined" / "refinement.json").read_text(encoding="utf-8"))

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from annotator.cli import app
 from annotator.core.evaluate import compare_to_truth
 from annotator.io.trajectory import read_trajectory
-from track_helpers import errors_against_truth
+from track_helpers import errors_against_truth, simulate_and_track
 
 pytestmark = pytest.mark.slow
 T0 = 1_700_000_000.0
@@ -250,30 +250,9 @@ def test_a_rolling_shutter_nobody_measured_is_found_despite_a_turned_rig(tmp_pat
     the readout to a trajectory tracked with readout 0 and the turned rig; alone it found 4.3 and
     0.0 ms here (and the trajectory was 0.48 cm off). The second round, from the re-tracked
     trajectory, must find the readout within 3 ms (measured: 15.0 and 16.8 ms; 0.18 cm)."""
-    res = CliRunner().invoke(
-        app,
-        [
-            "simulate",
-            "--out",
-            str(tmp_path),
-            "--duration",
-            "6",
-            "--seed",
-            "2",
-            "--readout",
-            "0.015",
-            "--rig-deg",
-            "1",
-            "--jobs",
-            "2",
-        ],
+    out = simulate_and_track(
+        tmp_path, "--duration", "6", "--seed", "2", "--readout", "0.015", "--rig-deg", "1"
     )
-    assert res.exit_code == 0, res.output
-    out = tmp_path / "track"
-    res = CliRunner().invoke(
-        app, ["track", str(tmp_path / "experiment.yaml"), "--out", str(out), "--jobs", "2"]
-    )
-    assert res.exit_code == 0, res.output
     record = json.loads((out / "refined" / "refinement.json").read_text(encoding="utf-8"))
     assert record["timing"]["rounds"] == 2
     for name, cam in record["cameras"].items():

@@ -97,3 +97,20 @@ def errors_against_truth(traj, truth) -> tuple[np.ndarray, np.ndarray]:
     )
     ok = np.isfinite(cmp.position_error)
     return cmp.position_error[ok], cmp.rotation_error_deg[ok]
+
+
+def simulate_and_track(folder, *simulate_args: str):
+    """`annotator simulate --out folder ... --jobs 2`, then the default `annotator track` into
+    folder/track; both must succeed. Returns the track folder."""
+    from typer.testing import CliRunner
+
+    from annotator.cli import app
+
+    res = CliRunner().invoke(app, ["simulate", "--out", str(folder), *simulate_args, "--jobs", "2"])
+    assert res.exit_code == 0, res.output
+    out = folder / "track"
+    res = CliRunner().invoke(
+        app, ["track", str(folder / "experiment.yaml"), "--out", str(out), "--jobs", "2"]
+    )
+    assert res.exit_code == 0, res.output
+    return out
