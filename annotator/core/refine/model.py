@@ -65,6 +65,11 @@ class RefineSettings:
     # averaged away: a size error of this many pixels is a depth error of depth x this / side (px),
     # 9 cm for a 32 px marker at 9.6 m (measured on the field renders: ~0.3 px).
     marker_size_floor_px: float = 0.3
+    # Divide the data's information in the joint record by the keyframes' corner-error correlation
+    # time (solver._correlation_stretch). Off: with two refinement rounds it made sigma_m cautious
+    # on every field walk (rms of error / sigma_m 0.78-0.88 over 5-30 s walks, 1.0 when honest);
+    # without it 0.86-1.04 (docs/annotator.md, "What sigma_m means").
+    keyframe_correlation: bool = False
     exposure_s: float = 0.008  # assumed exposure for the motion-blur measure
     max_smear_px: float = 3.0  # keyframes whose predicted smear exceeds this are not used
 

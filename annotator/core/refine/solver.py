@@ -437,11 +437,12 @@ def _solve(
     # normal matrix alone, frames taken as independent, claims ~0.7 cm for far markers whose depth
     # is off by 5-9 cm on the field renders.
     # What the trajectory inherits (uncertainty.py): the joint covariance with the cross-block
-    # terms (the map's datum is common to every marker), its data part widened by the correlation
-    # of the keyframes' corner errors over time, plus what the gate held back and the rig's gauge.
+    # terms (the map's datum is common to every marker), plus what the gate held back and the rig's
+    # gauge; its data part is widened by the keyframes' correlation time only when asked
+    # (RefineSettings.keyframe_correlation).
     # The markers' floors stay out: they are errors common to all of a marker's frames, and the
     # tracker sees the same frames (docs/annotator.md, "What sigma_m means").
-    stretch = _correlation_stretch(prob, uv, lm.sigma_px)
+    stretch = _correlation_stretch(prob, uv, lm.sigma_px) if s.keyframe_correlation else 1.0
     joint = (
         lm.static_covariance(Hpp, Hps, Hss, stretch)
         + (cov - post)
