@@ -227,6 +227,7 @@ def make_experiment(
         read_marker_map(site_dir("tetam") / "marker_positions.dat"),
         {"front": T0, "back": T0 + START_OFFSET},
         readout=float(video["readout"]),
+        exposure=float(video["exposure"]),
         errors=FileErrors(**cond.files, seed=seed),
         settings={"condition": cond.name, **video},
     )

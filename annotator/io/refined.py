@@ -13,7 +13,7 @@ import yaml
 
 from annotator.core.experiment import CameraCalibration
 from annotator.core.refine import Refinement
-from annotator.io.experiment import CORNER_BIAS_KEY, READOUT_KEY
+from annotator.io.experiment import CORNER_BIAS_KEY, EXPOSURE_KEY, READOUT_KEY
 from bgt_core.formats.markers import format_dat
 
 
@@ -29,6 +29,8 @@ def _write_calibration(path: Path, cal: CameraCalibration) -> None:
         fs.write(READOUT_KEY, float(cal.readout_s))
         if cal.corner_bias_px:
             fs.write(CORNER_BIAS_KEY, float(cal.corner_bias_px))
+        if cal.exposure_s is not None:  # the camera's setting: the next capture's input keeps it
+            fs.write(EXPOSURE_KEY, float(cal.exposure_s))
     finally:
         fs.release()
 

@@ -198,10 +198,12 @@ def build_distortion_map(cam: CameraModel) -> DistortionMap:
     return DistortionMap(map1, map2, k, (cam.width + 2 * pad_x, cam.height + 2 * pad_y), span)
 
 
-def write_calibration(path: str, cam: CameraModel, readout_s: float | None = None) -> None:
+def write_calibration(
+    path: str, cam: CameraModel, readout_s: float | None = None, exposure_s: float | None = None
+) -> None:
     """OpenCV FileStorage YAML with camera_matrix, distortion_coefficients, image size; the
     lens model when it is not the default radial-tangential one, and the rolling-shutter
-    readout when given."""
+    readout and the exposure time when given."""
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     try:
         fs.write("image_width", int(cam.width))
@@ -212,6 +214,8 @@ def write_calibration(path: str, cam: CameraModel, readout_s: float | None = Non
             fs.write("distortion_model", cam.model)
         if readout_s is not None:
             fs.write("rolling_shutter_readout_s", float(readout_s))
+        if exposure_s is not None:
+            fs.write("exposure_s", float(exposure_s))
     finally:
         fs.release()
 

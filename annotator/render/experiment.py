@@ -349,13 +349,15 @@ def write_experiment_files(
     dictionary: str = "DICT_6X6_50",
     marker_length: float = 0.298,
     readout: float = 0.0,
+    exposure: float | None = None,
     errors: FileErrors | None = None,
     settings: dict[str, object] | None = None,
 ) -> dict[str, object]:
     """Write what the annotator reads (experiment.yaml, rig.yaml, calibrations, marker map, an
     empty rssi/) with `errors` applied, the exact files under true/ (with a true/experiment.yaml
-    that uses the same videos), and perturbation.yaml (true vs written values). The videos are
-    not touched: a render's folder can be given other errors without rendering again.
+    that uses the same videos), and perturbation.yaml (true vs written values). `exposure` (s),
+    when given, goes into every calibration as the camera's known setting (`exposure_s`). The
+    videos are not touched: a render's folder can be given other errors without rendering again.
     Returns the perturbation record."""
     out = Path(out_dir)
     errors = errors or FileErrors()
@@ -378,7 +380,7 @@ def write_experiment_files(
         (out / "true", cameras, true_rig, markers, readout, "../"),
     ):
         for name, cam in cams.items():
-            write_calibration(str(folder / f"{name}.yaml"), cam, ro)
+            write_calibration(str(folder / f"{name}.yaml"), cam, ro, exposure)
         (folder / "rig.yaml").write_text(rig_yaml(rig), encoding="utf-8")
         (folder / "marker_positions.dat").write_text(format_dat(mk), encoding="utf-8")
         (folder / "experiment.yaml").write_text(
@@ -528,6 +530,7 @@ def render_experiment(
         dictionary=dictionary,
         marker_length=marker_length,
         readout=readout,
+        exposure=exposure,
         errors=errors,
         settings=settings,
     )

@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from annotator.cli import app
 from annotator.core.evaluate import compare_to_truth
+from annotator.io.experiment import load_calibration
 from annotator.io.trajectory import read_trajectory
 from track_helpers import errors_against_truth, simulate_and_track
 
@@ -257,6 +258,10 @@ def test_a_rolling_shutter_nobody_measured_is_found_despite_a_turned_rig(tmp_pat
     assert record["timing"]["rounds"] == 2
     for name, cam in record["cameras"].items():
         assert cam["readout_s"] == pytest.approx(0.015, abs=0.003), name
+        # The refined calibration, the next capture's input, keeps the camera's exposure setting.
+        assert load_calibration(out / "refined" / f"{name}.yaml").exposure_s == pytest.approx(
+            1 / 120
+        )
     pos, _ = errors_against_truth(
         read_trajectory(out / "trajectory.csv"), read_trajectory(tmp_path / "truth.csv")
     )

@@ -136,6 +136,8 @@ def test_written_rig_and_calibrations_differ_as_recorded(field: Path) -> None:
         assert cam.calibration.readout_s == 0.0
         assert r["true"]["readout_s"] == 0.015
         assert r["written"]["readout_s"] == 0.0
+        # The exposure is the camera's setting (users read it from the camera): written exactly.
+        assert cam.calibration.exposure_s == true_cam.calibration.exposure_s == 0.008
 
 
 def test_true_experiment_tracks_the_same_videos(field: Path) -> None:
@@ -152,6 +154,7 @@ def test_options_override_the_preset_and_none_means_exact(tmp_path: Path) -> Non
     for f in ("marker_positions.dat", "rig.yaml", "front.yaml", "back.yaml"):
         assert (tmp_path / "a" / f).read_text() == (tmp_path / "a" / "true" / f).read_text()
     assert (tmp_path / "a" / "rig.yaml").read_text() == RIG_YAML
+    assert load_calibration(tmp_path / "a" / "front.yaml").exposure_s is None  # not given
     # Each kind of error has its own random stream: the survey does not move when the rig's sigma does.
     one = perturb_markers(SITE_MAP, 0.01, 1.0, seed=3)
     write_experiment_files(
