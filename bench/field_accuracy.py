@@ -26,7 +26,10 @@ When `annotator track --help` offers `--refine`, every condition is tracked twic
 within 2.8 x the row's sigma_m (a per-axis 1-sigma: ~95 % for an honest sigma); the median of
 3-D error / sigma_m (~1.5 for an honest sigma); tracking time. A capture's errors are correlated
 (the same map and rig errors move every row alike), so one seed's coverage is close to 0 or 100 %:
-the pooled coverage over seeds, printed last, is the figure that judges sigma.
+the pooled coverage over seeds, printed last, is the figure that judges sigma. With one datum
+draw per seed it is coarse (an honest sigma leaves all of 14 seeds inside about half the time), so
+the pooled line also gives rms z: the root mean square over every compared row of 3-D error /
+sigma_m / sqrt(3), 1.0 for an honest per-axis sigma, below 1 when it is cautious.
 
 'floor' (cm, median over the walk): the error the written survey alone leaves. The video fixes the
 map's shape but not where it sits in the room: that comes from the surveyed markers, so a perfect
@@ -268,6 +271,7 @@ class Row:
     )  # median error of the survey's datum alone (see the module's doc)
     rot_floor_deg: float = float("nan")  # the same for the bundle's orientation
     datum_z: float = float("nan")  # the surveyed markers' mean survey error / its sigma (3-D)
+    z2_sum: float = 0.0  # sum over the compared rows of (3-D error / sigma_m)^2 / 3
 
 
 def _rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -374,6 +378,7 @@ def track_and_score(
         return Row(cond, seed, label, 0.0, *(4 * [float("nan")]), seconds)
     n_within = int(np.sum(err < COVERAGE_K * sigma[ok])) if sigma is not None else 0
     z_median = float(np.median(err / sigma[ok])) if sigma is not None else float("nan")
+    z2_sum = float(np.sum((err / sigma[ok]) ** 2) / 3) if sigma is not None else float("nan")
     return Row(
         cond,
         seed,
@@ -387,6 +392,7 @@ def track_and_score(
         int(ok.sum()),
         n_within,
         z_median,
+        z2_sum=z2_sum,
     )
 
 
@@ -418,9 +424,11 @@ def pooled_text(rows: list[Row]) -> list[str]:
         n, k = sum(r.n_compared for r in mine), sum(r.n_within for r in mine)
         if n:
             seeds = ",".join(str(r.seed) for r in mine)
+            rms_z = float(np.sqrt(sum(r.z2_sum for r in mine) / n))
             out.append(
                 f"{cond:11} {refine:8} seeds {seeds:12} {100 * k / n:6.1f}% of {n} rows within "
-                f"{COVERAGE_K} sigma; per seed {', '.join(fmt(100 * r.within, '.1f') for r in mine)} %"
+                f"{COVERAGE_K} sigma; per seed {', '.join(fmt(100 * r.within, '.1f') for r in mine)} %; "
+                f"rms z {fmt(rms_z, '.2f')}"
             )
     return out
 
