@@ -102,6 +102,10 @@ def _check_events(text: str, source: str, loader: type, max_depth: int, max_node
                 depth -= 1
     except yaml.YAMLError as e:
         mark, problem = _yaml_problem(e)
+        if "nesting depth" in problem:  # libyaml in PyYAML >= 6.0.4 stops runaway nesting itself
+            raise YamlError(
+                f"{_where(source, mark)}: nested deeper than {max_depth} levels"
+            ) from None
         raise YamlError(f"{_where(source, mark)}: not valid YAML ({problem})") from None
     finally:
         parser.dispose()
