@@ -166,7 +166,33 @@ class MarkerDetector:
         # A marker detected twice (reflections, refine) keeps its first copy only.
         _, first = np.unique(ids, return_index=True)
         first.sort()
-        return Detections(ids[first].astype(int), pts[first].astype(np.float64))
+        keep = first[~nested_quads(pts[first])]
+        return Detections(ids[keep].astype(int), pts[keep].astype(np.float64))
+
+
+def nested_quads(corners: np.ndarray) -> np.ndarray:
+    """(n,) bool: quads whose centre lies inside a larger quad of the same frame.
+
+    Markers do not overlap, so such a quad is a few cells of a bigger marker's pattern read as a
+    marker. The board refinement makes them: it projects every marker of the room with a pose
+    fitted to the ones found, a marker behind the camera lands somewhere in the image through the
+    lens polynomial, and a candidate there that passes its tolerant bit check gets that id (seen
+    on a field render: a 12 px "marker 13" inside marker 8, which the camera faced away from)."""
+    n = len(corners)
+    out = np.zeros(n, bool)
+    if n < 2:
+        return out
+    c = corners.astype(np.float64)
+    x, y = c[..., 0], c[..., 1]
+    area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, 1) - np.roll(x, -1, 1) * y, axis=1))
+    centre = c.mean(1)
+    edge = np.roll(c, -1, 1) - c  # (n, 4, 2)
+    for i in range(n):
+        rel = centre[i] - c  # centre i from every quad's corners, (n, 4, 2)
+        cross = edge[..., 0] * rel[..., 1] - edge[..., 1] * rel[..., 0]
+        inside = (cross > 0).all(1) | (cross < 0).all(1)
+        out[i] = bool(np.any(inside & (area > area[i]) & (np.arange(n) != i)))
+    return out
 
 
 def _aruco_detector(

@@ -91,6 +91,21 @@ def marker_views(
     return out
 
 
+def _seeable(
+    kf: Keyframe, v: FrameView, cam: CameraParams, R_m: np.ndarray, t_m: np.ndarray
+) -> np.ndarray:
+    """(n,) bool: markers at poses (R_m, t_m) in front of the view's camera and facing it.
+
+    A detection of a surveyed marker that fails this is a misread id, not a survey error: a
+    survey a few centimetres off does not put a marker behind the camera or turn its back."""
+    R_b, t_b = kf.R_wb @ v.R_D, kf.R_wb @ v.t_D + kf.t_wb
+    R_wc, c_w = R_b @ cam.R_bc, R_b @ cam.t_bc + t_b
+    to_cam = c_w - t_m  # (n, 3)
+    facing = np.einsum("nk,nk->n", R_m[:, :, 2], to_cam) > 0  # marker z: out of its face
+    depth = (t_m - c_w) @ R_wc[:, 2]
+    return np.asarray(facing & (depth > 0))
+
+
 def build_problem(
     survey: dict[int, tuple[np.ndarray, np.ndarray]],
     length: float,
@@ -147,9 +162,18 @@ def build_problem(
     cols: dict[str, list[np.ndarray]] = {
         k: [] for k in ("kf", "cam", "mk", "corner", "uv", "R_D", "t_D", "om", "vel", "w")
     }
+    R_arr, t_arr = np.array(R_m).reshape(-1, 3, 3), np.array(t_m, float).reshape(-1, 3)
+    dropped = 0
     for k, kf in enumerate(keyframes):
         for v in kf.views:
             keep = np.array([int(i) in index for i in v.ids], bool)
+            rows = np.array([index.get(int(i), -1) for i in v.ids], int)
+            surveyed = keep & np.array(
+                [int(i) in survey and int(i) not in start_moved for i in v.ids], bool
+            )
+            seeable = _seeable(kf, v, cameras[v.camera], R_arr[rows], t_arr[rows])
+            dropped += int(np.count_nonzero(surveyed & ~seeable))
+            keep &= ~surveyed | seeable
             n = int(keep.sum())
             if not n:
                 continue
@@ -164,6 +188,10 @@ def build_problem(
             cols["om"].append(np.repeat(v.omega[None], 4 * n, 0))
             cols["vel"].append(np.repeat(v.vel[None], 4 * n, 0))
             cols["w"].append(np.full(4 * n, v.weight))
+    if dropped:
+        log.info(
+            "refine: %d detections of markers the camera faced away from were dropped", dropped
+        )
     if not cols["kf"]:
         raise ValueError("no marker corners in the keyframes")
     cat = {k: np.concatenate(v) for k, v in cols.items()}

@@ -209,6 +209,33 @@ def test_marker_moved_since_the_survey_is_flagged_not_absorbed():
     assert np.median(pos_err) < 0.03
 
 
+def test_a_misread_id_of_a_marker_behind_the_camera_is_dropped_not_flagged():
+    # The board refinement can read a few cells of a near marker as a surveyed marker that is
+    # behind the camera (seen on a field render): that detection must not move the marker.
+    truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=2, rig=(0, 0), focal_rel=0)
+    k, kf = 10, keyframes[10]
+    view = kf.views[0]
+    R_wc = kf.R_wb @ true_cams[0].R_bc
+    c_w = kf.R_wb @ true_cams[0].t_bc + kf.t_wb
+    behind = [m for m, (_, c) in truth.items() if (c - c_w) @ R_wc[:, 2] < -1.0]
+    assert behind
+    ghost = behind[0]
+    # A 12 px square inside the first marker the camera does see.
+    centre = view.corners[0].mean(0)
+    square = centre + 6.0 * np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+    kf.views[0] = FrameView(
+        0, np.append(view.ids, ghost), np.concatenate([view.corners, square[None]])
+    )
+    prob, sol = _solve(survey_map, true_cams, keyframes, length, mode="map")
+    m = prob.markers.index(ghost)
+    ghost_rows = (prob.obs.keyframe == k) & (prob.obs.camera == 0) & (prob.obs.marker == m)
+    assert not ghost_rows.any()
+    # The real detections of that frame are all kept.
+    assert np.count_nonzero((prob.obs.keyframe == k) & (prob.obs.camera == 0)) == 4 * len(view.ids)
+    assert ghost not in sol.moved
+    assert np.linalg.norm(sol.t_m[m] - truth[ghost][1]) < 0.05
+
+
 def test_unknown_prior_frees_a_surveyed_marker():
     truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=4, rig=(0, 0), focal_rel=0)
     mid = sorted({int(i) for kf in keyframes for v in kf.views for i in v.ids})[0]
@@ -364,7 +391,8 @@ def _far_marker(truth, keyframes):
 def test_marker_floor_is_the_depth_error_of_a_size_error_along_the_line_of_sight():
     """What the video cannot average away: a far marker's size in the image is a few tens of pixels,
     so a size error common to its frames (0.3 px) is a depth error of depth x 0.3 / side along its
-    line of sight; across it, and for a near marker, only the 5 mm floor is left."""
+    line of sight, and a turn out of its plane; across it, and for a near marker, only the 5 mm floor
+    is left."""
     truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=3, rig=(0, 0), focal_rel=0)
     target, depth, los = _far_marker(truth, keyframes)
     prob, _ = build_problem(survey_map, length, true_cams, keyframes, Priors())
@@ -378,7 +406,25 @@ def test_marker_floor_is_the_depth_error_of_a_size_error_along_the_line_of_sight
     )
     assert abs(V[:, -1] @ los) > 0.95
     assert np.allclose(np.sqrt(w[:2]), settings.marker_floor_m)
-    assert np.allclose(floors[m, :3, :3], np.radians(settings.marker_floor_deg) ** 2 * np.eye(3))
+    # Its turn: about its own normal only the 0.3 deg floor; out of its plane, the turn that the
+    # same size error makes of the square's foreshortening and perspective, by hand per view.
+    R_m, c_m = prob.R_m[m], truth[target][1]  # the axes the problem holds: the survey's
+    rot = R_m.T @ floors[m, :3, :3] @ R_m  # in the marker's axes
+    base = np.radians(settings.marker_floor_deg) ** 2
+    assert rot[2, 2] == pytest.approx(base)
+    gains: list[tuple[float, float]] = []  # px of shape per radian, turning about x and about y
+    for kf in keyframes:
+        if any(int(i) == target for v in kf.views for i in v.ids):
+            d = R_m.T @ (kf.t_wb - c_m)  # the bundle seen from the marker, in its axes
+            dist = np.linalg.norm(d)
+            u, side_i = d / dist, 700 * length / dist
+            persp = length / dist * u[2]
+            gains.append((side_i * np.hypot(u[1], persp), side_i * np.hypot(u[0], persp)))
+    for axis in (0, 1):
+        rms = np.sqrt(np.mean(np.square([g[axis] for g in gains])))
+        slant = settings.marker_size_floor_px / rms
+        assert np.sqrt(rot[axis, axis] - base) == pytest.approx(slant, rel=0.25)
+        assert slant > np.radians(1)  # a far marker's slant is poorly known
     near = min(range(len(prob.markers)), key=lambda i: np.linalg.eigvalsh(floors[i, 3:, 3:])[-1])
     assert np.sqrt(np.linalg.eigvalsh(floors[near, 3:, 3:])[-1]) < 0.3 * np.sqrt(w[-1])
 

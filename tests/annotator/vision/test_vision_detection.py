@@ -8,7 +8,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from annotator.core.experiment import CameraCalibration
-from annotator.vision.detection import DetectorSettings, MarkerDetector, auto_downscale
+from annotator.vision.detection import (
+    DetectorSettings,
+    MarkerDetector,
+    auto_downscale,
+    nested_quads,
+)
 from track_helpers import make_room
 
 W, H = 960, 540
@@ -183,3 +188,16 @@ def test_edge_corners_default_to_on_only_where_detection_is_downscaled():
         assert (det.scale, det.edge_corners) == (scale, edges)
         forced = MarkerDetector(DetectorSettings(edge_corners=not edges), room, cal)
         assert forced.edge_corners is (not edges)
+
+
+def test_a_quad_inside_a_larger_one_is_a_misread_and_is_dropped():
+    big = np.array([[100.0, 100.0], [200.0, 102.0], [198.0, 200.0], [101.0, 198.0]])
+    inner = np.array([[140.0, 140.0], [152.0, 140.0], [152.0, 152.0], [140.0, 152.0]])
+    apart = big + [300.0, 0.0]
+    # Any corner order, either winding.
+    flags = nested_quads(np.array([big, inner[::-1], apart]))
+    assert flags.tolist() == [False, True, False]
+    # Touching neighbours (a marker grid) are both real.
+    right = big + [98.0, 0.0]
+    assert not nested_quads(np.array([big, right])).any()
+    assert not nested_quads(np.zeros((0, 4, 2))).any()
