@@ -42,22 +42,33 @@ log = logging.getLogger(__name__)
 
 
 def _prior_precision(
-    prob: Problem, layout: _Layout, model: _Model, skip_marker_prior: np.ndarray
+    prob: Problem,
+    layout: _Layout,
+    model: _Model,
+    skip_marker_prior: np.ndarray,
+    floors: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Diagonal precision of the static priors and the rows A of the coupled priors (cost |A x|^2 / 2):
-    each camera's aspect ratio, the rig's gauge."""
+    each camera's aspect ratio, the rig's gauge, and (``floors``: (M, 6, 6)) each surveyed marker's
+    prior widened by its floors, a full 6x6 block."""
     pr = prob.priors
     prec = np.zeros(layout.n_static)
     sl = layout.static_slices()
     off = sl["marker"][0]
+    coupled_rows: list[np.ndarray] = []
     for m in range(layout.M):
         sr, sm = prob.marker_sigma[m]
         if skip_marker_prior[m] or not np.isfinite(sr):
             prec[off + 6 * m : off + 6 * m + 6] = 1e-6  # keeps a marker no keyframe sees well-posed
             continue
-        prec[off + 6 * m : off + 6 * m + 3] = 1 / sr**2
-        prec[off + 6 * m + 3 : off + 6 * m + 6] = 1 / sm**2
-    aspect_rows = []
+        if floors is None:
+            prec[off + 6 * m : off + 6 * m + 3] = 1 / sr**2
+            prec[off + 6 * m + 3 : off + 6 * m + 6] = 1 / sm**2
+            continue
+        prior = np.diag([sr * sr] * 3 + [sm * sm] * 3) + floors[m]
+        rows = np.zeros((6, layout.n_static))
+        rows[:, off + 6 * m : off + 6 * m + 6] = np.linalg.cholesky(np.linalg.inv(prior)).T
+        coupled_rows.extend(rows)
     for name, (o, n, size) in sl.items():
         if name == "marker":
             continue
@@ -76,7 +87,7 @@ def _prior_precision(
                 ]
                 a = np.zeros(layout.n_static)
                 a[b], a[b + 1] = 1 / fx, -1 / fy
-                aspect_rows.append(a / pr.aspect_sigma_rel)
+                coupled_rows.append(a / pr.aspect_sigma_rel)
             elif name == DIST:
                 prec[b : b + size] = 1 / pr.distortion_sigma**2
             elif name == READOUT:
@@ -92,8 +103,8 @@ def _prior_precision(
         for i in range(6):
             a = np.zeros(layout.n_static)
             a[o + i : o + 6 * n : 6] = 1.0 / n
-            aspect_rows.append(a * 1e5)
-    A = np.array(aspect_rows) if aspect_rows else np.zeros((0, layout.n_static))
+            coupled_rows.append(a * 1e5)
+    A = np.array(coupled_rows) if coupled_rows else np.zeros((0, layout.n_static))
     return prec, A
 
 
@@ -154,8 +165,8 @@ class _LM:
         self.sigma_px = 1.0
         self._priors()
 
-    def _priors(self) -> None:
-        self.prec, self.A = _prior_precision(self.prob, self.L, self.model, self.skip)
+    def _priors(self, floors: np.ndarray | None = None) -> None:
+        self.prec, self.A = _prior_precision(self.prob, self.L, self.model, self.skip, floors)
         self.aspect_prec = 1.0  # the rows of A carry their own weights
 
     def cost(self, x: np.ndarray) -> tuple[float, np.ndarray]:
@@ -440,9 +451,14 @@ def _solve(
     # terms (the map's datum is common to every marker), plus what the gate held back and the rig's
     # gauge; its data part is widened by the keyframes' correlation time only when asked
     # (RefineSettings.keyframe_correlation).
-    # The markers' floors stay out: they are errors common to all of a marker's frames, and the
-    # tracker sees the same frames (docs/annotator.md, "What sigma_m means").
+    # The markers' floors stay out of the marker blocks: they are errors common to all of a marker's
+    # frames, and the tracker sees the same frames (docs/annotator.md, "What sigma_m means"). When
+    # the walk maps skipped markers, the surveyed ones' floors enter through their priors
+    # (RefineSettings.floors_in_record): the mapped markers inherit them.
     stretch = _correlation_stretch(prob, uv, lm.sigma_px) if s.keyframe_correlation else 1.0
+    if s.floors_in_record and np.any(seen & ~np.isfinite(prob.marker_sigma[:, 1])):
+        lm._priors(np.where(seen[:, None, None], floor, 0.0))
+        Hpp, _, Hps, Hss, _ = lm.normal_equations(x, uv)
     joint = (
         lm.static_covariance(Hpp, Hps, Hss, stretch)
         + (cov - post)

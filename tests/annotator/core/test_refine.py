@@ -464,6 +464,42 @@ def test_joint_record_keeps_the_rig_gauge_the_solve_pins():
         assert np.trace(cov.joint[np.ix_(rows, rows)]) <= np.trace(cov.markers[mid]) + 1e-12
 
 
+def test_mapped_markers_inherit_the_surveyed_markers_floors_in_the_joint_record():
+    """A marker the walk maps is the data's view of the surveyed markers carried over, so the joint
+    record (what the trajectory's sigma is built from) counts the surveyed markers' floors through
+    their priors when some seen marker was skipped by the survey; the estimate is the same either
+    way, and with every seen marker surveyed the record does not change."""
+
+    def joint_marker_var(prob, sol, mids):
+        idx = sol.covariance.joint_index
+        return {
+            m: np.trace(sol.covariance.joint[np.ix_(*[idx["markers", m][3:]] * 2)]) for m in mids
+        }
+
+    truth, survey_map, cams, true_cams, keyframes, length = _scene(seed=2, rig=(0, 0), focal_rel=0)
+    seen = sorted({int(i) for kf in keyframes for v in kf.views for i in v.ids})
+    skip = tuple(seen[::3])
+    for skipped in ((), skip):
+        truth, survey_map, cams, true_cams, keyframes, length = _scene(
+            seed=2, rig=(0, 0), focal_rel=0, skip=skipped
+        )
+        prob, with_floors = _solve(survey_map, true_cams, keyframes, length)
+        _, without = _solve(survey_map, true_cams, keyframes, length, floors_in_record=False)
+        np.testing.assert_allclose(with_floors.t_m, without.t_m, atol=1e-12)
+        mids = [m for m in seen if m in prob.markers]
+        a = joint_marker_var(prob, with_floors, mids)
+        b = joint_marker_var(prob, without, mids)
+        if not skipped:
+            assert all(a[m] == pytest.approx(b[m], rel=1e-9) for m in mids)
+            continue
+        mapped = [m for m in skipped if m in prob.markers]
+        assert mapped
+        # Every mapped marker is less certain than the record without the floors claims, by a
+        # margin worth stating (the floors here: 5 mm and 0.3 deg per marker, plus depth and slant).
+        assert all(a[m] > 1.15 * b[m] for m in mapped)
+        assert np.linalg.eigvalsh(with_floors.covariance.joint).min() > -1e-12
+
+
 @pytest.mark.parametrize("rho", [0.0, 0.6])
 def test_correlated_keyframe_errors_stretch_the_covariance(rho):
     """Residuals that follow each corner from keyframe to keyframe (a first-order process with
