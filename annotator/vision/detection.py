@@ -178,21 +178,18 @@ def nested_quads(corners: np.ndarray) -> np.ndarray:
     fitted to the ones found, a marker behind the camera lands somewhere in the image through the
     lens polynomial, and a candidate there that passes its tolerant bit check gets that id (seen
     on a field render: a 12 px "marker 13" inside marker 8, which the camera faced away from)."""
-    n = len(corners)
-    out = np.zeros(n, bool)
-    if n < 2:
-        return out
+    if len(corners) < 2:
+        return np.zeros(len(corners), bool)
     c = corners.astype(np.float64)
     x, y = c[..., 0], c[..., 1]
     area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, 1) - np.roll(x, -1, 1) * y, axis=1))
-    centre = c.mean(1)
     edge = np.roll(c, -1, 1) - c  # (n, 4, 2)
-    for i in range(n):
-        rel = centre[i] - c  # centre i from every quad's corners, (n, 4, 2)
-        cross = edge[..., 0] * rel[..., 1] - edge[..., 1] * rel[..., 0]
-        inside = (cross > 0).all(1) | (cross < 0).all(1)
-        out[i] = bool(np.any(inside & (area > area[i]) & (np.arange(n) != i)))
-    return out
+    rel = c.mean(1)[:, None, None] - c[None]  # [i, j]: centre i from quad j's corners, (n, n, 4, 2)
+    cross = edge[None, ..., 0] * rel[..., 1] - edge[None, ..., 1] * rel[..., 0]
+    inside = (cross > 0).all(2) | (cross < 0).all(2)  # [i, j]: centre i inside quad j
+    return np.asarray(
+        (inside & (area[None] > area[:, None])).any(1)
+    )  # a quad is not larger than itself
 
 
 def _aruco_detector(

@@ -63,6 +63,14 @@ def _medoid_rotation(Rs: list[np.ndarray]) -> np.ndarray:
     return near.mean().as_matrix()
 
 
+def _camera_in_world(
+    kf: Keyframe, v: FrameView, cam: CameraParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """The view's camera in the world at the frame time: (R_wc, centre)."""
+    R_b, t_b = kf.R_wb @ v.R_D, kf.R_wb @ v.t_D + kf.t_wb  # bundle at the frame time
+    return R_b @ cam.R_bc, R_b @ cam.t_bc + t_b
+
+
 def marker_views(
     keyframes: list[Keyframe], cameras: list[CameraParams], length: float
 ) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
@@ -76,9 +84,7 @@ def marker_views(
         for v in kf.views:
             if not len(v.ids):
                 continue
-            cam = cameras[v.camera]
-            R_b, t_b = kf.R_wb @ v.R_D, kf.R_wb @ v.t_D + kf.t_wb  # bundle at the frame time
-            R_wc, c_w = R_b @ cam.R_bc, R_b @ cam.t_bc + t_b
+            R_wc, c_w = _camera_in_world(kf, v, cameras[v.camera])
             xn = undistort_points(cals[v.camera], v.corners)
             for mid, pts in zip(v.ids, xn, strict=True):
                 sols = ippe_square(pts, length, np.eye(3), None)
@@ -98,8 +104,7 @@ def _seeable(
 
     A detection of a surveyed marker that fails this is a misread id, not a survey error: a
     survey a few centimetres off does not put a marker behind the camera or turn its back."""
-    R_b, t_b = kf.R_wb @ v.R_D, kf.R_wb @ v.t_D + kf.t_wb
-    R_wc, c_w = R_b @ cam.R_bc, R_b @ cam.t_bc + t_b
+    R_wc, c_w = _camera_in_world(kf, v, cam)
     to_cam = c_w - t_m  # (n, 3)
     facing = np.einsum("nk,nk->n", R_m[:, :, 2], to_cam) > 0  # marker z: out of its face
     depth = (t_m - c_w) @ R_wc[:, 2]
