@@ -495,8 +495,13 @@ def test_resend_waits_for_silence_and_backs_off_while_nothing_is_acknowledged(
         assert pub.resend_due() == 0  # no ack came: the next pass waits twice as long
         t[0] = 15 * s
         assert pub.resend_due() == 3
-        r.put(wire.ack_key("lab", "pi-01"), wire.to_json({"boot": BOOT, "streams": {SENSOR: 0}}))
-        wait_for(lambda: pub.acked() == {SENSOR: 0})  # progress: back to 5 s, 2 batches left
+        # Nothing has travelled yet, so the agent's ack subscription may not have reached the
+        # router when the first ack is put: say it again until it arrives (acks are idempotent).
+        ack = wire.to_json({"boot": BOOT, "streams": {SENSOR: 0}})
+        wait_for(
+            lambda: pub.acked() == {SENSOR: 0},  # progress: back to 5 s, 2 batches left
+            poll=lambda: r.put(wire.ack_key("lab", "pi-01"), ack),
+        )
         t[0] = 19 * s
         assert pub.resend_due() == 0
         t[0] = 20 * s
