@@ -97,6 +97,8 @@ def process_video(
         settings.detector,
         dictionary=markers.dictionary,
         keep_unknown=settings.detector.keep_unknown or settings.refine != "none",
+        edge_corners_for_refine=settings.detector.edge_corners_for_refine
+        or settings.refine != "none",
     )
     detector = MarkerDetector(det_settings, room, camera.calibration)
     cal = camera.calibration

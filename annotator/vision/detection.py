@@ -52,12 +52,21 @@ class DetectorSettings:
     # AUTO_MAX_WIDTH, e.g. 1080p), where cornerSubPix's size-dependent bias made the
     # self-calibration take a clean 1080p capture from 0.04 to ~1 cm; off at full-size detection,
     # where on the 960x540 field renders it is a wash (better on average over five seeds, worse on
-    # some). See docs/annotator.md, "Clean 1080p video with half-size detection".
+    # some); the self-calibration measures with them there too (edge_corners_for_refine). See
+    # docs/annotator.md, "Clean 1080p video with half-size detection".
     edge_corners: bool | None = None
     # Board refinement accepts a projected marker this close (full-resolution pixels) to a
     # candidate; a wide one lets it take a small marker's inner contour, one cell in.
     # None: EDGE_BOARD_REFINE_PX with edge corners, else OpenCV's 10 px in the detection image.
     board_refine_px: float | None = None
+    # Where the corners above are the window's, fit the edge corners too, for the
+    # self-calibration alone (Detections.edge; +0.8-1 ms CPU per frame). The window corner's bias
+    # grows as a marker shrinks in the image, and a free map reads it as markers farther away:
+    # on clean 960x540 walks a few markers took corrections of 1-2 cm and the trajectory 0.5 cm.
+    # The edge corner has no such bias on sharp frames but is pulled inward on blurred small
+    # markers, so the final pass, which also uses blurred frames, keeps the window corners
+    # (docs/annotator.md, "The refinement measures with edge corners").
+    edge_corners_for_refine: bool = False
 
 
 EDGE_BOARD_REFINE_PX = 6.0
@@ -78,6 +87,10 @@ class Detections:
 
     ids: np.ndarray
     corners: np.ndarray
+    # The same markers' edge-fit corners where ``corners`` are the window's and the detector was
+    # asked for both (``DetectorSettings.edge_corners_for_refine``): what the self-calibration
+    # measures the map, rig and lenses with. None otherwise.
+    edge: np.ndarray | None = None
 
     @classmethod
     def empty(cls) -> Detections:
@@ -161,13 +174,20 @@ class MarkerDetector:
             win = max(2, int(round(2.5 / s)))
             cv2.cornerSubPix(gray, flat, (win, win), (-1, -1), _SUBPIX_CRITERIA)
             pts = flat.reshape(-1, 4, 2)
+        edge = None
         if self.edge_corners:
             pts = refine_corners_by_edges(gray, pts, self.calibration).astype(np.float32)
+        elif self.settings.edge_corners_for_refine:
+            edge = refine_corners_by_edges(gray, pts, self.calibration)
         # A marker detected twice (reflections, refine) keeps its first copy only.
         _, first = np.unique(ids, return_index=True)
         first.sort()
         keep = first[~nested_quads(pts[first])]
-        return Detections(ids[keep].astype(int), pts[keep].astype(np.float64))
+        return Detections(
+            ids[keep].astype(int),
+            pts[keep].astype(np.float64),
+            None if edge is None else edge[keep].astype(np.float64),
+        )
 
 
 def nested_quads(corners: np.ndarray) -> np.ndarray:

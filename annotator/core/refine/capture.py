@@ -185,7 +185,7 @@ def select_keyframes(
                 FrameView(
                     ci,
                     det.ids,
-                    det.corners,
+                    det.corners if det.edge is None else det.edge,
                     R0.T @ Rj[i],
                     R0.T @ (pj[i] - p0),
                     R0.T @ omj[i],

@@ -161,12 +161,23 @@ def test_corners_are_unbiased_for_small_and_large_markers_at_1080p():
         truth[int(mid)] = px
     img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
     img = np.clip(img + rng.normal(0, 1.5, img.shape), 0, 255).astype(np.uint8)
-    # The default at 1080p (half-size detection) is the edge fit; at full size it is asked for.
-    for downscale, edges in ((None, None), (1.0, True)):
-        settings = DetectorSettings(downscale=downscale, edge_corners=edges)
+    # The default at 1080p (half-size detection) is the edge fit; at full size it is asked for,
+    # either as the corners or beside the window corners, for the self-calibration alone.
+    window = MarkerDetector(DetectorSettings(downscale=1.0), room, cal).detect(img)
+    assert window.edge is None
+    for downscale, edges, beside in ((None, None, False), (1.0, True, False), (1.0, None, True)):
+        settings = DetectorSettings(
+            downscale=downscale, edge_corners=edges, edge_corners_for_refine=beside
+        )
         det = MarkerDetector(settings, room, cal).detect(img)
         assert sorted(det.ids.tolist()) == sorted(truth)
-        for mid, corners in zip(det.ids, det.corners, strict=True):
+        if beside:
+            assert det.edge is not None
+            assert np.array_equal(det.corners, window.corners)
+        else:
+            assert det.edge is None
+        fitted = det.edge if det.edge is not None else det.corners
+        for mid, corners in zip(det.ids, fitted, strict=True):
             t = truth[int(mid)]
             out = t - t.mean(axis=0)
             out /= np.linalg.norm(out, axis=1, keepdims=True)
