@@ -174,20 +174,17 @@ class MarkerDetector:
             win = max(2, int(round(2.5 / s)))
             cv2.cornerSubPix(gray, flat, (win, win), (-1, -1), _SUBPIX_CRITERIA)
             pts = flat.reshape(-1, 4, 2)
-        edge = None
         if self.edge_corners:
             pts = refine_corners_by_edges(gray, pts, self.calibration).astype(np.float32)
-        elif self.settings.edge_corners_for_refine:
-            edge = refine_corners_by_edges(gray, pts, self.calibration)
         # A marker detected twice (reflections, refine) keeps its first copy only.
         _, first = np.unique(ids, return_index=True)
         first.sort()
         keep = first[~nested_quads(pts[first])]
-        return Detections(
-            ids[keep].astype(int),
-            pts[keep].astype(np.float64),
-            None if edge is None else edge[keep].astype(np.float64),
-        )
+        corners = pts[keep].astype(np.float64)
+        edge = None
+        if not self.edge_corners and self.settings.edge_corners_for_refine:
+            edge = refine_corners_by_edges(gray, corners, self.calibration)
+        return Detections(ids[keep].astype(int), corners, edge)
 
 
 def nested_quads(corners: np.ndarray) -> np.ndarray:
@@ -207,9 +204,8 @@ def nested_quads(corners: np.ndarray) -> np.ndarray:
     rel = c.mean(1)[:, None, None] - c[None]  # [i, j]: centre i from quad j's corners, (n, n, 4, 2)
     cross = edge[None, ..., 0] * rel[..., 1] - edge[None, ..., 1] * rel[..., 0]
     inside = (cross > 0).all(2) | (cross < 0).all(2)  # [i, j]: centre i inside quad j
-    return np.asarray(
-        (inside & (area[None] > area[:, None])).any(1)
-    )  # a quad is not larger than itself
+    # No quad is larger than itself, so a quad's own centre never counts.
+    return np.asarray((inside & (area[None] > area[:, None])).any(1))
 
 
 def _aruco_detector(
