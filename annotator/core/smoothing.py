@@ -4,11 +4,15 @@ Position: constant-velocity Kalman filter (filterpy) with each frame's own measu
 covariance, Mahalanobis gating of outliers, then a Rauch-Tung-Striebel backward pass.
 Rotation: at each output time, a weighted local-linear fit of rotation-vector offsets around a
 robust local mean (scipy Rotation), so rotations stay rotations and turns do not lag.
+The frames' own scatter about the smoothed track says how noisy they really were: each run's
+measured-to-stated noise ratio comes back beside the track (``noise_scale``), for the sigma a
+caller reports; the filter's weights keep the stated covariances.
 Pure functions on arrays; times in seconds; a time with no support comes back as NaN.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +30,9 @@ class SmootherSettings:
     max_extrapolate_s: float = 0.1  # output this far beyond the first / last measurement of a run
     max_meas_sigma_m: float = 0.15  # measurements vaguer than this (a lone far marker) are ignored
     max_out_sigma_m: float = 0.05  # output times whose smoothed sigma exceeds this become gaps
+    # The reported sigma follows the frames' scatter about the smoothed track (the ratio of the
+    # noise they show to the noise they state) once this many frames were accepted; before, 1.
+    min_scatter_frames: int = 30
     gate_chi2: float = CHI2_3DOF_999
     rot_bandwidth_s: float = 0.08  # Gaussian kernel sigma of the rotation fit
     rot_gate_deg: float = 3.0  # a rotation this far from its neighbours' fit is an outlier
@@ -63,12 +70,15 @@ def smooth_positions(
     cov: np.ndarray,
     t_out: np.ndarray,
     settings: SmootherSettings | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Smoothed positions at ``t_out``.
 
     ``t_meas`` (N,) sorted, ``z`` (N, 3), ``cov`` (N, 3, 3). Returns positions (M, 3) and their
-    1-sigma (M,) (NaN outside the measured spans), and the (N,) mask of measurements accepted by
-    the gate.
+    1-sigma (M,) from the stated covariances (NaN outside the measured spans), the (N,) mask of
+    measurements accepted by the gate, and ``noise_scale``: how far the accepted measurements
+    really scatter about the smoothed track in units of their stated sigma (1.0 with fewer than
+    ``min_scatter_frames`` of them). An honest ``cov`` gives ~1; multiplying the returned sigma
+    by it gives the sigma of the noise the frames show.
     """
     s = settings or SmootherSettings()
     t_meas, t_out = np.asarray(t_meas, float), np.asarray(t_out, float)
@@ -77,6 +87,7 @@ def smooth_positions(
     accepted = np.zeros(len(t_meas), dtype=bool)
     H = np.hstack([np.eye(3), np.zeros((3, 3))])
     floor = s.min_sigma_m**2 * np.eye(3)
+    scatter: list[np.ndarray] = []  # per run: normalised squared residuals of accepted frames
     for a, b in _segments(t_meas, s.max_gap_s):
         lo, hi = t_meas[a], t_meas[b - 1]
         q_idx = np.flatnonzero((t_out >= lo) & (t_out <= hi))
@@ -130,10 +141,29 @@ def smooth_positions(
             Xs[k], Ps[k] = x, P
             k += 1
         Xs, Ps, _, _ = rts_smoother(Xs, Ps, Fs, Qs)
+        at = np.flatnonzero(kind == 0)
+        at = at[accepted[ref[at]]]
+        scatter.append(_normalised_residuals(z[ref[at]], cov[ref[at]] + floor, Xs[at], Ps[at]))
         q_rows = kind == 1
         out[ref[q_rows]] = Xs[q_rows, :3]
         sig[ref[q_rows]] = np.sqrt(np.trace(Ps[q_rows, :3, :3], axis1=1, axis2=2) / 3)
-    return out, sig, accepted
+    q = np.concatenate(scatter) if scatter else np.zeros(0)
+    scale = math.sqrt(float(np.mean(q)) / 3) if len(q) >= s.min_scatter_frames else 1.0
+    return out, sig, accepted, scale
+
+
+def _normalised_residuals(z: np.ndarray, R: np.ndarray, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """r^T (R - P)^-1 r of each measurement about the smoothed state at its own time.
+
+    A smoothed state leans on its own measurement, so an honest R leaves residuals of covariance
+    R - P (P the smoothed position covariance), and the mean of this over many frames is 3.
+    Where R - P is not positive definite (a lone measurement the track rests on), R is used.
+    """
+    r = z - x[:, :3]
+    C = R - P[:, :3, :3]
+    ok = np.all(np.linalg.eigvalsh(C) > 1e-3 * np.trace(R, axis1=1, axis2=2)[:, None] / 3, axis=1)
+    C = np.where(ok[:, None, None], C, R)
+    return np.einsum("ni,ni->n", r, np.linalg.solve(C, r[:, :, None])[:, :, 0])
 
 
 def supported(

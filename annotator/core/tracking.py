@@ -209,6 +209,10 @@ def smooth(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Positions (M, 3), rotations (M, 3, 3) and position sigma (M,) at t_out; NaN where unsupported.
 
+    The sigma is the smoother's, scaled to the noise the frames show about the smoothed track
+    (``smooth_positions``' noise_scale): a frame's stated covariance comes from its own corner
+    residuals, which also hold the map's and lenses' misfit, covered by sigma_m's parameter part.
+
     With a pool, the rotation fit runs in a worker while this process filters the positions.
     """
     if len(meas.t) == 0:
@@ -232,19 +236,23 @@ def smooth(
     var = np.trace(cov[:, :3, :3], axis1=1, axis2=2) / 3
     rot_args = (meas.t, Rotation.from_matrix(meas.rotation), var, t_out, s)
     rot_future = None if pool is None else pool.submit(smooth_rotations, *rot_args)
-    pos, sig, ok_p = smooth_positions(meas.t, meas.position, cov[:, 3:, 3:], t_out, s)
+    pos, sig, ok_p, noise_scale = smooth_positions(meas.t, meas.position, cov[:, 3:, 3:], t_out, s)
     R, ok_r = smooth_rotations(*rot_args) if rot_future is None else rot_future.result()
     log.info(
-        "smoother kept %d/%d positions, %d/%d rotations",
+        "smoother kept %d/%d positions, %d/%d rotations; the frames scatter about the track "
+        "at %.2f of their stated sigma",
         ok_p.sum(),
         len(ok_p),
         ok_r.sum(),
         len(ok_r),
+        noise_scale,
     )
     ok = supported(meas.t[ok_p & ok_r], t_out, s.max_gap_s, s.max_extrapolate_s)
     bad = ~ok | ~np.isfinite(pos).all(1) | ~np.isfinite(R).all((1, 2)) | ~(sig <= s.max_out_sigma_m)
     pos[bad], R[bad], sig[bad] = np.nan, np.nan, np.nan
-    return pos, R, sig
+    # Which rows are posed follows the stated noise (above); the sigma reported follows the noise
+    # the frames showed.
+    return pos, R, sig * noise_scale
 
 
 def _solve_chunk(args: tuple[Any, ...]) -> list[BundlePose | None]:

@@ -19,12 +19,28 @@ def test_positions_get_closer_to_truth_than_the_measurements():
     t, truth = make_walk(600, 1 / 30)
     z = truth + rng.normal(0, 0.01, truth.shape)
     cov = np.repeat((0.01**2 * np.eye(3))[None], len(t), 0)
-    out, sig, ok = smooth_positions(t, z, cov, t)
+    out, sig, ok, _ = smooth_positions(t, z, cov, t)
     raw = np.linalg.norm(z - truth, axis=1)
     err = np.linalg.norm(out - truth, axis=1)
     assert np.median(err) < 0.5 * np.median(raw)
     assert ok.all()
     assert np.all(sig < 0.01)
+
+
+def test_noise_scale_makes_the_sigma_describe_the_noise_the_frames_show():
+    t, truth = make_walk(900, 1 / 30)
+    for real, stated in ((0.003, 0.003), (0.003, 0.010), (0.001, 0.010)):
+        z = truth + np.random.default_rng(4).normal(0, real, truth.shape)
+        cov = np.repeat((stated**2 * np.eye(3))[None], len(t), 0)
+        out, sig, _, scale = smooth_positions(t, z, cov, t)
+        err = np.sqrt(np.mean((out - truth) ** 2))  # per axis, rms over the walk
+        # Scaled, the smoother's sigma is its own error, a little on the safe side (0.41-1.60 mm
+        # against 0.46-1.71 mm); as stated it was up to 4x too large.
+        assert err <= np.median(sig * scale) <= 1.25 * err
+        assert scale < 0.85 if stated > real else scale > 0.7
+    # Too few frames to measure a scatter: the stated noise stands.
+    cov = np.repeat((0.010**2 * np.eye(3))[None], 20, 0)
+    assert smooth_positions(t[:20], z[:20], cov, t[:20])[3] == 1.0
 
 
 def test_outliers_are_gated_and_do_not_pull_the_track():
@@ -34,7 +50,7 @@ def test_outliers_are_gated_and_do_not_pull_the_track():
     bad = np.arange(20, 300, 37)
     z[bad] += np.array([0.5, -0.4, 0.3])  # wrong-branch poses, half a metre off
     cov = np.repeat((0.003**2 * np.eye(3))[None], len(t), 0)
-    out, _, ok = smooth_positions(t, z, cov, t)
+    out, _, ok, _ = smooth_positions(t, z, cov, t)
     assert not ok[bad].any()
     assert ok.sum() == len(t) - len(bad)
     assert np.linalg.norm(out - truth, axis=1).max() < 0.01
@@ -45,7 +61,9 @@ def test_gap_longer_than_max_gap_is_nan_and_query_times_between_frames_interpola
     keep = (t - t[0] < 3.0) | (t - t[0] > 5.0)  # two seconds without any measurement
     cov = np.repeat((0.002**2 * np.eye(3))[None], keep.sum(), 0)
     t_q = t + 1 / 60  # half-way between frames
-    out, sig, _ = smooth_positions(t[keep], truth[keep], cov, t_q, SmootherSettings(max_gap_s=0.5))
+    out, sig, _, _ = smooth_positions(
+        t[keep], truth[keep], cov, t_q, SmootherSettings(max_gap_s=0.5)
+    )
     in_gap = (t_q - t[0] > 3.05) & (t_q - t[0] < 4.95)
     assert np.isnan(out[in_gap]).all()
     assert np.isnan(sig[in_gap]).all()
@@ -121,7 +139,7 @@ def test_a_bad_start_after_a_gap_does_not_lose_the_track():
     z[0] += [0.0, 0.04, 0.0]
     z[1] += [0.0, -0.03, 0.0]  # two poor poses: a velocity of -4 m/s
     cov = np.repeat((0.002**2 * np.eye(3))[None], len(t), 0)
-    out, _, ok = smooth_positions(t, z, cov, t)
+    out, _, ok, _ = smooth_positions(t, z, cov, t)
     err = np.linalg.norm(out - truth, axis=1)
     assert ok[10:].all()
     assert err[10:].max() < 0.01
