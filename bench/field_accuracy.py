@@ -19,6 +19,8 @@ capture would have (the condition's errors; see docs/renderer.md) and scores the
     flicker     10 % lamp flicker at 100 Hz
     all         all of the above at once (`annotator simulate --errors field`)
     surveyed8   all of the above, and only 8 of the room's markers in the map (the rest skipped)
+    fisheye     an OpenCV fisheye (equidistant) lens in place of the mild one (calibrated exactly)
+    fisheye-all every error of `all`, with the fisheye lens in place of the wide one
 
 When `annotator track --help` offers `--refine`, every condition is tracked twice: with
 `--refine none` and with the default. Columns: posed share of rows; position error median and
@@ -130,6 +132,12 @@ CONDITIONS = {
             "surveyed8",
             video={k: FIELD[k] for k in VIDEO_KEYS},
             files={**{k: float(FIELD[k]) for k in FILE_KEYS}, "surveyed": 8},
+        ),
+        Condition("fisheye", video={"lens": "fisheye"}),
+        Condition(
+            "fisheye-all",
+            video={**{k: FIELD[k] for k in VIDEO_KEYS}, "lens": "fisheye"},
+            files={k: float(FIELD[k]) for k in FILE_KEYS},
         ),
     )
 }

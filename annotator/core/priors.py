@@ -74,7 +74,10 @@ class Priors:
     principal_sigma_px: float = 2.0  # cx, cy
     distortion_sigma: float = 0.05  # each distortion coefficient
     readout_sigma_s: float = 0.02  # rolling-shutter readout time (prior mean: the calibration's)
-    aspect_sigma_rel: float = 0.001  # fx / fy (pixel aspect: a property of the sensor, well known)
+    # fx / fy: the pixel aspect is the sensor's, and a ChArUco calibration gives it to a few 1e-4.
+    # Looser (0.001), the refinement read the foreshortening of slanted wall markers, which both
+    # corner detectors narrow in x, as fy 0.25 % short (docs/annotator.md, "The pixel aspect").
+    aspect_sigma_rel: float = 0.0002
     jig: Jig | None = None  # a rest at a known pose, which fixes the rig's gauge
 
     def marker(self, marker_id: int) -> MarkerPrior:
