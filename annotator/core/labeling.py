@@ -63,8 +63,10 @@ def label_readings(
     Readings inside an ``exclude`` interval (Unix seconds; the sync cover events, when hands
     over the beacon distort the RSSI) are never labelled, whatever the poses.
     ``time_sigma`` (s, scalar or per reading): 1-sigma uncertainty of the readings' times against
-    the video clock (the sync); a reading's sigma then adds speed x time_sigma in quadrature, the
-    speed being that of the two poses around it.
+    the video clock (the sync); a reading's sigma then adds speed x time_sigma / sqrt(3) in
+    quadrature, the speed being that of the two poses around it. A clock error moves the label
+    along the direction of motion only, and ``sigma`` is per axis (the rms over x, y and z, as the
+    trajectory's ``sigma_m``): that one axis holds a third of the 3-D variance.
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     m = t_ns.size
@@ -119,7 +121,7 @@ def label_readings(
                 out=np.zeros_like(span),
                 where=span > 0,
             )
-            out_sig[good] = np.hypot(out_sig[good], speed * ts)
+            out_sig[good] = np.hypot(out_sig[good], speed * ts / np.sqrt(3.0))
     if markers is not None:
         M = np.asarray(markers)
         nearest = np.where(w <= 0.5, g_lo, g_hi)

@@ -24,7 +24,9 @@ so a block the capture cannot check keeps its prior.
 Motion blur: the smear of a frame is the corners' image speed (from the smoothed motion) times
 the exposure; frames smearing more than ``max_smear_px`` are down-weighted (dropped beyond three
 times that). The time within the exposure at which the detector places a smeared corner is
-unknown: ``sigma_blur_m`` = speed x exposure / sqrt(12).
+unknown: a time error of exposure / sqrt(12) (uniform over the exposure), which moves the pose
+along the direction of motion only. Per axis, as every other part of sigma_m (the rms over x, y
+and z), that is ``sigma_blur_m`` = speed x exposure / sqrt(12) / sqrt(3) = speed x exposure / 6.
 
 With a refinement's record (``ParameterCovariance.joint``), A Sigma A^T runs over every block at
 once (markers, rig, intrinsics and distortion, readout, and the detector's corner bias), with the
@@ -753,7 +755,8 @@ def row_uncertainty(
     var = _kernel_average(t_out, var, s.param_window_s)
     speed = np.linalg.norm(vel, axis=1)
     exp_row = max(exposure.values()) if exposure else 0.0
-    blur = speed * exp_row / math.sqrt(12.0)
+    # Uniform over the exposure (sqrt(12)), along the motion only (a third of it per axis).
+    blur = speed * exp_row / math.sqrt(12.0 * 3.0)
     valid = np.isfinite(pos).all(1)
     # A posed row whose own frames gave no Jacobian (e.g. bridged gap) takes its neighbours' values.
     var[valid & ~np.isfinite(var).all(1)] = np.nan

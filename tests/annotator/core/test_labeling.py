@@ -142,16 +142,29 @@ def test_cover_events_are_excluded_and_not_counted_against_coverage() -> None:
     assert tracked_span_coverage(labels) == 1.0
 
 
-def test_sync_uncertainty_adds_speed_times_time_sigma_to_each_reading():
+def test_sync_uncertainty_is_per_axis_like_the_trajectorys_sigma():
+    """A clock error moves a label along the motion only: sigma (per axis) must give the 3-D error's
+    mean square as 3 sigma^2, so the sync adds speed x time_sigma / sqrt(3) in quadrature (adding
+    all of it to every axis claimed three times the variance; this fails at a ratio of ~0.34)."""
     from annotator.core.labeling import label_readings
 
-    t = np.arange(0.0, 2.0, 0.1)
-    pos = np.stack([1.5 * t, np.zeros_like(t), np.ones_like(t)], 1)  # 1.5 m/s along x
+    def circle(t: np.ndarray) -> np.ndarray:  # 1.5 m/s round a 2 m circle: the error turns too
+        return np.stack([2 * np.cos(0.75 * t), 2 * np.sin(0.75 * t), np.ones_like(t)], 1)
+
+    t = np.arange(0.0, 20.0, 0.05)
+    pos = circle(t)
     rot = np.repeat(np.eye(3)[None], len(t), axis=0)
-    poses = Trajectory(t, pos, rot, {"sigma_m": np.full(len(t), 0.004)})
-    t_ns = np.array([0.35e9, 1.25e9], dtype=np.int64)
+    poses = Trajectory(t, pos, rot, {"sigma_m": np.full(len(t), 1e-4)})
+    rng = np.random.default_rng(3)
+    t_true = rng.uniform(1.0, 19.0, 4000)
+    ts = 0.01
+    t_ns = np.round((t_true + rng.normal(0.0, ts, t_true.size)) * 1e9).astype(np.int64)
     plain = label_readings(poses, t_ns)
-    synced = label_readings(poses, t_ns, time_sigma=0.01)
-    assert np.allclose(plain.sigma, 0.004)
-    assert np.allclose(synced.sigma, np.hypot(0.004, 1.5 * 0.01))
+    synced = label_readings(poses, t_ns, time_sigma=ts)
+    assert np.allclose(plain.sigma, 1e-4)
     assert np.allclose(synced.positions, plain.positions)
+    err2 = np.sum((synced.positions - circle(t_true)) ** 2, axis=1)
+    ratio = np.mean(err2) / np.mean(3 * synced.sigma**2)
+    assert 0.9 < ratio < 1.1, ratio
+    # 1.5 m/s x 10 ms along the motion, spread over three axes; the pose's own 0.1 mm beside it.
+    assert np.allclose(synced.sigma, np.hypot(1e-4, 1.5 * ts / np.sqrt(3)), rtol=2e-3)
