@@ -178,10 +178,10 @@ def test_a_rest_on_a_jig_sets_the_rig_gauge_that_the_video_cannot(tmp_path):
     assert pos1 < 0.6 * pos0
     assert covered >= 0.9
     # sigma_m is conditioned on the rest too (the gauge and the map's datum it pins). Measured:
-    # 0.77 (0.17 cm error); 0.38 before the frame noise was scaled to the frames' scatter; 0.71
-    # with one refinement round (0.25 cm); 0.24 with one round before the rest's Kalman update.
-    # Still cautious (an honest sigma gives ~1.5): its floors (blur and unmodelled, 1.8 mm per
-    # axis) exceed this walk's ~1 mm per axis.
+    # 0.81 (0.17 cm error); 0.77 before the blur part counted a third per axis; 0.38 before the
+    # frame noise was scaled to the frames' scatter; 0.71 with one refinement round (0.25 cm);
+    # 0.24 with one round before the rest's Kalman update. Still cautious (an honest sigma gives
+    # ~1.5): its floors (blur and unmodelled, ~1.6 mm per axis) exceed this walk's ~1 mm per axis.
     assert 0.3 < z1 < 3.0
     record = json.loads((out / "experiment" / "refined" / "refinement.json").read_text())["jig"]
     assert record["rows"] > 30
