@@ -11,6 +11,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from bgt_core.keys import unknown_key
+
 Point = tuple[float, float, float]
 
 # A loop through the tetam room (about 20.7 m x 17.6 m), clear of the walls, hand-held
@@ -26,6 +28,9 @@ DEFAULT_WAYPOINTS: tuple[Point, ...] = (
     (2.5, 8.5, 1.2),
 )
 DEFAULT_SPEED_MPS = 0.4
+# The keys of a cover event's and of a path's mapping (to_dict / from_dict).
+COVER_KEYS = ("start_s", "duration_s", "attenuation_db", "drop_prob")
+PATH_KEYS = ("waypoints", "speed_mps", "dwell_s", "corner_radius")
 
 
 class MotionError(ValueError):
@@ -64,9 +69,9 @@ class CoverEvent:
 
     @staticmethod
     def from_dict(d: Mapping[str, Any]) -> CoverEvent:
-        unknown = set(d) - {"start_s", "duration_s", "attenuation_db", "drop_prob"}
-        if unknown:
-            raise MotionError(f"cover event: unknown key {sorted(unknown)[0]!r}")
+        message = unknown_key(d, COVER_KEYS, "cover event")
+        if message is not None:
+            raise MotionError(message)
         try:
             return CoverEvent(
                 float(d["start_s"]),
@@ -213,9 +218,9 @@ class PathModel:
 
     @staticmethod
     def from_dict(d: Mapping[str, Any]) -> PathModel:
-        unknown = set(d) - {"waypoints", "speed_mps", "dwell_s", "corner_radius"}
-        if unknown:
-            raise MotionError(f"path: unknown key {sorted(unknown)[0]!r}")
+        message = unknown_key(d, PATH_KEYS, "path")
+        if message is not None:
+            raise MotionError(message)
         wps = d.get("waypoints", DEFAULT_WAYPOINTS)
         if not isinstance(wps, Sequence) or isinstance(wps, str):
             raise MotionError("path waypoints must be a list of [x, y, z]")

@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from bgt_core.keys import unknown_key
 from bgt_core.wire import WireError, check_id
 from bgt_core.zenoh_config import (
     DEFAULT_ENDPOINT,
@@ -147,9 +148,9 @@ def load_config(path: str | Path) -> CollectorConfig:
 def parse_config(raw: Any, *, base: Path, name: str = "collector.yaml") -> CollectorConfig:
     if not isinstance(raw, dict):
         raise ConfigError(f"{name}: expected a mapping of settings at the top level")
-    unknown = sorted(set(raw) - set(KEYS))
-    if unknown:
-        raise ConfigError(f"{name}: unknown key {unknown[0]!r} (known: {', '.join(KEYS)})")
+    message = unknown_key(raw, KEYS, name)
+    if message is not None:
+        raise ConfigError(message)
     cfg = CollectorConfig()
     kw: dict[str, Any] = {}
     if "site" in raw:
@@ -194,9 +195,14 @@ def _listen(listen: Any, name: str) -> tuple[str, ...]:
     return tuple(listen)
 
 
+TLS_KEYS = ("root_ca", "cert", "key")
+
+
 def _tls(tls: Any, base: Path, name: str) -> TlsFiles:
     """``tls``: the CA, certificate and key files, relative to ``base``; each must exist."""
-    if not isinstance(tls, dict) or set(tls) != {"root_ca", "cert", "key"}:
+    if isinstance(tls, dict) and (message := unknown_key(tls, TLS_KEYS, name, "tls")):
+        raise ConfigError(message)
+    if not isinstance(tls, dict) or set(tls) != set(TLS_KEYS):
         raise ConfigError(f"{name}: tls must be null or a mapping with root_ca, cert and key")
     files = {k: base / _str(v, name, f"tls.{k}") for k, v in tls.items()}
     for k, p in files.items():
@@ -216,11 +222,9 @@ def _seconds(raw: dict[str, Any], key: str, name: str, lo: int, hi: int) -> floa
 def _limits(raw: Any, name: str) -> Limits:
     if not isinstance(raw, dict):
         raise ConfigError(f"{name}: limits must be a mapping ({', '.join(Limits.RANGES)})")
-    unknown = sorted(set(raw) - set(Limits.RANGES))
-    if unknown:
-        raise ConfigError(
-            f"{name}: unknown key limits.{unknown[0]} (known: {', '.join(Limits.RANGES)})"
-        )
+    message = unknown_key(raw, Limits.RANGES, name, "limits")
+    if message is not None:
+        raise ConfigError(message)
     kw: dict[str, Any] = {}
     for k, v in raw.items():
         lo, hi = Limits.RANGES[k]

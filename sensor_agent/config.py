@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from bgt_core.motion import CoverEvent, MotionError, PathModel
+from bgt_core.keys import unknown_key
+from bgt_core.motion import COVER_KEYS, PATH_KEYS, CoverEvent, MotionError, PathModel
 from bgt_core.wire import WireError, check_id, normalize_mac
 from bgt_core.zenoh_config import DEFAULT_ENDPOINT, TlsFiles
 from sensor_agent.errors import ConfigError
@@ -164,12 +165,9 @@ class _Fields:
             return {}
         if not isinstance(d, Mapping):
             raise self.fail(name or "the top level", "a mapping", d)
-        for k in d:
-            if k not in allowed:
-                where = f"{name}.{k}" if name else str(k)
-                raise ConfigError(
-                    f"{self.source}: unknown key {where!r} (expected one of: {', '.join(allowed)})"
-                )
+        message = unknown_key(d, allowed, self.source, name)
+        if message is not None:
+            raise ConfigError(message)
         return d
 
     def pos_int(self, v: Any, name: str) -> int:
@@ -438,6 +436,7 @@ def _simulated(f: _Fields, raw: Any) -> SimulatedConfig:
 def _sim_path(f: _Fields, p: Any) -> PathModel:
     if not isinstance(p, Mapping):
         raise f.fail("simulated.path", "a mapping (waypoints, speed_mps, dwell_s)", p)
+    f.mapping(p, "simulated.path", PATH_KEYS)
     try:
         return PathModel.from_dict(p)
     except MotionError as e:
@@ -451,6 +450,7 @@ def _sim_events(f: _Fields, ev: Any) -> tuple[CoverEvent, ...]:
     for i, item in enumerate(ev):
         if not isinstance(item, Mapping):
             raise f.fail(f"simulated.events[{i}]", "a mapping", item)
+        f.mapping(item, f"simulated.events[{i}]", COVER_KEYS)
         try:
             events.append(CoverEvent.from_dict(item))
         except MotionError as err:

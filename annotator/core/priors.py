@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from annotator.errors import ConfigError
+from bgt_core.keys import unknown_key
 
 REFINE_MODES = ("none", "map", "all")
 
@@ -117,11 +118,9 @@ def parse_priors(obj: Any, source: str) -> Priors:
         "aspect_sigma_rel",
         "jig",
     }
-    unknown = sorted(set(map(str, obj)) - known_keys)
-    if unknown:
-        raise ConfigError(
-            f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known_keys))})"
-        )
+    message = unknown_key(obj, sorted(known_keys), source, "refine")
+    if message is not None:
+        raise ConfigError(message)
     mode = str(obj.get("mode", d.mode))
     if mode not in REFINE_MODES:
         raise ConfigError(f"{where}.mode: must be one of {', '.join(REFINE_MODES)}, not {mode!r}")
@@ -161,7 +160,7 @@ def parse_priors(obj: Any, source: str) -> Priors:
         distortion_sigma=_positive(obj, "distortion_sigma", d.distortion_sigma, where),
         readout_sigma_s=_positive(obj, "readout_sigma_s", d.readout_sigma_s, where),
         aspect_sigma_rel=_positive(obj, "aspect_sigma_rel", d.aspect_sigma_rel, where),
-        jig=_jig(obj.get("jig"), f"{where}.jig"),
+        jig=_jig(obj.get("jig"), source),
     )
 
 
@@ -176,21 +175,21 @@ def _vector(value: Any, where: str, shape: tuple[int, ...]) -> np.ndarray:
     return a
 
 
-def _jig(obj: Any, where: str) -> Jig | None:
+def _jig(obj: Any, source: str) -> Jig | None:
     """``refine: jig:`` -> Jig: from, to (s), position [x, y, z] (m), R_world_bundle (3x3),
     optional sigma_m and sigma_deg."""
+    where = f"{source}: refine.jig"
     if obj is None:
         return None
     if not isinstance(obj, dict):
         raise ConfigError(f"{where}: must be a mapping with from, to, position, R_world_bundle")
-    keys = {"from", "to", "position", "R_world_bundle", "sigma_m", "sigma_deg"}
-    unknown = sorted(set(map(str, obj)) - keys)
+    keys = ("from", "to", "position", "R_world_bundle", "sigma_m", "sigma_deg")
+    message = unknown_key(obj, keys, source, "refine.jig")
+    if message is not None:
+        raise ConfigError(message)
     missing = sorted({"from", "to", "position", "R_world_bundle"} - set(map(str, obj)))
-    if unknown or missing:
-        what = (
-            f"unknown key(s) {', '.join(unknown)}" if unknown else f"missing {', '.join(missing)}"
-        )
-        raise ConfigError(f"{where}: {what} (keys: {', '.join(sorted(keys))})")
+    if missing:
+        raise ConfigError(f"{where}: missing {', '.join(missing)} (keys: {', '.join(keys)})")
     start, end = (float(_vector(obj[k], f"{where}.{k}", ())) for k in ("from", "to"))
     if not end > start:
         raise ConfigError(f"{where}: 'to' ({end}) must come after 'from' ({start})")

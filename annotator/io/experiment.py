@@ -26,6 +26,7 @@ from annotator.core.experiment import (
 from annotator.core.priors import parse_priors
 from annotator.errors import ConfigError
 from bgt_core.formats.markers import read_marker_map
+from bgt_core.keys import unknown_key
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +71,15 @@ def _mapping(obj: Any, source: str, what: str) -> dict[str, Any]:
     if not isinstance(obj, dict):
         raise ConfigError(f"{source}: {what} must be a mapping")
     return obj
+
+
+def _known_keys(
+    obj: dict[Any, Any], allowed: tuple[str, ...], source: str, section: str = ""
+) -> None:
+    """ConfigError naming the first key of ``obj`` not in ``allowed`` (with a close match)."""
+    message = unknown_key(obj, allowed, source, section)
+    if message is not None:
+        raise ConfigError(message)
 
 
 def _number(value: Any, where: str, lo: float, hi: float, expected: str = "") -> float:
@@ -216,9 +226,15 @@ def _rotation(value: Any, source: str, key: str) -> np.ndarray:
     return u @ vt
 
 
+# Keys of rig.yaml, and of each of its cameras.
+RIG_KEYS = ("cameras",)
+RIG_CAMERA_KEYS = ("calibration", "R_bundle_camera", "t_bundle_camera")
+
+
 def parse_rig(obj: Any, path: Path) -> Rig:
     source = str(path)
     d = _mapping(obj, source, "the rig")
+    _known_keys(d, RIG_KEYS, source)
     cams = d.get("cameras")
     if not isinstance(cams, dict) or not cams:
         raise ConfigError(f"{source}: expected a non-empty 'cameras:' mapping")
@@ -226,7 +242,8 @@ def parse_rig(obj: Any, path: Path) -> Rig:
     for name, spec in cams.items():
         where = f"{source}: cameras.{name}"
         spec = _mapping(spec, where, "a camera")
-        for key in ("calibration", "R_bundle_camera", "t_bundle_camera"):
+        _known_keys(spec, RIG_CAMERA_KEYS, source, f"cameras.{name}")
+        for key in RIG_CAMERA_KEYS:
             if key not in spec:
                 raise ConfigError(f"{where}: missing '{key}'")
         cal_path = path.parent / str(spec["calibration"])
@@ -249,8 +266,14 @@ def load_rig(path: str | Path) -> Rig:
 # --- experiment -----------------------------------------------------------------------------
 
 
+# Keys of experiment.yaml's top level and of its `markers:` section.
+EXPERIMENT_KEYS = ("markers", "rig", "videos", "rssi", "sync", "refine")
+MARKERS_KEYS = ("file", "dictionary", "length")
+
+
 def _markers(value: Any, base: Path, source: str) -> MarkerSetup:
     d = _mapping(value, source, "markers")
+    _known_keys(d, MARKERS_KEYS, source, "markers")
     for key in ("file", "dictionary", "length"):
         if key not in d:
             raise ConfigError(f"{source}: markers: missing '{key}'")
@@ -279,11 +302,7 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> SyncSettings:
     from bgt_core.wire import WireError, normalize_mac
 
     sync = dict(_mapping(obj, source, "sync"))
-    unknown = sorted(set(map(str, sync)) - set(SYNC_KEYS))
-    if unknown:
-        raise ConfigError(
-            f"{source}: sync: unknown key {unknown[0][:40]!r} (allowed: {', '.join(SYNC_KEYS)})"
-        )
+    _known_keys(sync, SYNC_KEYS, source, "sync")
     mode = sync.get("mode", "manual")
     if mode not in ("manual", "auto"):
         raise ConfigError(f"{source}: sync.mode must be 'manual' or 'auto', not {mode!r:.40}")
@@ -329,6 +348,7 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> SyncSettings:
 def parse_experiment(obj: Any, path: Path) -> Experiment:
     source = str(path)
     d = _mapping(obj, source, "the experiment")
+    _known_keys(d, EXPERIMENT_KEYS, source)
     base = path.parent
     for key in ("markers", "rig", "videos"):
         if key not in d:

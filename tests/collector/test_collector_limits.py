@@ -158,7 +158,7 @@ def test_limits_in_the_config_file(tmp_path) -> None:
     ):
         load_config(f)
     f.write_text("limits: {fds: 3}\n")
-    with pytest.raises(ConfigError, match=r"unknown key limits\.fds"):
+    with pytest.raises(ConfigError, match=r"unknown key 'limits\.fds'"):
         load_config(f)
 
 

@@ -115,7 +115,7 @@ EXPERIMENT_CASES = [
     (
         "sync key typo",
         sync(f"  mode: manual\n  video_strat: {{front: {T0}}}\n"),
-        "unknown key 'video_strat'",
+        "unknown key 'sync.video_strat'",
     ),
     (
         "sync cover NaN",
