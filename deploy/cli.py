@@ -22,6 +22,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from bgt_core.cli_help import flow_command_help
 from deploy import pki
 from deploy.acl import build_acl
 from deploy.inventory import ADMIN_CNS, InventoryError, load_inventory
@@ -320,6 +321,9 @@ def wheelhouse_cmd(
     typer.echo(proj.name)
     typer.echo(str(out))
     typer.echo("changed" if changed else "unchanged")
+
+
+flow_command_help(app)  # after every command is declared
 
 
 def main() -> None:

@@ -99,7 +99,7 @@ def simulate(
         str,
         typer.Option(
             help="loop (rounded rectangle), rectangle or zigzag (the paper's kind of planned path, "
-            "walked with a stop at each corner), or FILE.yaml with 'waypoints: \\[\\[x, y], ...]' in "
+            "walked with a stop at each corner), or FILE.yaml with 'waypoints: [[x, y], ...]' in "
             "room metres. Polyline paths also write path.yaml for `annotator evaluate --path`."
         ),
     ] = "loop",
