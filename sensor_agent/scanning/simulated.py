@@ -1,53 +1,26 @@
 """Simulated backend: seeded beacons walking a path through a site, heard by the site's sensors.
 
-RSSI follows the log-distance model ``tx_1m - 10 n log10(d) + N(0, sigma)``; each advert is lost
-independently per sensor with ``drop_prob``, and cover events add attenuation and extra loss.
-``generate()`` is pure (same seed, same t0 -> same readings); the backend only paces it in real time.
+The radio model and the advert generator are :mod:`bgt_core.radio_sim` (the annotator's renderer
+uses them too); this backend picks the site's sensors and paces the generator in real time.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
-import random
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 from bgt_core.formats.devices import Devices, SiteConfigError, read_dev
-from bgt_core.motion import CoverEvent, PathModel, cover_at
+from bgt_core.motion import CoverEvent, PathModel
+from bgt_core.radio_sim import RadioModel, Sensor, Simulation
 from bgt_core.sites import site_dir
-from bgt_core.wire import RSSI_MAX, RSSI_MIN, Reading
+from bgt_core.wire import Reading
 from sensor_agent.config import SimulatedConfig
 from sensor_agent.errors import BackendError
 from sensor_agent.scanning.base import AdapterInfo, AdvertSink, Clocks, ScannerBackend
 
-# Advert intervals are jittered by up to this fraction, like real beacons' random delay.
-_JITTER = 0.2
-# Below this distance the log model is meaningless (the beacon is at the antenna).
-_MIN_DISTANCE_M = 0.1
 _TICK_S = 0.05
-
-
-@dataclass(frozen=True, slots=True)
-class Sensor:
-    mac: str
-    position: tuple[float, float, float]
-    alias: str = ""
-
-
-@dataclass(frozen=True, slots=True)
-class RadioModel:
-    tx_1m: float = -59.0
-    path_loss_exponent: float = 2.0
-    sigma_db: float = 3.0
-    drop_prob: float = 0.05
-    floor_dbm: float = -100.0
-
-    def mean_rssi(self, distance_m: float) -> float:
-        d = max(distance_m, _MIN_DISTANCE_M)
-        return self.tx_1m - 10.0 * self.path_loss_exponent * math.log10(d)
 
 
 def load_site(site: str) -> Devices:
@@ -93,75 +66,6 @@ def _xyz(pos: Sequence[float], mac: str) -> tuple[float, float, float]:
     if len(pos) != 3:
         raise BackendError(f"sensor {mac} has no [x, y, z] position in the site's .dev")
     return (float(pos[0]), float(pos[1]), float(pos[2]))
-
-
-class Simulation:
-    """Deterministic advert generator. Call ``generate(until_s)`` with increasing times."""
-
-    def __init__(
-        self,
-        sensors: Sequence[Sensor],
-        beacons: Sequence[str],
-        path: PathModel,
-        t0_ns: int,
-        *,
-        seed: int = 0,
-        rate_hz: float = 10.0,
-        radio: RadioModel | None = None,
-        events: Sequence[CoverEvent] = (),
-    ) -> None:
-        if not sensors:
-            raise BackendError("the simulation has no sensors")
-        if not beacons:
-            raise BackendError("the simulation has no beacons")
-        self.sensors = tuple(sensors)
-        self.beacons = tuple(beacons)
-        self.path = path
-        self.t0_ns = t0_ns
-        self.rate_hz = rate_hz
-        self.radio = radio or RadioModel()
-        self.events = tuple(events)
-        self._rng = random.Random(seed)
-        # Several beacons share the path, spread evenly along it.
-        self._phase = [i * path.period_s / len(self.beacons) for i in range(len(self.beacons))]
-        self._next = [self._rng.uniform(0, 1 / rate_hz) for _ in self.beacons]
-
-    def beacon_position(self, index: int, t_s: float) -> tuple[float, float, float]:
-        return self.path.position_at(t_s + self._phase[index])
-
-    def skip_to(self, t_s: float) -> None:
-        """Start advertising at ``t_s`` instead of 0 (an agent started long after t0)."""
-        interval = 1 / self.rate_hz
-        self._next = [max(n, t_s + self._rng.uniform(0, interval)) for n in self._next]
-
-    def generate(self, until_s: float) -> list[tuple[str, Reading]]:
-        """Every (sensor MAC, reading) of adverts sent before ``until_s`` (seconds after t0)."""
-        out: list[tuple[str, Reading]] = []
-        rng, radio, interval = self._rng, self.radio, 1 / self.rate_hz
-        while True:
-            i = min(range(len(self.beacons)), key=self._next.__getitem__)
-            t = self._next[i]
-            if t >= until_s:
-                return out
-            self._next[i] = t + interval * (1 + rng.uniform(-_JITTER, _JITTER))
-            pos = self.beacon_position(i, t)
-            cover = cover_at(self.events, t)
-            t_ns = self.t0_ns + round(t * 1e9)
-            for s in self.sensors:
-                # Draw every random number whether or not the advert survives, so that a
-                # change of drop probability does not reshuffle the noise of other readings.
-                lost = rng.random() < radio.drop_prob
-                lost_cover = rng.random() < (cover.drop_prob if cover else 0.0)
-                noise = rng.gauss(0.0, radio.sigma_db)
-                if lost or lost_cover:
-                    continue
-                rssi = radio.mean_rssi(math.dist(pos, s.position)) + noise
-                if cover is not None:
-                    rssi -= cover.attenuation_db
-                if rssi < radio.floor_dbm:
-                    continue
-                rssi_i = max(RSSI_MIN, min(RSSI_MAX, round(rssi)))
-                out.append((s.mac, Reading(t_ns, self.beacons[i], rssi_i)))
 
 
 def simulate_fleet(
@@ -221,6 +125,8 @@ class SimulatedBackend(ScannerBackend):
     def from_config(cls, cfg: SimulatedConfig, clocks: Clocks | None = None) -> SimulatedBackend:
         devices = load_site(cfg.site)
         sensors = pick_sensors(devices, cfg.sensors)
+        if not sensors:
+            raise BackendError(f"simulated.site {cfg.site!r}: the site's .dev lists no sensors")
         beacons = cfg.beacons or tuple(devices.beacons) or ("e78f135624ce",)
         radio = RadioModel(
             cfg.tx_1m, cfg.path_loss_exponent, cfg.sigma_db, cfg.drop_prob, cfg.floor_dbm
