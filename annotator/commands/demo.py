@@ -39,6 +39,8 @@ def capture_table(cap: Any) -> Table:
 
 
 def result_table(summary: dict[str, Any]) -> Table:
+    from annotator.core.labeling import describe_counts
+
     e, c = summary["error_cm"], summary["coverage"]
     table = Table(title="annotation against the known truth", show_header=False)
     table.add_column("what")
@@ -52,9 +54,8 @@ def result_table(summary: dict[str, Any]) -> Table:
         f"median {cm(e['median'])}, p95 {cm(e['p95'])}, max {cm(e['max'])} (n = {e['n']})",
     )
     table.add_row(
-        "labelled in the tracked span",
-        f"{c['labelled_of_tracked_span']:.1%} ({c['labelled']} of {c['readings_of_beacon']} "
-        "readings of the beacon)",
+        f"readings of the beacon ({c['readings_of_beacon']})",
+        escape(describe_counts(summary["counts"])),
     )
     for name, s in summary["sync"].items():
         sigma = "" if s["sigma_ms"] is None else f" ± {s['sigma_ms']:.1f} ms"

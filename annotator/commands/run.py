@@ -59,6 +59,7 @@ def write_run_outputs(
             events=[(e.cover, e.release) for e in result.sync.rssi_events],
             span=(float(valid_t[0]), float(valid_t[-1])) if valid_t.size else None,
             markers=exp.markers.markers,
+            video_starts={n: c.video_start for n, c in result.sync.clocks.items()},
         )
         report["plots"] = {k: p.name for k, p in written.items()}
     budget = sigma_budget(traj.quality)
@@ -125,6 +126,7 @@ def run(
     dark, the beacon's RSSI drops); with `manual`, sync.video_start is used as given.
     """
     with one_line_errors():
+        from annotator.core.labeling import describe_counts
         from annotator.io.experiment import load_experiment
         from annotator.pipeline import RunSettings, TrackSettings, run_experiment
         from bgt_core.wire import normalize_mac
@@ -160,11 +162,10 @@ def run(
                 f"{name}: video_start {cam['video_start']:.4f}{sig_text} ({cam['method']})",
                 highlight=False,
             )
-        c = rep["counts"]
         console.print(
-            f"labelled {c['labelled']} of {c['readings_of_beacon']} readings of {rep['beacon']} "
-            f"({rep['coverage']['labelled_of_tracked_span']:.1%} of the tracked span) -> {out}",
+            f"beacon {rep['beacon']}: {describe_counts(rep['counts'])} -> {out}",
             highlight=False,
+            markup=False,
         )
         print_sigma_budget(
             console,

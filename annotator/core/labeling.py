@@ -140,6 +140,26 @@ def _count(reason: np.ndarray) -> dict[str, int]:
     return {REASONS[k]: int(np.sum(reason == k)) for k in REASONS}
 
 
+def describe_counts(counts: dict[str, int]) -> str:
+    """One sentence saying what the counts of :func:`label_readings` count, e.g. "labelled 3032
+    of 3032 readings inside the tracked span; 326 left out (179 after it ends, 147 while the
+    bundle was covered)". Takes ``Labels.counts`` or report.json's ``counts`` (underscores)."""
+    n = {k.replace("_", " "): int(v) for k, v in counts.items()}
+    labelled, gap = n.get(REASONS[LABELLED], 0), n.get(REASONS[IN_GAP], 0)
+    text = f"labelled {labelled} of {labelled + gap} readings inside the tracked span"
+    if gap:
+        text += f" ({gap} in tracking gaps longer than the largest gap allowed)"
+    parts = [
+        (n.get(REASONS[BEFORE_SPAN], 0), "before it starts"),
+        (n.get(REASONS[AFTER_SPAN], 0), "after it ends"),
+        (n.get(REASONS[COVERED], 0), "while the bundle was covered"),
+    ]
+    out = sum(k for k, _ in parts)
+    if out:
+        text += f"; {out} left out (" + ", ".join(f"{k} {why}" for k, why in parts if k) + ")"
+    return text
+
+
 def tracked_span_coverage(labels: Labels) -> float:
     """Fraction of the readings inside the tracked span that got a pose (1.0 if none are inside).
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from annotator.plots.scale import metre_scale_bar
 from bgt_core.formats.devices import MapParams
 
 
@@ -44,8 +45,7 @@ def plot_mean_rssi(
         if floor_plan is not None and params is not None:
             img = plt.imread(str(floor_plan))
             ax.imshow(img, zorder=0)
-            ax.set_xlabel("map x (px)")
-            ax.set_ylabel("map y (px)")
+            metre_scale_bar(ax, params.parity, img.shape[1], img.shape[0])
         else:
             params = None
             ax.set_xlabel("x (m)")

@@ -10,12 +10,17 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from annotator.plots.scale import metre_scale_bar
 from bgt_core.formats.devices import Devices, MapParams, read_dev, read_par
 from bgt_core.formats.markers import MarkerPose, read_marker_map
 from bgt_core.sites import site_dir
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 log = logging.getLogger(__name__)
 
@@ -61,16 +66,19 @@ def load_site(name: str) -> tuple[FloorMap, Devices]:
     )
 
 
-def _figure(w: float, h: float):  # -> matplotlib.figure.Figure
+def _figure(w: float, h: float) -> Figure:
     from matplotlib.figure import Figure
 
     return Figure(figsize=(w, h), dpi=110, layout="constrained")
 
 
-def _floor_axes(ax, floor: FloorMap | None) -> None:
+def _floor_axes(ax, floor: FloorMap | None, scale_bar: bool = True) -> None:
+    """The floor plan as background (no axes: a metre scale bar instead), or metre axes."""
     if floor is not None:
         ax.imshow(floor.image)
         ax.set_axis_off()
+        if scale_bar:
+            metre_scale_bar(ax, floor.params.parity, floor.image.shape[1], floor.image.shape[0])
     else:
         ax.set_aspect("equal")
         ax.set_xlabel("x (m)")
@@ -93,7 +101,21 @@ def _sensor_points(
             continue
         x, y = _xy(floor, np.array([[*d.position[:2], 0.0]]))
         ax.plot(x, y, "s", ms=6, mfc="white", mec="black")
-        ax.annotate(d.alias, (x[0], y[0]), textcoords="offset points", xytext=(4, 4), fontsize=7)
+        # The label goes on the side of the marker that faces the middle of the plan, so a
+        # sensor near the plan's edge keeps its label inside the panel.
+        left, low = False, False
+        if floor is not None:
+            height, width = floor.image.shape[:2]
+            left, low = bool(x[0] > 0.7 * width), bool(y[0] < 0.15 * height)
+        ax.annotate(
+            d.alias,
+            (x[0], y[0]),
+            textcoords="offset points",
+            xytext=(-4 if left else 4, -4 if low else 4),
+            ha="right" if left else "left",
+            va="top" if low else "bottom",
+            fontsize=7,
+        )
 
 
 def plot_trajectory_map(
@@ -123,8 +145,14 @@ def plot_trajectory_map(
     return path
 
 
-def plot_rssi_time(
-    path: str | Path,
+def plot_rssi_time(path: str | Path, *args: Any, **kwargs: Any) -> Path:
+    """:func:`rssi_time_figure` written to ``path`` (PNG)."""
+    path = Path(path)
+    rssi_time_figure(*args, **kwargs).savefig(path)
+    return path
+
+
+def rssi_time_figure(
     t: np.ndarray,
     rssi: np.ndarray,
     sensor: np.ndarray,
@@ -133,38 +161,61 @@ def plot_rssi_time(
     span: tuple[float, float] | None = None,
     aliases: dict[str, str] | None = None,
     t0: float | None = None,
-) -> Path:
-    """RSSI over time, one panel per sensor; shaded: the sync event(s); dashed: the tracked span.
+    video_starts: dict[str, float] | None = None,
+) -> Figure:
+    """RSSI over time, one panel per sensor, with a legend for what the marks are: shaded, the
+    cover events used for sync; dashed, the tracked span's ends; dotted, each video's start.
 
-    ``t`` and the event/span times are on the same clock (Unix seconds); the axis shows seconds
-    from ``t0`` (default: the first reading).
+    ``t`` and the event/span/start times are on the same clock (Unix seconds); the axis shows
+    seconds from ``t0`` (default: the capture's start, the first reading), the title its
+    wall-clock time in UTC.
     """
+    import datetime as dt
+
     t = np.asarray(t, dtype=float)
     t0 = float(t.min()) if t0 is None and t.size else (t0 or 0.0)
     sensors = sorted(set(np.asarray(sensor).tolist()), key=lambda s: (aliases or {}).get(s, s))
     n = max(len(sensors), 1)
-    fig = _figure(9, 1.0 + 1.1 * n)
+    fig = _figure(9, 1.6 + 1.1 * n)
     axes = fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]
+    starts = sorted((video_starts or {}).items(), key=lambda kv: kv[1])
+    colours = ("tab:green", "tab:purple", "tab:brown", "tab:pink")
     for ax, s in zip(axes, sensors, strict=False):
         mine = np.asarray(sensor) == s
         ax.plot(t[mine] - t0, np.asarray(rssi)[mine], ".", ms=1.5, color="tab:blue")
-        for a, b in events:
-            ax.axvspan(a - t0, b - t0, color="tab:orange", alpha=0.35, lw=0)
+        for i, (a, b) in enumerate(events):
+            label = "cover event used for sync" if i == 0 else None
+            ax.axvspan(a - t0, b - t0, color="tab:orange", alpha=0.35, lw=0, label=label)
         if span is not None:
-            for v in span:
-                ax.axvline(v - t0, color="gray", ls="--", lw=0.8)
+            for i, v in enumerate(span):
+                label = "tracked span (first and last pose)" if i == 0 else None
+                ax.axvline(v - t0, color="gray", ls="--", lw=0.8, label=label)
+        for i, (name, v) in enumerate(starts):
+            ax.axvline(
+                v - t0, color=colours[i % len(colours)], ls=":", lw=1.0, label=f"{name} video start"
+            )
         label = (aliases or {}).get(s, s)
         ax.set_ylabel(label, rotation=0, ha="right", va="center", fontsize=7)
         ax.tick_params(labelsize=7)
-    axes[-1].set_xlabel(f"time (s) from {t0:.3f}")
-    axes[0].set_title("RSSI per sensor (dBm); shaded: cover event used for sync")
+    axes[-1].set_xlabel("time since the capture's start (s)")
+    start = dt.datetime.fromtimestamp(t0, dt.UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
+    fig.suptitle(f"RSSI of the beacon per sensor (dBm); capture start {start} UTC", fontsize=10)
+    handles, labels = axes[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(
+            handles, labels, loc="outside lower center", ncols=min(4, len(handles)), fontsize=7
+        )
+    return fig
+
+
+def plot_rssi_on_trajectory(path: str | Path, *args: Any, **kwargs: Any) -> Path:
+    """:func:`rssi_on_trajectory_figure` written to ``path`` (PNG)."""
     path = Path(path)
-    fig.savefig(path)
+    rssi_on_trajectory_figure(*args, **kwargs).savefig(path)
     return path
 
 
-def plot_rssi_on_trajectory(
-    path: str | Path,
+def rssi_on_trajectory_figure(
     trajectory: np.ndarray,
     positions: np.ndarray,
     rssi: np.ndarray,
@@ -173,7 +224,7 @@ def plot_rssi_on_trajectory(
     floor: FloorMap | None = None,
     devices: Devices | None = None,
     aliases: dict[str, str] | None = None,
-) -> Path:
+) -> Figure:
     """One panel per sensor: the labelled reading positions coloured by RSSI, over the path."""
     sensors = sorted(set(np.asarray(sensor).tolist()), key=lambda s: (aliases or {}).get(s, s))
     n = max(len(sensors), 1)
@@ -197,9 +248,8 @@ def plot_rssi_on_trajectory(
         ax.set_visible(False)
     if sc is not None:
         fig.colorbar(sc, ax=list(axes[: len(sensors)]), label="RSSI (dBm)", shrink=0.8)
-    path = Path(path)
-    fig.savefig(path)
-    return path
+    fig.suptitle("RSSI of each labelled reading at its position, one panel per sensor")
+    return fig
 
 
 def write_run_plots(
@@ -214,11 +264,13 @@ def write_run_plots(
     events: list[tuple[float, float]],
     span: tuple[float, float] | None,
     markers: dict[int, MarkerPose] | None = None,
+    video_starts: dict[str, float] | None = None,
 ) -> dict[str, Path]:
     """The three plots of `annotator run`; the floor map is drawn when the marker map is a built-in site's.
 
     ``t_s``, ``rssi``, ``sensor`` are the bundle beacon's readings (Unix seconds); ``labelled``
-    and ``label_positions`` their labels; ``events`` the RSSI cover intervals used for sync.
+    and ``label_positions`` their labels; ``events`` the RSSI cover intervals used for sync;
+    ``video_starts`` each camera's first frame on the RSSI clock.
     """
     out = Path(out_dir)
     site = builtin_site_for(markers) if markers else None
@@ -234,7 +286,14 @@ def write_run_plots(
             title="Tracked trajectory",
         ),
         "rssi_time": plot_rssi_time(
-            out / "rssi_time.png", t_s, rssi, sensor, events=events, span=span, aliases=aliases
+            out / "rssi_time.png",
+            t_s,
+            rssi,
+            sensor,
+            events=events,
+            span=span,
+            aliases=aliases,
+            video_starts=video_starts,
         ),
         "rssi_on_trajectory": plot_rssi_on_trajectory(
             out / "rssi_on_trajectory.png",

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from annotator.core.scoring import Score, Truth
+from annotator.plots.scale import metre_scale_bar
 
 
 def _site_plan():  # -> (MapParams, png path) or None
@@ -97,8 +98,9 @@ def plot_floor(path: Path, s: Score, est_position: np.ndarray, truth: Truth) -> 
     if on_plan:
         import matplotlib.image
 
-        ax.imshow(matplotlib.image.imread(str(png)), zorder=0)
-        ax.set(xlabel="map x (px)", ylabel="map y (px)")
+        img = matplotlib.image.imread(str(png))
+        ax.imshow(img, zorder=0)
+        metre_scale_bar(ax, params.parity, img.shape[1], img.shape[0])
     else:
         ax.set(xlabel="x (m)", ylabel="y (m)", aspect="equal")
     ok = np.isfinite(s.error_2d)

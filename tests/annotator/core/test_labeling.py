@@ -12,6 +12,7 @@ from annotator.core.labeling import (
     COVERED,
     IN_GAP,
     LABELLED,
+    describe_counts,
     label_readings,
     tracked_span_coverage,
 )
@@ -140,6 +141,25 @@ def test_cover_events_are_excluded_and_not_counted_against_coverage() -> None:
     assert np.isnan(labels.positions[1:3]).all()
     assert labels.counts["during a cover event"] == 2
     assert tracked_span_coverage(labels) == 1.0
+
+
+def test_the_summary_sentence_says_what_it_counts() -> None:
+    """Readings in and out of the span, a gap and a cover, told apart in one sentence (issue 30:
+    "100.0 % (3032 of 3358 readings)" read as a contradiction)."""
+    poses = make_poses(n=151, gaps=[(3.0, 4.0)])  # 0 .. 5 s, no pose from 3 to 4 s
+    t_rel = np.array([-1.0, 0.5, 1.0, 1.4, 2.0, 3.5, 4.9, 6.0, 7.0])
+    labels = label_readings(poses, to_ns(t_rel), exclude=[(T0 + 0.9, T0 + 1.5)])
+    text = describe_counts(labels.counts)
+    assert text == (
+        "labelled 3 of 4 readings inside the tracked span (1 in tracking gaps longer than the "
+        "largest gap allowed); 5 left out (1 before it starts, 2 after it ends, 2 while the bundle "
+        "was covered)"
+    )
+    # report.json's counts (underscores, plus totals) give the same sentence
+    report = {k.replace(" ", "_"): v for k, v in labels.counts.items()} | {"readings_of_beacon": 9}
+    assert describe_counts(report) == text
+    everything = label_readings(poses, to_ns(np.array([0.5, 1.0])))
+    assert describe_counts(everything.counts) == "labelled 2 of 2 readings inside the tracked span"
 
 
 def test_sync_uncertainty_is_per_axis_like_the_trajectorys_sigma() -> None:
