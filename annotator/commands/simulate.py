@@ -285,10 +285,33 @@ def simulate(
             rich_help_panel="Real-world errors",
         ),
     ] = 100.0,
+    rssi: Annotated[
+        bool,
+        typer.Option(
+            "--rssi/--no-rssi",
+            help="Also write the RSSI the bundle's beacon gives at the site's 12 sensors along the "
+            "walk into run/ (a collector run; experiment.yaml's rssi: names it), so `annotator run` "
+            "works on the render. --no-rssi leaves an empty rssi/ folder for readings of your own.",
+            rich_help_panel="Radio",
+        ),
+    ] = True,
+    rssi_rate: Annotated[
+        float,
+        typer.Option(
+            "--rssi-rate",
+            help="Adverts per second of the simulated beacon; each sensor hears ~95 % of them "
+            "(the published dataset has about 2 readings/s per sensor).",
+            rich_help_panel="Radio",
+            min=0.1,
+            max=100.0,
+        ),
+    ] = 2.0,
 ) -> None:
     """Render the tetam marker room along a path into front.mp4/back.mp4 plus experiment.yaml,
-    rig.yaml, front.yaml/back.yaml (calibrations), marker_positions.dat, truth.csv and, for
-    polyline paths, path.yaml.
+    rig.yaml, front.yaml/back.yaml (calibrations), marker_positions.dat, truth.csv, the RSSI
+    the walk gives (run/: run.yaml and rssi/simulated/<sensor>.mbd, from 2 s before the first
+    frame to 2 s after the last, hands-cover drops included) and, for polyline paths, path.yaml.
+    `annotator run OUT/experiment.yaml` then tracks, synchronises and labels it.
 
     The videos are always rendered with the exact room, rig and lenses; real-world errors
     (--errors field, --survey-m, ...) only go into the files handed to the annotator. The exact
@@ -384,13 +407,30 @@ def simulate(
                 flicker_hz=flicker_hz,
                 errors=file_errors,
                 progress=progress,
+                rssi_dir="run" if rssi else "rssi",
             )
         if jig > 0:
             write_jig(result.experiment, trajectory, t0, t0 + jig, seed, file_errors.perturbs)
         frames = ", ".join(f"{k} {v} frames" for k, v in result.frames.items())
-        extra = " and path.yaml" if (result.out_dir / "path.yaml").exists() else ""
+        extra = [result.truth.name]
+        if rssi:
+            from annotator.render.rssi import write_simulated_run
+
+            run = write_simulated_run(
+                out / "run",
+                trajectory,
+                (t0, t0 + duration),
+                covers=covers,
+                seed=seed,
+                rate_hz=rssi_rate,
+            )
+            extra.append(
+                f"run/ ({run.readings} readings of beacon {run.beacon} at {len(run.files)} sensors)"
+            )
+        if (result.out_dir / "path.yaml").exists():
+            extra.append("path.yaml")
         console.print(
-            f"wrote {result.experiment} ({frames}), {result.truth.name}{extra}",
+            f"wrote {result.experiment} ({frames}), {', '.join(extra)}",
             highlight=False,
             soft_wrap=True,
             markup=False,

@@ -315,16 +315,21 @@ def format_truth(times: np.ndarray, pos: np.ndarray, rot: Rotation) -> str:
 
 
 def experiment_yaml(
-    video_start: dict[str, float], dictionary: str, length: float, media: str = ""
+    video_start: dict[str, float],
+    dictionary: str,
+    length: float,
+    media: str = "",
+    rssi_dir: str = "rssi",
 ) -> str:
-    """experiment.yaml of a render; `media` is the folder of the videos and rssi/ relative to it."""
+    """experiment.yaml of a render; `media` is the folder of the videos and of `rssi_dir` (the
+    RSSI readings' folder) relative to it."""
     starts = ", ".join(f"{k}: {v!r}" for k, v in video_start.items())
     return (
         "# Rendered by `annotator simulate`: a synthetic experiment with known truth (truth.csv).\n"
         f"markers: {{file: marker_positions.dat, dictionary: {dictionary}, length: {length!r}}}\n"
         "rig: rig.yaml\n"
         f"videos: {{front: {media}front.mp4, back: {media}back.mp4}}\n"
-        f"rssi: {media}rssi\n"
+        f"rssi: {media}{rssi_dir}\n"
         "sync:\n"
         "  mode: manual\n"
         f"  video_start: {{{starts}}}\n"
@@ -352,10 +357,11 @@ def write_experiment_files(
     exposure: float | None = None,
     errors: FileErrors | None = None,
     settings: dict[str, object] | None = None,
+    rssi_dir: str = "rssi",
 ) -> dict[str, object]:
     """Write what the annotator reads (experiment.yaml, rig.yaml, calibrations, marker map, an
-    empty rssi/) with `errors` applied, the exact files under true/ (with a true/experiment.yaml
-    that uses the same videos), and perturbation.yaml (true vs written values). `exposure` (s),
+    empty `rssi_dir` folder for the readings) with `errors` applied, the exact files under
+    true/ (with a true/experiment.yaml that uses the same videos), and perturbation.yaml (true vs written values). `exposure` (s),
     when given, goes into every calibration as the camera's known setting (`exposure_s`). The
     videos are not touched: a render's folder can be given other errors without rendering again.
     Returns the perturbation record."""
@@ -374,7 +380,7 @@ def write_experiment_files(
     written_readout = readout if errors.write_readout else 0.0
 
     (out / "true").mkdir(parents=True, exist_ok=True)
-    (out / "rssi").mkdir(exist_ok=True)
+    (out / rssi_dir).mkdir(exist_ok=True)
     for folder, cams, rig, mk, ro, media in (
         (out, written_cams, written_rig, written_markers, written_readout, ""),
         (out / "true", cameras, true_rig, markers, readout, "../"),
@@ -384,7 +390,8 @@ def write_experiment_files(
         (folder / "rig.yaml").write_text(rig_yaml(rig), encoding="utf-8")
         (folder / "marker_positions.dat").write_text(format_dat(mk), encoding="utf-8")
         (folder / "experiment.yaml").write_text(
-            experiment_yaml(video_start, dictionary, marker_length, media), encoding="utf-8"
+            experiment_yaml(video_start, dictionary, marker_length, media, rssi_dir),
+            encoding="utf-8",
         )
     record = perturbation_record(
         {**(settings or {}), **asdict(errors), "readout_s": float(readout)},
@@ -433,6 +440,7 @@ def render_experiment(
     flicker_hz: float = 100.0,
     errors: FileErrors | None = None,
     progress: Progress | None = None,
+    rssi_dir: str = "rssi",
 ) -> RenderResult:
     """Render the rig's two videos along `pose_at` over wall times `t_span` and write the experiment.
 
@@ -445,6 +453,7 @@ def render_experiment(
     first coefficient), a rolling shutter whose row v of a frame stamped t is seen at
     t + readout*v/height, and a brightness `flicker` (relative amplitude at `flicker_hz`, seen per
     row). `errors` only change the files written for the annotator (see `write_experiment_files`).
+    experiment.yaml's `rssi:` names `rssi_dir`, created empty here.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -533,6 +542,7 @@ def render_experiment(
         exposure=exposure,
         errors=errors,
         settings=settings,
+        rssi_dir=rssi_dir,
     )
 
     all_t = np.unique(np.concatenate([j.times for j in job_list]))
