@@ -71,7 +71,10 @@ def rssi_files(path: str | Path) -> tuple[list[Path], Path | None]:
     # A merged all_sensors file beside per-sensor files repeats their rows.
     files = per_sensor or files
     if not files:
-        raise ConfigError(f"rssi: no .mbd files in {folder}")
+        raise ConfigError(
+            f"rssi: no .mbd files in {folder} (put the sensors' .mbd files or a collector run "
+            "there; `annotator track` tracks the videos without readings)"
+        )
     return files, run_yaml if run_yaml.is_file() else None
 
 
