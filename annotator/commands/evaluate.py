@@ -12,6 +12,7 @@ import typer
 
 from annotator.commands._common import console, one_line_errors
 from annotator.errors import ConfigError
+from bgt_core.keys import unknown_key
 
 
 def load_waypoints(path: Path) -> np.ndarray:
@@ -22,6 +23,8 @@ def load_waypoints(path: Path) -> np.ndarray:
         obj = load_file(path)
     except YamlError as e:
         raise ConfigError(f"path: {e}") from None
+    if isinstance(obj, dict) and (message := unknown_key(obj, ("waypoints",), str(path))):
+        raise ConfigError(message)
     wp = obj.get("waypoints") if isinstance(obj, dict) else None
     try:
         arr = np.array(wp, dtype=float)

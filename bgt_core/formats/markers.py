@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bgt_core.formats._textio import finite, json_loads, read_text
+from bgt_core.keys import unknown_key
 
 
 class MarkerMapError(ValueError):
@@ -98,11 +99,17 @@ def format_dat(markers: dict[int, MarkerPose]) -> str:
 
 def parse_yaml_obj(obj: object, source: str = "<markers.yaml>") -> dict[int, MarkerPose]:
     """YAML form: ``markers: [{id: 0, position: [x, y, z], rotation_xyz: [rx, ry, rz]}, ...]``."""
+    if isinstance(obj, dict) and (message := unknown_key(obj, ("markers",), source)):
+        raise MarkerMapError(message)
     items = obj.get("markers") if isinstance(obj, dict) else None
     if not isinstance(items, list) or not items:
         raise MarkerMapError(f"{source}: expected a non-empty 'markers:' list")
     out: dict[int, MarkerPose] = {}
     for i, it in enumerate(items):
+        if isinstance(it, dict) and (
+            message := unknown_key(it, ("id", "position", "rotation_xyz"), source, f"markers[{i}]")
+        ):
+            raise MarkerMapError(message)
         try:
             mid = _marker_id(it["id"])
             pose = _pose(mid, it["position"], it["rotation_xyz"], "rotation_xyz")

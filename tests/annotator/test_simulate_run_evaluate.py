@@ -56,7 +56,8 @@ def test_simulate_then_run_then_evaluate(tmp_path: Path) -> None:
     assert labels["sensor"].nunique() == 12
     truth = read_trajectory(out / "truth.csv")
     t = labels["t_ns"].to_numpy() / 1e9
-    assert truth.t[0] <= t.min() and t.max() <= truth.t[-1]
+    assert truth.t[0] <= t.min()
+    assert t.max() <= truth.t[-1]
     true_xyz = np.column_stack([np.interp(t, truth.t, truth.position[:, k]) for k in range(3)])
     err = np.linalg.norm(labels[["x", "y", "z"]].to_numpy() - true_xyz, axis=1)
     assert np.median(err) < 0.01
