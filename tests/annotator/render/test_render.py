@@ -86,7 +86,9 @@ def test_simulate_writes_the_contract_files(sim: Path) -> None:
     }
     assert exp["rig"] == "rig.yaml"
     assert exp["videos"] == {"front": "front.mp4", "back": "back.mp4"}
-    assert exp["rssi"] == "rssi"
+    assert exp["rssi"] == "run"  # the simulated readings: a collector run
+    assert (sim / "run" / "run.yaml").is_file()
+    assert len(list((sim / "run" / "rssi" / "simulated").glob("*.mbd"))) == 12
     assert exp["sync"] == {"mode": "manual", "video_start": {"front": T0, "back": T0 + OFFSET}}
     assert (sim / "rig.yaml").read_text() == RIG_YAML
     rig = yaml.safe_load(RIG_YAML)["cameras"]
