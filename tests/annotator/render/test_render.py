@@ -101,7 +101,7 @@ def test_simulate_writes_the_contract_files(sim: Path) -> None:
         assert (got.width, got.height) == (960, 540)
         np.testing.assert_allclose(got.K, cam.K)
         np.testing.assert_allclose(got.dist, cam.dist)
-    assert (sim / "rssi").is_dir()
+    assert not (sim / "rssi").exists()  # only --no-rssi leaves an empty rssi/ folder
 
 
 def test_the_tracker_loads_the_experiment(sim: Path) -> None:
