@@ -256,3 +256,27 @@ def test_bad_cover_is_a_one_line_error(tmp_path: Path) -> None:
     assert res.exit_code == 1
     assert "--cover 'soon'" in res.output
     assert "Traceback" not in res.output
+
+
+def test_simulate_no_rssi_leaves_an_empty_rssi_folder(tmp_path: Path) -> None:
+    out = tmp_path / "exp"
+    res = CliRunner().invoke(
+        app,
+        [
+            "simulate",
+            "--out",
+            str(out),
+            "--duration",
+            "1",
+            "--width",
+            "160",
+            "--height",
+            "90",
+            "--no-rssi",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    assert yaml.safe_load((out / "experiment.yaml").read_text())["rssi"] == "rssi"
+    assert (out / "rssi").is_dir()
+    assert not any((out / "rssi").iterdir())
+    assert not (out / "run").exists()
