@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from annotator.core.experiment import CameraCalibration
 from annotator.render.camera import CameraModel, default_cameras
-from annotator.render.experiment import FrameRenderer
+from annotator.render.frames import FrameRenderer
 from annotator.render.textures import MarkerTextures
 from annotator.vision.detection import DetectorSettings, MarkerDetector
 from annotator.vision.geometry import MarkerRoom

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from annotator.cli import app
 from annotator.render import LoopTrajectory, default_cameras, render_experiment
 from annotator.render.camera import RIG_YAML, CameraModel, camera_pose
-from annotator.render.experiment import FrameRenderer
+from annotator.render.frames import FrameRenderer
 from annotator.render.scene import MarkerScene
 from bgt_core.formats.markers import read_marker_map
 from bgt_core.sites import site_dir
