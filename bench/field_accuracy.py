@@ -72,11 +72,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import annotator.render as render_pkg
-from annotator.commands.simulate import ERROR_PRESETS
 from annotator.core.evaluate import compare_to_truth
 from annotator.io.experiment import load_experiment, load_rig
 from annotator.io.trajectory import read_trajectory
 from annotator.render import LoopTrajectory, default_cameras, render_experiment
+from annotator.render.conditions import ERROR_PRESETS
 from annotator.render.errors import FileErrors
 from annotator.render.experiment import write_experiment_files
 from bgt_core.formats.markers import read_marker_map

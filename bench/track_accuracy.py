@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from annotator.commands.evaluate import load_waypoints
 from annotator.core.evaluate import compare_to_path, compare_to_truth
 from annotator.core.trajectory import Trajectory
 from annotator.io.experiment import load_experiment
 from annotator.io.trajectory import read_trajectory
+from annotator.io.waypoints import load_waypoints
 from annotator.pipeline import TrackSettings, track_experiment
 
 

@@ -26,70 +26,6 @@ def parse_cover(text: str) -> tuple[float, float]:
     return start, duration
 
 
-# `--errors field`: the errors of a careful real capture (issue 10's table): marker survey
-# 1.5 cm / 1 deg, rig 3 mm / 1 deg, focal 0.4 %, principal point 1 px, a k1 = -0.28 lens, 15 ms
-# rolling-shutter readout (written as 0, as users rarely know it), 8 ms exposure and lamp flicker.
-ERROR_PRESETS: dict[str, dict[str, float | str]] = {
-    "none": {},
-    "field": {
-        "survey_m": 0.015,
-        "survey_deg": 1.0,
-        "rig_m": 0.003,
-        "rig_deg": 1.0,
-        "focal_rel": 0.004,
-        "principal_px": 1.0,
-        "distortion": 0.0,
-        "lens": "wide",
-        "readout": 0.015,
-        "exposure": 0.008,
-        "flicker": 0.1,
-    },
-}
-
-
-def resolve_errors(preset: str, **given: float | str | None) -> dict[str, float | str]:
-    """The preset's values with every option the user gave (not None) on top; unset -> 0/defaults."""
-    if preset not in ERROR_PRESETS:
-        raise ConfigError(f"--errors {preset!r}: expected one of {', '.join(ERROR_PRESETS)}")
-    defaults: dict[str, float | str] = {
-        "survey_m": 0.0,
-        "survey_deg": 0.0,
-        "rig_m": 0.0,
-        "rig_deg": 0.0,
-        "focal_rel": 0.0,
-        "principal_px": 0.0,
-        "distortion": 0.0,
-        "lens": "mild",
-        "readout": 0.0,
-        "exposure": 1 / 120,
-        "flicker": 0.0,
-    }
-    out = {**defaults, **ERROR_PRESETS[preset]}
-    out.update({k: v for k, v in given.items() if v is not None})
-    return out
-
-
-def path_trajectory(
-    path: str, t0: float, speed: float, dwell: float, turn: bool
-) -> LoopTrajectory | PolylineTrajectory:
-    """--path value -> the trajectory to render: `loop`, a preset polyline or a waypoints YAML."""
-    from annotator.commands.evaluate import load_waypoints
-    from annotator.render.trajectory import PRESET_PATHS, LoopTrajectory, PolylineTrajectory
-
-    if path == "loop":
-        return LoopTrajectory(t0=t0, speed=speed)
-    if path in PRESET_PATHS:
-        waypoints = PRESET_PATHS[path]
-    elif path.endswith((".yaml", ".yml")):
-        waypoints = tuple((float(x), float(y)) for x, y in load_waypoints(Path(path)))
-    else:
-        raise ConfigError(
-            f"--path {path!r}: expected loop, {', '.join(PRESET_PATHS)} or a FILE.yaml with "
-            "'waypoints: [[x, y], ...]'"
-        )
-    return PolylineTrajectory(waypoints, t0=t0, speed=speed, dwell=dwell, turn=turn)
-
-
 def simulate(
     out: Annotated[
         Path, typer.Option("--out", help="Folder to write the experiment into (created).")
@@ -104,6 +40,15 @@ def simulate(
         ),
     ] = "loop",
     speed: Annotated[float, typer.Option(help="Bundle walking speed along the path, m/s.")] = 0.4,
+    motion: Annotated[
+        str,
+        typer.Option(
+            help="How the bundle is carried: walk (held in front, slow wobble, height 1.3-1.8 m), "
+            "cart (a level cart: no wobble, 1.2 m; with --path rectangle: straight pushes and "
+            "in-place turns at the corners) or hand (carried in one hand: more wobble, a 2 cm "
+            "bounce and jolts at every step)."
+        ),
+    ] = "walk",
     dwell: Annotated[
         float,
         typer.Option(
@@ -133,8 +78,12 @@ def simulate(
         float, typer.Option(help="Wall-clock Unix time of the first front frame.")
     ] = 1_700_000_000.0,
     noise: Annotated[
-        float, typer.Option(help="Sensor noise standard deviation, gray levels.")
-    ] = 2.0,
+        float | None,
+        typer.Option(
+            help="Sensor noise standard deviation, gray levels. Default 2 (5 with --imaging real).",
+            show_default=False,
+        ),
+    ] = None,
     exposure: Annotated[
         float | None,
         typer.Option(
@@ -285,6 +234,84 @@ def simulate(
             rich_help_panel="Real-world errors",
         ),
     ] = 100.0,
+    imaging: Annotated[
+        str,
+        typer.Option(
+            help="What the camera adds to the picture: clean, or real (defocus 1.5 px, JPEG "
+            "quality 60, 40 % vignetting, light uneven by 20 % and drifting 10 %, auto-exposure "
+            "steps of 8 %, noise 5). The options below override single values.",
+            rich_help_panel="Imaging and printing",
+        ),
+    ] = "clean",
+    defocus: Annotated[
+        float | None,
+        typer.Option(
+            help="Lens out of focus: Gaussian blur sigma, px.",
+            rich_help_panel="Imaging and printing",
+            show_default=False,
+        ),
+    ] = None,
+    jpeg_quality: Annotated[
+        int | None,
+        typer.Option(
+            "--jpeg-quality",
+            help="Every frame through JPEG at this quality (1-100); 0 = none.",
+            rich_help_panel="Imaging and printing",
+            show_default=False,
+        ),
+    ] = None,
+    vignetting: Annotated[
+        float | None,
+        typer.Option(
+            help="The picture's corners this much darker than its centre (0.4 = 40 %).",
+            rich_help_panel="Imaging and printing",
+            show_default=False,
+        ),
+    ] = None,
+    uneven_light: Annotated[
+        float | None,
+        typer.Option(
+            "--uneven-light",
+            help="Brightness gradient of +- this across the picture, turning slowly.",
+            rich_help_panel="Imaging and printing",
+            show_default=False,
+        ),
+    ] = None,
+    light_change: Annotated[
+        float | None,
+        typer.Option(
+            "--light-change",
+            help="The light level drifts by +- this (relative) over a 10 s period.",
+            rich_help_panel="Imaging and printing",
+            show_default=False,
+        ),
+    ] = None,
+    exposure_steps: Annotated[
+        float | None,
+        typer.Option(
+            "--exposure-steps",
+            help="Auto-exposure: a new gain within +- this (relative) every 3 s.",
+            rich_help_panel="Imaging and printing",
+            show_default=False,
+        ),
+    ] = None,
+    print_scale: Annotated[
+        float,
+        typer.Option(
+            "--print-scale",
+            help="Markers printed this many times the markers.length experiment.yaml says "
+            "(1.007: a printer's rounding makes 0.298 m squares 0.300 m).",
+            rich_help_panel="Imaging and printing",
+        ),
+    ] = 1.0,
+    print_scatter: Annotated[
+        float,
+        typer.Option(
+            "--print-scatter",
+            help="Each marker's printed side off by a further N(0, this) relative.",
+            rich_help_panel="Imaging and printing",
+        ),
+    ] = 0.0,
     rssi: Annotated[
         bool,
         typer.Option(
@@ -319,6 +346,7 @@ def simulate(
     perturbation.yaml lists true and written values per marker and per camera."""
     with one_line_errors():
         from annotator.render import render_experiment
+        from annotator.render.conditions import path_trajectory, resolve_errors
         from annotator.render.errors import FileErrors
         from annotator.render.trajectory import RestFirst
 
@@ -380,7 +408,26 @@ def simulate(
             )
         except ValueError as err:
             raise ConfigError(f"error magnitudes: {err}") from None
-        walk = path_trajectory(path, t0, speed, dwell, turn)
+        from annotator.render.conditions import IMAGING_NOISE, resolve_imaging
+
+        try:
+            camera_imaging = resolve_imaging(
+                imaging,
+                defocus_px=defocus,
+                jpeg_quality=jpeg_quality,
+                vignetting=vignetting,
+                uneven_light=uneven_light,
+                light_change=light_change,
+                exposure_steps=exposure_steps,
+            )
+        except ValueError as err:
+            raise ConfigError(f"--imaging: {err}") from None
+        noise_sigma = IMAGING_NOISE[imaging] if noise is None else noise
+        if not (noise_sigma >= 0 and 0.5 < print_scale < 2.0 and 0 <= print_scatter < 0.1):
+            raise ConfigError(
+                "need --noise >= 0, --print-scale in (0.5, 2) and --print-scatter in [0, 0.1)"
+            )
+        walk = path_trajectory(path, t0, speed, dwell, turn, motion)
         trajectory = RestFirst(walk, jig) if jig > 0 else walk
         if jig > 0 and jig >= duration - start_offset:
             raise ConfigError(f"--jig {jig}: the rest must end before the video (--duration)")
@@ -397,7 +444,7 @@ def simulate(
                 start_offset=start_offset,
                 covers=covers,
                 seed=seed,
-                noise_sigma=noise,
+                noise_sigma=noise_sigma,
                 exposure=exposure_s,
                 jobs=jobs,
                 lens=str(e["lens"]),
@@ -408,6 +455,9 @@ def simulate(
                 errors=file_errors,
                 progress=progress,
                 rssi_dir="run" if rssi else "rssi",
+                imaging=camera_imaging,
+                print_scale=print_scale,
+                print_scatter=print_scatter,
             )
         if jig > 0:
             write_jig(result.experiment, trajectory, t0, t0 + jig, seed, file_errors.perturbs)

@@ -1,6 +1,9 @@
-"""Image degradations applied after projection: motion blur, sensor noise, the hands-cover."""
+"""Image degradations applied after projection: motion blur, sensor noise, the hands-cover, and
+what a real camera adds (defocus, light, compression: `Imaging`)."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -92,3 +95,104 @@ def apply_cover(img: np.ndarray, fraction: float, skin: np.ndarray) -> np.ndarra
     dim = 1.0 - 0.5 * fraction
     out = img.astype(np.float32) * dim * (1.0 - alpha) + skin.astype(np.float32) * alpha
     return np.clip(out, 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class Imaging:
+    """What a real camera and room add to the picture (`annotator simulate`'s imaging options);
+    the default adds nothing. Applied in the order light meets the sensor: defocus, light
+    (vignetting, an uneven and changing light level, auto-exposure steps), then, after the
+    sensor noise, compression."""
+
+    defocus_px: float = 0.0  # Gaussian blur sigma of a lens slightly out of focus, px
+    jpeg_quality: int = 0  # every frame through JPEG at this quality (1-100); 0 = no compression
+    vignetting: float = 0.0  # the corners this much darker than the centre (0.4 = 40 %)
+    uneven_light: float = 0.0  # a brightness gradient of +-this across the picture, turning slowly
+    light_change: float = 0.0  # the light level drifts by +-this over time (10 s period)
+    exposure_steps: float = 0.0  # auto-exposure: a new gain within +-this every 3 s
+
+    def __post_init__(self) -> None:
+        for name in ("defocus_px", "vignetting", "uneven_light", "light_change", "exposure_steps"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, not {v!r}")
+        if self.vignetting >= 1 or self.uneven_light >= 1 or self.light_change >= 1:
+            raise ValueError("vignetting, uneven_light and light_change must be below 1")
+        if self.exposure_steps >= 1:
+            raise ValueError("exposure_steps must be below 1")
+        if not 0 <= self.jpeg_quality <= 100:
+            raise ValueError(f"jpeg_quality must be in 0..100, not {self.jpeg_quality!r}")
+
+    @property
+    def active(self) -> bool:
+        return any(
+            v > 0
+            for v in (
+                self.defocus_px,
+                self.jpeg_quality,
+                self.vignetting,
+                self.uneven_light,
+                self.light_change,
+                self.exposure_steps,
+            )
+        )
+
+
+class CameraImaging:
+    """:class:`Imaging` for one camera: its vignetting map and its draws of light and exposure."""
+
+    EXPOSURE_STEP_S = 3.0
+    LIGHT_PERIOD_S = 10.0
+
+    def __init__(self, imaging: Imaging, width: int, height: int, seed: int) -> None:
+        self.imaging = imaging
+        rng = np.random.default_rng(np.random.SeedSequence([seed & 0xFFFFFFFF, 7]))
+        y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+        self._x = (x - (width - 1) / 2) / (np.hypot(width, height) / 2)
+        self._y = (y - (height - 1) / 2) / (np.hypot(width, height) / 2)
+        # corners (radius 1) this much darker, falling off with the square of the radius
+        self._vignette = 1.0 - imaging.vignetting * (self._x**2 + self._y**2)
+        self._light_angle = float(rng.uniform(0, 2 * np.pi))
+        self._light_phase = float(rng.uniform(0, 2 * np.pi))
+        self._seed = seed
+
+    def gain(self, t: float) -> np.ndarray | float:
+        """Brightness factor of each pixel (or of all) at wall time t."""
+        im = self.imaging
+        level = 1.0 + im.light_change * np.sin(
+            2 * np.pi * t / self.LIGHT_PERIOD_S + self._light_phase
+        )
+        if im.exposure_steps > 0:
+            slot = int(np.floor(t / self.EXPOSURE_STEP_S))
+            step = np.random.default_rng([self._seed & 0xFFFFFFFF, 8, slot & 0xFFFFFFFF])
+            level *= 1.0 + im.exposure_steps * float(step.uniform(-1, 1))
+        if im.vignetting == 0 and im.uneven_light == 0:
+            return float(level)
+        gain = self._vignette * np.float32(level)
+        if im.uneven_light > 0:
+            a = self._light_angle + 0.05 * t  # the light's direction turns as the view changes
+            gain = gain * (1.0 + im.uneven_light * (np.cos(a) * self._x + np.sin(a) * self._y))
+        return gain
+
+    def optics(self, gray: np.ndarray, t: float) -> np.ndarray:
+        """Defocus and light on the gray picture, before the sensor noise."""
+        im = self.imaging
+        if im.defocus_px > 0:
+            gray = cv2.GaussianBlur(gray, (0, 0), im.defocus_px, borderType=cv2.BORDER_REPLICATE)
+        gain = self.gain(t)
+        if isinstance(gain, float) and gain == 1.0:
+            return gray
+        return np.clip(gray.astype(np.float32) * gain + 0.5, 0, 255).astype(np.uint8)
+
+    def compress(self, img: np.ndarray) -> np.ndarray:
+        """The picture after JPEG at the chosen quality (none at 0)."""
+        q = self.imaging.jpeg_quality
+        if q <= 0:
+            return img
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(q)])
+        if not ok:
+            raise RuntimeError("OpenCV could not encode a JPEG frame")
+        out = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+        if out is None:
+            raise RuntimeError("OpenCV could not decode its own JPEG frame")
+        return np.asarray(out)

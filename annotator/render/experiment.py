@@ -21,7 +21,7 @@ from annotator.render.camera import (
     rig_yaml,
     write_calibration,
 )
-from annotator.render.effects import flicker_gain
+from annotator.render.effects import Imaging, flicker_gain
 from annotator.render.errors import (
     FileErrors,
     perturb_cameras,
@@ -123,13 +123,15 @@ def write_experiment_files(
     errors: FileErrors | None = None,
     settings: dict[str, object] | None = None,
     rssi_dir: str = "rssi",
+    true_length: float | None = None,
 ) -> dict[str, object]:
     """Write what the annotator reads (experiment.yaml, rig.yaml, calibrations, marker map, an
     empty `rssi_dir` folder for the readings) with `errors` applied, the exact files under
     true/ (with a true/experiment.yaml that uses the same videos), and perturbation.yaml (true vs written values). `exposure` (s),
     when given, goes into every calibration as the camera's known setting (`exposure_s`). The
     videos are not touched: a render's folder can be given other errors without rendering again.
-    Returns the perturbation record."""
+    `true_length` is the printed side written into true/experiment.yaml (default
+    `marker_length`). Returns the perturbation record."""
     out = Path(out_dir)
     errors = errors or FileErrors()
     written_markers = surveyed_subset(
@@ -146,16 +148,17 @@ def write_experiment_files(
 
     (out / "true").mkdir(parents=True, exist_ok=True)
     (out / rssi_dir).mkdir(exist_ok=True)
-    for folder, cams, rig, mk, ro, media in (
-        (out, written_cams, written_rig, written_markers, written_readout, ""),
-        (out / "true", cameras, true_rig, markers, readout, "../"),
+    exact_length = marker_length if true_length is None else true_length
+    for folder, cams, rig, mk, ro, media, length in (
+        (out, written_cams, written_rig, written_markers, written_readout, "", marker_length),
+        (out / "true", cameras, true_rig, markers, readout, "../", exact_length),
     ):
         for name, cam in cams.items():
             write_calibration(str(folder / f"{name}.yaml"), cam, ro, exposure)
         (folder / "rig.yaml").write_text(rig_yaml(rig), encoding="utf-8")
         (folder / "marker_positions.dat").write_text(format_dat(mk), encoding="utf-8")
         (folder / "experiment.yaml").write_text(
-            experiment_yaml(video_start, dictionary, marker_length, media, rssi_dir),
+            experiment_yaml(video_start, dictionary, length, media, rssi_dir),
             encoding="utf-8",
         )
     record = perturbation_record(
@@ -178,6 +181,25 @@ def write_experiment_files(
     )
     (out / "perturbation.yaml").write_text(text + dump(record, sort_keys=False), encoding="utf-8")
     return record
+
+
+def printed_scales(
+    markers: dict[int, MarkerPose], scale: float, scatter: float, seed: int
+) -> dict[int, float] | None:
+    """Printed side / nominal length per marker: ``scale`` x (1 + N(0, ``scatter``)), drawn by
+    ``seed``; None when every marker is printed exactly."""
+    if not (np.isfinite(scale) and 0.5 < scale < 2.0) or not (
+        np.isfinite(scatter) and 0 <= scatter < 0.1
+    ):
+        raise ValueError(
+            f"print scale {scale!r} must be in (0.5, 2) and scatter {scatter!r} in [0, 0.1)"
+        )
+    if scale == 1.0 and scatter == 0.0:
+        return None
+    rng = np.random.default_rng(np.random.SeedSequence([seed & 0xFFFFFFFF, 9]))
+    ids = sorted(markers)
+    draws = rng.standard_normal(len(ids))
+    return {i: float(scale * (1.0 + scatter * d)) for i, d in zip(ids, draws, strict=True)}
 
 
 def render_experiment(
@@ -206,6 +228,9 @@ def render_experiment(
     errors: FileErrors | None = None,
     progress: Progress | None = None,
     rssi_dir: str = "rssi",
+    imaging: Imaging | None = None,
+    print_scale: float = 1.0,
+    print_scatter: float = 0.0,
 ) -> RenderResult:
     """Render the rig's two videos along `pose_at` over wall times `t_span` and write the experiment.
 
@@ -219,6 +244,11 @@ def render_experiment(
     t + readout*v/height, and a brightness `flicker` (relative amplitude at `flicker_hz`, seen per
     row). `errors` only change the files written for the annotator (see `write_experiment_files`).
     experiment.yaml's `rssi:` names `rssi_dir`, created empty here.
+
+    What a real capture adds that no file tells: `imaging` (defocus, light, compression) and the
+    markers as printed, each `print_scale` x (1 + N(0, `print_scatter`)) times `marker_length`
+    (drawn by `seed`), while experiment.yaml says `marker_length`; true/experiment.yaml says
+    `marker_length` x `print_scale` and perturbation.yaml lists every printed side.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -239,6 +269,7 @@ def render_experiment(
     flicker_phase = float(
         np.random.default_rng(np.random.SeedSequence([seed & 0xFFFFFFFF, 4])).uniform(0, 2 * np.pi)
     )
+    scales = printed_scales(markers, print_scale, print_scatter, seed)
 
     job_list = []
     for idx, name in enumerate(("front", "back")):
@@ -284,6 +315,8 @@ def render_experiment(
                 rb,
                 cb,
                 gains,
+                imaging or Imaging(),
+                scales,
             )
         )
 
@@ -295,7 +328,14 @@ def render_experiment(
         "flicker_hz": float(flicker_hz),
         "flicker_phase_rad": flicker_phase,
         "render_seed": int(seed),
+        **({"imaging": asdict(imaging)} if imaging is not None and imaging.active else {}),
     }
+    if scales is not None:
+        settings["print_scale"] = float(print_scale)
+        settings["print_scatter"] = float(print_scatter)
+        settings["printed_length_m"] = {
+            int(k): round(marker_length * v, 6) for k, v in sorted(scales.items())
+        }
     write_experiment_files(
         out,
         cams,
@@ -308,6 +348,7 @@ def render_experiment(
         errors=errors,
         settings=settings,
         rssi_dir=rssi_dir,
+        true_length=round(marker_length * print_scale, 9),
     )
 
     all_t = np.unique(np.concatenate([j.times for j in job_list]))

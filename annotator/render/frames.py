@@ -12,6 +12,8 @@ import numpy as np
 
 from annotator.render.camera import CameraModel, build_distortion_map
 from annotator.render.effects import (
+    CameraImaging,
+    Imaging,
     NoiseBank,
     apply_cover,
     cover_fraction,
@@ -58,6 +60,8 @@ class CameraJob:
     r_wc_bands: np.ndarray | None = None  # (N, B, 3, 3) at each band's middle-row time
     c_w_bands: np.ndarray | None = None  # (N, B, 3)
     gains: np.ndarray | None = None  # (N, height) brightness factor of each row (flicker)
+    imaging: Imaging = Imaging()  # what a real camera adds (defocus, light, compression)
+    marker_scales: dict[int, float] | None = None  # printed side / nominal length, per marker
 
 
 class FrameRenderer:
@@ -71,9 +75,11 @@ class FrameRenderer:
         dictionary: str,
         noise_sigma: float,
         seed: int,
+        imaging: Imaging | None = None,
+        marker_scales: dict[int, float] | None = None,
     ) -> None:
         self.camera = camera
-        self.scene = MarkerScene(markers, marker_length)
+        self.scene = MarkerScene(markers, marker_length, marker_scales)
         self.textures = MarkerTextures(aruco_dictionary(dictionary))
         self.dmap = build_distortion_map(camera)
         rng = np.random.default_rng(seed)
@@ -84,6 +90,11 @@ class FrameRenderer:
         self.pano_width = pano.shape[1]
         self.noise = NoiseBank((camera.height, camera.width), noise_sigma, rng)
         self.skin = skin_texture(camera.height, camera.width, rng)
+        self.imaging = (
+            CameraImaging(imaging, camera.width, camera.height, seed)
+            if imaging is not None and imaging.active
+            else None
+        )
 
     def _background(self, r_wc: np.ndarray) -> np.ndarray:
         cw, ch = self.dmap.canvas_size
@@ -104,7 +115,7 @@ class FrameRenderer:
         scene, cam = self.scene, self.camera
         vis = scene.visible(r_open, c_open)
         world = (
-            np.vstack([m.centre + scene.inner @ m.rotation.T for m in vis])
+            np.vstack([m.centre + (m.scale * scene.inner) @ m.rotation.T for m in vis])
             if vis
             else np.zeros((0, 3))
         )
@@ -178,10 +189,12 @@ class FrameRenderer:
         cover: float = 0.0,
         bands: tuple[Sequence[int], np.ndarray, np.ndarray] | None = None,
         gain: np.ndarray | None = None,
+        t: float = 0.0,
     ) -> np.ndarray:
         """One BGR frame: markers on the background, lens distortion, blur, brightness, cover,
         noise. `bands` = (row boundaries, rotations, centres) renders a rolling shutter; `gain`
-        is a brightness factor per row (flicker)."""
+        is a brightness factor per row (flicker); `t` the frame's wall time, for the imaging
+        effects that change with time (light, exposure)."""
         if bands is None:
             canvas = self._background(r_wc)
             self.scene.draw(canvas, self.dmap.canvas_K, r_wc, c_w, self.textures)
@@ -201,9 +214,12 @@ class FrameRenderer:
             img = np.clip(img * np.asarray(gain, np.float32)[:, None] + 0.5, 0, 255).astype(
                 np.uint8
             )
+        if self.imaging is not None:
+            img = self.imaging.optics(img, t)
         # Luminance noise on the gray picture: a third of the work of per-channel noise.
         img = cv2.cvtColor(self.noise.apply(img), cv2.COLOR_GRAY2BGR)
-        return apply_cover(img, cover, self.skin)
+        img = apply_cover(img, cover, self.skin)
+        return img if self.imaging is None else self.imaging.compress(img)
 
 
 def render_camera(
@@ -213,7 +229,14 @@ def render_camera(
 ) -> int:
     """Render and encode one camera's video (mp4v); returns the number of frames written."""
     fr = FrameRenderer(
-        job.camera, job.markers, job.marker_length, job.dictionary, job.noise_sigma, job.seed
+        job.camera,
+        job.markers,
+        job.marker_length,
+        job.dictionary,
+        job.noise_sigma,
+        job.seed,
+        job.imaging,
+        job.marker_scales,
     )
     size = (job.camera.width, job.camera.height)
     writer = cv2.VideoWriter(job.path, cv2.VideoWriter.fourcc(*"mp4v"), job.fps, size)
@@ -230,7 +253,9 @@ def render_camera(
             if job.r_wc_bands is not None and job.c_w_bands is not None:
                 bands = (job.band_rows, job.r_wc_bands[i], job.c_w_bands[i])
             gain = None if job.gains is None else job.gains[i]
-            writer.write(fr.render(job.r_wc[i], job.c_w[i], motion, cover, bands, gain))
+            writer.write(
+                fr.render(job.r_wc[i], job.c_w[i], motion, cover, bands, gain, float(job.times[i]))
+            )
             if (i + 1) % 10 == 0 or i + 1 == n:
                 if progress is not None:
                     progress(job.name, i + 1, n)

@@ -33,6 +33,7 @@ class PlacedMarker:
     rotation: np.ndarray  # marker -> world, 3x3
     centre: np.ndarray  # world, metres
     gain: float  # print/lighting brightness factor
+    scale: float = 1.0  # printed side / the nominal length (a printer's scaling)
 
 
 PILLAR_HEIGHT = 3.0  # floor to ceiling, metres
@@ -104,9 +105,12 @@ def clip_near(poly: np.ndarray, near: float = NEAR_M) -> np.ndarray:
 
 class MarkerScene:
     """The site's markers with their printed size (and the pillars some of them are fixed to);
-    draws them onto a pinhole canvas."""
+    draws them onto a pinhole canvas. ``scales`` (marker id -> printed side / ``length``) prints
+    markers larger or smaller than the nominal length says; absent ids are exact."""
 
-    def __init__(self, markers: dict[int, MarkerPose], length: float) -> None:
+    def __init__(
+        self, markers: dict[int, MarkerPose], length: float, scales: dict[int, float] | None = None
+    ) -> None:
         self.length = float(length)
         self.markers = [
             PlacedMarker(
@@ -114,6 +118,7 @@ class MarkerScene:
                 Rotation.from_euler("xyz", m.euler_xyz).as_matrix(),
                 np.array(m.position, float),
                 float(np.random.default_rng(1000 + m.id).uniform(0.75, 1.0)),
+                float((scales or {}).get(m.id, 1.0)),
             )
             for m in sorted(markers.values(), key=lambda m: m.id)
         ]
@@ -131,8 +136,8 @@ class MarkerScene:
     def corners_camera(
         self, m: PlacedMarker, r_wc: np.ndarray, c_w: np.ndarray, corners: np.ndarray
     ) -> np.ndarray:
-        """Marker-frame points -> camera frame."""
-        world = m.centre + corners @ m.rotation.T
+        """Marker-frame points of the nominal sheet -> camera frame, as printed (scaled)."""
+        world = m.centre + (m.scale * corners) @ m.rotation.T
         return (world - c_w) @ r_wc
 
     def visible(self, r_wc: np.ndarray, c_w: np.ndarray) -> list[PlacedMarker]:
@@ -210,11 +215,12 @@ class MarkerScene:
             tex = textures.get(m.id, level, m.gain)
             size = tex.shape[0]
             # texture pixel (u, v) -> marker plane (x, y): pixel centres at integers, edges at -0.5.
-            s = 2 * self.half_outer / size
+            half = self.half_outer * m.scale
+            s = 2 * half / size
             tex_to_plane = np.array(
                 [
-                    [s, 0.0, -self.half_outer + 0.5 * s],
-                    [0.0, -s, self.half_outer - 0.5 * s],
+                    [s, 0.0, -half + 0.5 * s],
+                    [0.0, -s, half - 0.5 * s],
                     [0.0, 0.0, 1.0],
                 ]
             )

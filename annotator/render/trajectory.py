@@ -25,6 +25,8 @@ class LoopTrajectory:
     height: float = 1.55
     height_swing: float = 0.25
     wobble_deg: tuple[float, float, float] = (4.0, 3.0, 2.5)  # yaw, pitch, roll amplitudes
+    bounce_m: float = 0.0  # vertical bounce at the step frequency (hand-carried)
+    shake_deg: float = 0.0  # pitch and roll jolts at the step frequency (hand-carried)
 
     def _path(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Dense samples (cumulative length, xy, heading) of the closed path."""
@@ -64,25 +66,38 @@ class LoopTrajectory:
         x = np.interp(s, length, xy[:, 0])
         y = np.interp(s, length, xy[:, 1])
         tau = t - self.t0
-        z = _height(tau, self.height, self.height_swing)
+        z = _height(tau, self.height, self.height_swing, self.bounce_m)
         rot = _wobbly_rotation(
-            np.interp(s, length, heading) + 2 * np.pi * laps, tau, self.wobble_deg
+            np.interp(s, length, heading) + 2 * np.pi * laps, tau, self.wobble_deg, self.shake_deg
         )
         return np.column_stack([x, y, z]), rot
 
 
-def _height(tau: np.ndarray, height: float, swing: float) -> np.ndarray:
-    return height + swing * np.sin(2 * np.pi * tau / 11.0)
+# A person walking takes about 1.8 steps a second: the bounce and jolts of a hand-held bundle.
+STEP_HZ = 1.8
+
+
+def _height(tau: np.ndarray, height: float, swing: float, bounce: float = 0.0) -> np.ndarray:
+    return (
+        height + swing * np.sin(2 * np.pi * tau / 11.0) + bounce * np.sin(2 * np.pi * STEP_HZ * tau)
+    )
 
 
 def _wobbly_rotation(
-    heading: np.ndarray, tau: np.ndarray, wobble_deg: tuple[float, float, float]
+    heading: np.ndarray,
+    tau: np.ndarray,
+    wobble_deg: tuple[float, float, float],
+    shake_deg: float = 0.0,
 ) -> Rotation:
-    """R_world_bundle with the bundle's x along ``heading`` plus a slow yaw/pitch/roll wobble."""
+    """R_world_bundle with the bundle's x along ``heading`` plus a slow yaw/pitch/roll wobble and
+    (``shake_deg``) pitch and roll jolts at the step frequency."""
     wy, wp, wr = np.radians(wobble_deg)
+    shake = np.radians(shake_deg)
     yaw = heading + wy * np.sin(2 * np.pi * 0.17 * tau)
-    pitch = wp * np.sin(2 * np.pi * 0.23 * tau + 0.7)
-    roll = wr * np.sin(2 * np.pi * 0.31 * tau + 1.9)
+    pitch = wp * np.sin(2 * np.pi * 0.23 * tau + 0.7) + shake * np.sin(
+        2 * np.pi * STEP_HZ * tau + 0.4
+    )
+    roll = wr * np.sin(2 * np.pi * 0.31 * tau + 1.9) + shake * np.sin(np.pi * STEP_HZ * tau + 1.1)
     # Intrinsic z-y'-x'': R_world_bundle = Rz(yaw) Ry(pitch) Rx(roll).
     return Rotation.from_euler("ZYX", np.column_stack([yaw, pitch, roll]))
 
@@ -114,6 +129,8 @@ class PolylineTrajectory:
     height: float = 1.55
     height_swing: float = 0.25
     wobble_deg: tuple[float, float, float] = (4.0, 3.0, 2.5)  # yaw, pitch, roll amplitudes
+    bounce_m: float = 0.0  # vertical bounce at the step frequency (hand-carried)
+    shake_deg: float = 0.0  # pitch and roll jolts at the step frequency (hand-carried)
 
     def __post_init__(self) -> None:
         wp = np.asarray(self.waypoints, float)
@@ -164,8 +181,8 @@ class PolylineTrajectory:
             yaw = heading[k] + np.where(walking, 0.0, ease * change)
         if not self.turn:
             yaw = np.full(len(t), heading[0])
-        z = _height(tau, self.height, self.height_swing)
-        return np.column_stack([xy, z]), _wobbly_rotation(yaw, tau, self.wobble_deg)
+        z = _height(tau, self.height, self.height_swing, self.bounce_m)
+        return np.column_stack([xy, z]), _wobbly_rotation(yaw, tau, self.wobble_deg, self.shake_deg)
 
 
 @dataclass(frozen=True)
@@ -183,3 +200,20 @@ class RestFirst:
     def __call__(self, t: np.ndarray) -> tuple[np.ndarray, Rotation]:
         t = np.atleast_1d(np.asarray(t, float))
         return self.walk(np.where(t < self.t0 + self.rest, self.t0, t - self.rest))
+
+
+# How the bundle is carried (`annotator simulate --motion`): the trajectory fields each sets.
+MOTION_PROFILES: dict[str, dict[str, object]] = {
+    # held in front while walking: slow wobble, height drifting between 1.3 and 1.8 m (the default)
+    "walk": {},
+    # on a level cart pushed along: no wobble, constant height
+    "cart": {"height": 1.2, "height_swing": 0.0, "wobble_deg": (0.0, 0.0, 0.0)},
+    # carried in one hand: more wobble, a 2 cm bounce and 2 deg jolts at every step
+    "hand": {
+        "height": 1.4,
+        "height_swing": 0.1,
+        "wobble_deg": (8.0, 6.0, 5.0),
+        "bounce_m": 0.02,
+        "shake_deg": 2.0,
+    },
+}

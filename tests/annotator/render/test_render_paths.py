@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from annotator.cli import app
-from annotator.commands.evaluate import load_waypoints
+from annotator.io.waypoints import load_waypoints
 from annotator.render.trajectory import PRESET_PATHS, PolylineTrajectory
 
 T0 = 1_700_000_000.0

@@ -169,9 +169,9 @@ def test_a_loader_must_be_the_safe_one():
 
 
 def _yaml_readers():
-    from annotator.commands.evaluate import load_waypoints
     from annotator.errors import ConfigError as AnnotatorConfigError
     from annotator.io.experiment import load_calibration, load_experiment, load_rig
+    from annotator.io.waypoints import load_waypoints
     from bgt_core.formats.markers import MarkerMapError, read_marker_map
     from collector.config import ConfigError as CollectorConfigError
     from collector.config import load_config as collector_config
