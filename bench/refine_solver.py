@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 from annotator.core import refine as rf
 from annotator.core.priors import Priors
 from annotator.core.refine import model as rf_model
-from annotator.core.refine.solver import _LM
+from annotator.core.refine.lm import _LM
 from annotator.render import default_cameras
 from annotator.render.camera import RIG_EXTRINSICS
 from annotator.vision.geometry import MarkerRoom

@@ -18,7 +18,7 @@ from annotator.core.refine import (
     marker_floors,
     solve,
 )
-from annotator.core.refine.solver import _correlation_stretch
+from annotator.core.refine.covariance import _correlation_stretch
 from track_helpers import make_path, make_rig, make_room, project
 
 N_KF = 60

@@ -1,0 +1,148 @@
+"""The self-calibration's gate: which corrections are within noise of their prior (and are
+held there), the markers' floors, and the rows that move held markers as one rigid body."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from annotator.core.refine.model import RIG, Problem, RefineSettings, _Layout
+
+log = logging.getLogger(__name__)
+
+
+def _rigid_basis(offsets: np.ndarray) -> np.ndarray:
+    """(6k, 6): how k (rotation, position) deltas follow one small rigid motion (a rotation w
+    about a centre, then a shift t) of points at ``offsets`` (k, 3) from that centre: each
+    rotation delta is w and each position delta t + w x d = t - [d]x w."""
+    basis = np.zeros((6 * len(offsets), 6))
+    for k, d in enumerate(offsets):
+        basis[6 * k : 6 * k + 3, :3] = np.eye(3)
+        basis[6 * k + 3 : 6 * k + 6, :3] = -np.array(
+            [[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]]
+        )
+        basis[6 * k + 3 : 6 * k + 6, 3:] = np.eye(3)
+    return basis
+
+
+def _rigid_rows(prob: Problem, layout: _Layout, markers: Sequence[int]) -> np.ndarray:
+    """Rows A (cost |A x|^2 / 2, stiff) that hold the deltas of ``markers`` to one common small
+    rigid motion (a world rotation w about their centre and a shift t): per marker the rotation
+    delta is w and the position delta t + w x (p - centre). Fewer than two markers: no rows."""
+    if len(markers) < 2:
+        return np.zeros((0, layout.n_static))
+    p = prob.t_m[list(markers)]
+    basis = _rigid_basis(p - p.mean(axis=0))
+    q, _ = np.linalg.qr(basis)
+    mb = layout.static_slices()["marker"][0]
+    cols = (mb + 6 * np.asarray(markers)[:, None] + np.arange(6)).ravel()
+    rows = np.zeros((len(cols), layout.n_static))
+    rows[:, cols] = np.eye(len(cols)) - q @ q.T
+    return rows * 1e5
+
+
+def _mahalanobis(d: np.ndarray, cov: np.ndarray) -> float:
+    """sqrt(d^T cov^-1 d / dof): the discrepancy in sigmas per degree of freedom."""
+    try:
+        return math.sqrt(max(float(d @ np.linalg.solve(cov, d)), 0.0) / len(d))
+    except np.linalg.LinAlgError:
+        return 0.0
+
+
+def marker_floors(prob: Problem, s: RefineSettings) -> np.ndarray:
+    """(M, 6, 6) covariance of the errors common to all of a marker's frames (rotation, position).
+
+    ``marker_floor_deg`` / ``marker_floor_m`` on every axis, plus along the marker's mean line of
+    sight (from the keyframes that see it) the depth error of a ``marker_size_floor_px`` error in
+    its size in the image: depth x size error / side. A small far marker seen from one direction has
+    a depth the data know far less well than their frame count suggests.
+
+    Likewise its turn out of its own plane: the image gives it only through the square's
+    foreshortening (side x sine of the view angle) and perspective (the near edge longer by
+    side x length / depth), so the same size error is a turn of size error / (side x that). A far
+    marker seen almost face-on has a slant the video hardly knows (the field renders: 4-6 deg off
+    at 11 m while the joint solve claimed ~1 deg).
+    """
+    o = prob.obs
+    out = np.zeros((len(prob.markers), 6, 6))
+    out[:, :3, :3] = math.radians(s.marker_floor_deg) ** 2 * np.eye(3)
+    out[:, 3:, 3:] = s.marker_floor_m**2 * np.eye(3)
+    if s.marker_size_floor_px <= 0 or not len(o.marker):
+        return out
+    quad = o.uv.reshape(-1, 4, 2)
+    side = np.linalg.norm(quad - np.roll(quad, 1, axis=1), axis=2).mean(axis=1)  # per detection, px
+    mk, kf = o.marker[::4], o.keyframe[::4]
+    for m in np.unique(mk):
+        sel = mk == m
+        ray = prob.t_m[m] - prob.p_k[kf[sel]]
+        depth = np.linalg.norm(ray, axis=1)
+        los = np.mean(ray / np.maximum(depth, 1e-9)[:, None], axis=0)
+        los /= max(float(np.linalg.norm(los)), 1e-9)
+        sd = float(
+            np.median(depth) * s.marker_size_floor_px / max(float(np.median(side[sel])), 1.0)
+        )
+        out[m, 3:, 3:] += sd * sd * np.outer(los, los)
+        # The view direction in the marker's frame: x, y in its plane, z out of its face.
+        view = -(ray / np.maximum(depth, 1e-9)[:, None]) @ prob.R_m[m]
+        persp = prob.length / np.maximum(depth, 1e-9) * view[:, 2]
+        for axis, across in ((0, 1), (1, 0)):  # a turn about the marker's x shows along its y
+            gain = side[sel] * np.hypot(view[:, across], persp)  # px of shape per radian
+            rms = float(np.sqrt(np.mean(gain**2)))
+            var = min((s.marker_size_floor_px / max(rms, 1e-9)) ** 2, 1.0)
+            ax = prob.R_m[m][:, axis]
+            out[m, :3, :3] += var * np.outer(ax, ax)
+    return out
+
+
+def _gate(
+    x: np.ndarray, cov: np.ndarray, layout: _Layout, s: RefineSettings, has_prior: np.ndarray
+) -> list[int]:
+    """Static indices of the blocks whose correction is within noise of their prior.
+
+    Per-camera blocks: no component beyond ``gate_sigma`` posterior sigmas. The rig as a whole
+    (its gauge is pinned to the mean of the cameras, so one camera cannot be judged alone).
+    Surveyed markers: the correction's Mahalanobis distance per degree of freedom below
+    ``marker_gate_sigma``.
+    """
+    out: list[int] = []
+    if s.gate_sigma <= 0:
+        return out
+    sd = np.sqrt(np.maximum(np.diag(cov), 1e-30))
+    xs = x[layout.n_pose :]
+    for name, (off, n, size) in layout.static_slices().items():
+        if name == "marker":
+            for m in range(n):
+                i = off + 6 * m
+                if not (layout.free_markers[m] and has_prior[m]):
+                    continue
+                d = xs[i : i + 6]
+                floor = np.diag(
+                    [math.radians(s.marker_floor_deg) ** 2] * 3 + [s.marker_floor_m**2] * 3
+                )
+                if _mahalanobis(d, cov[i : i + 6, i : i + 6] + floor) < s.marker_gate_sigma:
+                    out.extend(range(i, i + 6))
+            continue
+        if name == RIG:
+            z = np.abs(xs[off : off + n * size]) / sd[off : off + n * size]
+            if z.max() < s.gate_sigma:
+                log.info(
+                    "refine: rig change not significant (max %.1f sigma); the measured rig kept",
+                    z.max(),
+                )
+                out.extend(range(off, off + n * size))
+            continue
+        for c in range(n):
+            i = off + c * size
+            z = np.abs(xs[i : i + size]) / sd[i : i + size]
+            if z.max() < s.gate_sigma:
+                log.info(
+                    "refine: %s of camera %d not significant (max %.1f sigma); prior kept",
+                    name,
+                    c,
+                    z.max(),
+                )
+                out.extend(range(i, i + size))
+    return out
