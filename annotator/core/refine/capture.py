@@ -108,7 +108,16 @@ def select_keyframes(
     settings: RefineSettings,
 ) -> list[Keyframe]:
     """Keyframes over the capture: frames of the first camera with the other cameras' nearest
-    frames, where the first pass has a pose, enough markers are seen and blur is small."""
+    frames, where the first pass has a pose and enough markers are seen.
+
+    Chosen for what they make observable: up to ``turn_share`` of them are the frames where the
+    picture moves fastest (a turn; predicted smear above 1 px and up to ``max_turn_smear_px``),
+    since only a moving picture shows the rolling shutter's readout (its skew grows with the
+    picture's speed while the blur's weight levels off); the rest are sharp frames (smear up to
+    ``max_smear_px``) spread evenly over the capture. A keyframe's corners weigh by its smear (``blur_weight``): a
+    blurred frame counts less, it is not excluded. A cart pushed in straight lines with turns in
+    place has all its motion in the turns, which a sharp-only choice left out (readout and focal
+    length then stayed at their priors)."""
     base = frames[0]
     if not len(base.t):
         return []
@@ -141,9 +150,9 @@ def select_keyframes(
         cand = cand[
             np.unique(np.linspace(0, len(cand) - 1, 8 * settings.max_keyframes).round().astype(int))
         ]
-    # Prefer sharp frames: drop the candidates whose predicted smear is too large.
+    # Sharp frames for most keyframes, moving ones (turns) for a share of them.
     room_centres = {int(m): np.asarray(p.position, float) for m, p in exp.markers.markers.items()}
-    sharp = []
+    scored = []
     for k in cand.tolist():
         det = base.detections[k]
         pts = np.array([room_centres[int(i)] for i in det.ids if int(i) in room_centres]).reshape(
@@ -160,16 +169,37 @@ def select_keyframes(
             focal[0],
             settings.exposure_s,
         )
-        if smear <= settings.max_smear_px:
-            sharp.append((k, smear))
-    if len(sharp) < max(10, len(cand) // 5):  # a fast walk throughout: take the sharpest fifth
-        sharp = []
-        for k in cand.tolist():
-            sharp.append((k, 0.0))
-    pick = (
-        np.linspace(0, len(sharp) - 1, min(settings.max_keyframes, len(sharp))).round().astype(int)
+        scored.append((k, smear))
+    fastest = sorted(
+        (ks for ks in scored if 1.0 < ks[1] <= settings.max_turn_smear_px),
+        key=lambda ks: -ks[1],
     )
-    chosen = [sharp[i] for i in np.unique(pick)]
+    moving = sorted(fastest[: int(settings.turn_share * settings.max_keyframes)])
+    taken = {k for k, _ in moving}
+    sharp = [ks for ks in scored if ks[1] <= settings.max_smear_px and ks[0] not in taken]
+    if len(sharp) < max(10, len(cand) // 5):  # a fast walk throughout: take the sharpest fifth
+        sharp, moving = [(k, 0.0) for k in cand.tolist()], []
+    n_moving = len(moving)
+    n_sharp = min(settings.max_keyframes - n_moving, len(sharp))
+    chosen = sorted(
+        [sharp[i] for i in np.unique(np.linspace(0, len(sharp) - 1, n_sharp).round().astype(int))]
+        + (
+            [
+                moving[i]
+                for i in np.unique(np.linspace(0, len(moving) - 1, n_moving).round().astype(int))
+            ]
+            if n_moving
+            else []
+        )
+    )
+    log.info(
+        "refine: %d keyframes, %d of them of a moving picture (%d candidates: %d sharp, %d moving)",
+        len(chosen),
+        n_moving,
+        len(cand),
+        len(sharp),
+        len(moving),
+    )
     times = np.array([frames[ci].t[j] for k, _ in chosen for ci, j in partner[k]])
     Rj, pj, omj, velj, okj = motion_at(times, t_grid, pos, R)
     out, n = [], 0

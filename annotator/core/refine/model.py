@@ -79,7 +79,11 @@ class RefineSettings:
     # out there. The estimate keeps the survey's prior either way (docs/annotator.md).
     floors_in_record: bool = True
     exposure_s: float = 0.008  # assumed exposure for the motion-blur measure
-    max_smear_px: float = 3.0  # keyframes whose predicted smear exceeds this are not used
+    max_smear_px: float = 3.0  # most keyframes are sharper than this (predicted smear) ...
+    # ... and up to this share of them may be frames of a moving picture (turns: what shows the
+    # readout), smeared up to max_turn_smear_px and weighted down by their smear.
+    turn_share: float = 0.25
+    max_turn_smear_px: float = 15.0
 
     def validate(self) -> RefineSettings:
         if self.mode not in ("map", "all"):
