@@ -226,6 +226,17 @@ def _report_refinement(out: Path, refinement: Refinement, console: Console) -> N
             f"focal {100 * cam['focal_change_rel'][0]:+.2f} %, readout {1000 * cam['readout_s']:.1f} ms",
             highlight=False,
         )
+        for note in cam.get("notes", []):
+            console.print(f"  {name}: {note}", highlight=False, markup=False)
+    printed = rep.get("printed_length", {})
+    if printed.get("estimated"):
+        console.print(
+            f"refine: markers printed {printed['found_m']:.4f} m "
+            f"({printed['scale']:.4f} +- {printed['scale_sigma']:.4f} x the stated "
+            f"{printed['stated_m']} m): {printed['note']}",
+            highlight=False,
+            markup=False,
+        )
     if rep["markers_mapped"]:
         console.print(
             f"refine: mapped markers {rep['markers_mapped']} from the video", highlight=False

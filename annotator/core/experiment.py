@@ -57,6 +57,9 @@ class MarkerSetup:
     markers: dict[int, MarkerPose]
     dictionary: str  # e.g. "DICT_6X6_50"
     length: float  # printed outer black square, metres
+    # 1-sigma of the printed size relative to ``length``: the self-calibration estimates one
+    # scale for all markers with this prior (a printer's scaling is rarely exact); 0 = exact.
+    length_sigma: float = 0.01
 
 
 @dataclass(frozen=True)

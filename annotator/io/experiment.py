@@ -268,7 +268,7 @@ def load_rig(path: str | Path) -> Rig:
 
 # Keys of experiment.yaml's top level and of its `markers:` section.
 EXPERIMENT_KEYS = ("markers", "rig", "videos", "rssi", "sync", "refine")
-MARKERS_KEYS = ("file", "dictionary", "length")
+MARKERS_KEYS = ("file", "dictionary", "length", "length_sigma")
 
 
 def _markers(value: Any, base: Path, source: str) -> MarkerSetup:
@@ -285,8 +285,15 @@ def _markers(value: Any, base: Path, source: str) -> MarkerSetup:
     length = _number(d["length"], f"{source}: markers.length (metres)", -1e3, 1e3)
     if not length > 0:
         raise ConfigError(f"{source}: markers.length must be positive (metres)")
+    length_sigma = _number(
+        d.get("length_sigma", 0.01),
+        f"{source}: markers.length_sigma",
+        0.0,
+        0.2,
+        "a relative 1-sigma of the printed size in 0..0.2 (0.01 = 1 %)",
+    )
     # MarkerMapError is a known error too; the CLI prints it as one line.
-    return MarkerSetup(read_marker_map(base / str(d["file"])), dictionary, length)
+    return MarkerSetup(read_marker_map(base / str(d["file"])), dictionary, length, length_sigma)
 
 
 # The `sync:` section: every key it may hold.

@@ -156,3 +156,15 @@ def test_collector_typo_at_every_level(
         parse_collector(raw, base=tmp_path)
     message = str(err.value)
     assert message.startswith(f"collector.yaml: unknown key {key} (did you mean {close}?"), message
+
+
+def test_markers_length_sigma(tmp_path: Path) -> None:
+    """markers.length_sigma: the printed size's relative 1-sigma (default 1 %), in 0..0.2."""
+    exp = make_experiment(tmp_path / "exp")
+    assert load_experiment(exp).markers.length_sigma == 0.01
+    text = exp.read_text()
+    exp.write_text(text.replace("length: 0.298", "length: 0.298, length_sigma: 0.002"))
+    assert load_experiment(exp).markers.length_sigma == 0.002
+    exp.write_text(text.replace("length: 0.298", "length: 0.298, length_sigma: 0.5"))
+    with pytest.raises(AnnotatorConfigError, match="markers.length_sigma: must be a relative"):
+        load_experiment(exp)

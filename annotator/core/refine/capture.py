@@ -4,6 +4,7 @@ experiment and its report."""
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -171,7 +172,7 @@ def select_keyframes(
         )
         scored.append((k, smear))
     fastest = sorted(
-        (ks for ks in scored if 1.0 < ks[1] <= settings.max_turn_smear_px),
+        (ks for ks in scored if settings.min_turn_smear_px < ks[1] <= settings.max_turn_smear_px),
         key=lambda ks: -ks[1],
     )
     moving = sorted(fastest[: int(settings.turn_share * settings.max_keyframes)])
@@ -252,7 +253,7 @@ def refine_capture(
     ``initial``: start poses (R_world_marker, centre) of markers the survey lacks, from an
     earlier round."""
 
-    from annotator.core.experiment import MarkerSetup, Rig
+    from annotator.core.experiment import Rig
     from annotator.vision.geometry import MarkerRoom
     from bgt_core.formats.markers import MarkerPose
 
@@ -271,7 +272,13 @@ def refine_capture(
         int(m): (room.R_world_marker[i], room.t_world_marker[i]) for i, m in enumerate(room.ids)
     }
     prob, starts = build_problem(
-        survey, exp.markers.length, cams, keyframes, exp.priors, initial=initial
+        survey,
+        exp.markers.length,
+        cams,
+        keyframes,
+        exp.priors,
+        initial=initial,
+        length_sigma_rel=exp.markers.length_sigma,
     )
     sol = solve(prob, s, starts)
     euler = Rotation.from_matrix(sol.R_m).as_euler("xyz")
@@ -294,15 +301,43 @@ def refine_capture(
         rig[cf.camera] = replace(
             rc, calibration=cal, R_bundle_camera=new.R_bc, t_bundle_camera=new.t_bc
         )
+    # The markers as printed: the next pass measures with the length the capture found (held at
+    # the stated one when the data cannot tell them apart).
+    length = exp.markers.length * (sol.length_scale if sol.length_scale_determined else 1.0)
     refined = replace(
         exp,
-        markers=MarkerSetup(markers, exp.markers.dictionary, exp.markers.length),
+        markers=replace(exp.markers, markers=markers, length=length),
         rig=Rig(rig, exp.rig.source),
     )
     report = refinement_report(
         prob, sol, cams, exp, s, len(keyframes), mapped, time.perf_counter() - t0
     )
     return Refinement(refined, sol, sol.covariance, report, mapped)
+
+
+# The blocks a camera's refinement may change, as report.json names them, with what the prior is.
+_BLOCK_NAMES = {
+    "rig": ("rig pose", "rig.yaml's"),
+    "intr": ("focal length and principal point", "the calibration's"),
+    "dist": ("lens distortion", "the calibration's"),
+    "readout": ("rolling-shutter readout", "the calibration's"),
+    "bias": ("corner bias", "0 px"),
+}
+
+
+def observability(determined: dict[str, bool], cam: CameraParams) -> dict[str, Any]:
+    """report.json's per-camera verdicts: which parameters the capture determined and which kept
+    their prior because the walk did not show them (``determined``: block -> applied)."""
+    out: dict[str, Any] = {"determined": {}, "notes": []}
+    for block, (what, prior) in _BLOCK_NAMES.items():
+        if block not in determined:
+            out["determined"][block] = None  # not refined (mode map)
+            continue
+        out["determined"][block] = bool(determined[block])
+        if not determined[block]:
+            value = f" ({cam.readout_s * 1000:.1f} ms)" if block == "readout" else ""
+            out["notes"].append(f"{what} not observable in this walk: {prior} value{value} kept")
+    return out
 
 
 def refinement_report(
@@ -342,6 +377,7 @@ def refinement_report(
             "readout_s": round(b.readout_s, 5),
             "corner_bias_px": round(b.corner_bias_px, 3),
             "readout_sigma_s": None if ro is None else round(float(np.sqrt(ro[0, 0])), 5),
+            **observability(sol.determined.get(a.name, {}), a),
         }
     moved = []
     for mid in sol.moved:
@@ -355,6 +391,23 @@ def refinement_report(
             }
         )
     seen = sorted(int(prob.markers[m]) for m in np.unique(prob.obs.marker))
+    printed: dict[str, Any] = {"stated_m": exp.markers.length, "estimated": False}
+    if math.isfinite(sol.length_scale_sigma):
+        printed.update(
+            estimated=True,
+            scale=round(sol.length_scale, 5),
+            scale_sigma=round(sol.length_scale_sigma, 5),
+            found_m=round(exp.markers.length * sol.length_scale, 5),
+            determined=sol.length_scale_determined,
+            used_m=round(
+                exp.markers.length * (sol.length_scale if sol.length_scale_determined else 1.0), 5
+            ),
+            note=(
+                "the capture measured the printed size"
+                if sol.length_scale_determined
+                else "within noise of the stated length, which was kept"
+            ),
+        )
     return {
         "mode": s.mode,
         "keyframes": n_keyframes,
@@ -366,4 +419,5 @@ def refinement_report(
         "cameras": cameras,
         "markers_mapped": [int(m) for m in mapped],
         "markers_moved": moved,
+        "printed_length": printed,
     }

@@ -139,9 +139,9 @@ def _gate(
             z = np.abs(xs[i : i + size]) / sd[i : i + size]
             if z.max() < s.gate_sigma:
                 log.info(
-                    "refine: %s of camera %d not significant (max %.1f sigma); prior kept",
+                    "refine: %s%s not significant (max %.1f sigma); prior kept",
                     name,
-                    c,
+                    "" if n == 1 and name == "scale" else f" of camera {c}",
                     z.max(),
                 )
                 out.extend(range(i, i + size))

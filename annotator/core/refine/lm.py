@@ -16,6 +16,7 @@ from annotator.core.refine.model import (
     INTR,
     READOUT,
     RIG,
+    SCALE,
     Problem,
     RefineSettings,
     _Layout,
@@ -76,6 +77,8 @@ def _prior_precision(
                 prec[b] = 1 / pr.readout_sigma_s**2
             elif name == BIAS:
                 prec[b] = 1 / CORNER_BIAS_SIGMA_PX**2
+            elif name == SCALE:
+                prec[b] = 1 / prob.length_sigma_rel**2
     if RIG in sl:
         # The gauge: a motion common to every camera of the rig (with the opposite motion of the
         # bundle) moves no camera, so the data cannot tell it - but the frame-time offsets between
@@ -109,6 +112,7 @@ def _jacobian(model: _Model, x: np.ndarray, uv0: np.ndarray) -> tuple[np.ndarray
         DIST: o.camera,
         READOUT: o.camera,
         BIAS: o.camera,
+        SCALE: np.zeros(N, int),
     }
     for name, (off, n, size) in L.static_slices().items():
         h = _FD_STEP[name]

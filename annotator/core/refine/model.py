@@ -20,8 +20,10 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-# Block order in the static part of the parameter vector, per camera after the markers.
+# Block order in the static part of the parameter vector, per camera after the markers; then
+# one block for all markers: their printed size relative to the length the experiment states.
 RIG, INTR, DIST, READOUT, BIAS = "rig", "intr", "dist", "readout", "bias"
+SCALE = "scale"
 # Prior sigma of the detector's corner bias: ArUco corners sit a fraction of a pixel off the true
 # corner along the square's diagonal (threshold, blur, print bleed), the same way for every marker.
 # Unmodelled, it makes each small marker look a few per cent too small, i.e. too far away.
@@ -34,6 +36,7 @@ _FD_STEP = {
     DIST: 1e-6,
     READOUT: 1e-6,
     BIAS: 1e-3,
+    SCALE: 1e-6,
 }
 
 
@@ -83,6 +86,7 @@ class RefineSettings:
     # ... and up to this share of them may be frames of a moving picture (turns: what shows the
     # readout), smeared up to max_turn_smear_px and weighted down by their smear.
     turn_share: float = 0.25
+    min_turn_smear_px: float = 1.0
     max_turn_smear_px: float = 15.0
 
     def validate(self) -> RefineSettings:
@@ -138,6 +142,9 @@ class Problem:
     p_k: np.ndarray  # (K, 3)
     obs: Observations
     priors: Priors
+    # 1-sigma of the markers' printed size relative to ``length`` (a printer's scaling); 0: the
+    # size is taken as exact and not estimated.
+    length_sigma_rel: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,6 +163,15 @@ class Solution:
     iterations: int
     seconds: float
     rejected_priors: list[int] = field(default_factory=list)
+    # The markers' printed size / the stated length as the data found it, its posterior 1-sigma
+    # (NaN: not estimated), and whether the capture determined it (False: within noise of 1, the
+    # stated length was kept; the map and lenses were then refined with it).
+    length_scale: float = 1.0
+    length_scale_sigma: float = float("nan")
+    length_scale_determined: bool = False
+    # Per camera and block (rig, intr, dist, readout, bias): True when the capture determined
+    # it (the correction was applied), False when it was within noise of its prior (kept).
+    determined: dict[str, dict[str, bool]] = field(default_factory=dict)
 
 
 # --- projection -------------------------------------------------------------------------------
@@ -223,6 +239,10 @@ class _Layout:
         out["marker"] = (off, self.M, 6)
         off += 6 * self.M
         for b in self.cam_blocks:
+            if b == SCALE:  # one for all markers
+                out[b] = (off, 1, 1)
+                off += 1
+                continue
             size = {RIG: 6, INTR: 4, DIST: self.nd, READOUT: 1, BIAS: 1}[b]
             out[b] = (off, self.C, size)
             off += size * self.C
@@ -286,6 +306,7 @@ class _Model:
             "dist": self.d0 + u.get(DIST, np.zeros((C, self.L.nd))),
             "readout": self.r0 + u.get(READOUT, np.zeros((C, 1)))[:, 0],
             "bias": self.b0 + u.get(BIAS, np.zeros((C, 1)))[:, 0],
+            "scale": 1.0 + u.get(SCALE, np.zeros((1, 1)))[:, 0],
             "R_k": _rot(u["pose"][:, :3]) @ self.p.R_k,
             "p_k": self.p.p_k + u["pose"][:, 3:],
         }
@@ -308,11 +329,19 @@ class _Model:
         Yk = self._stage(
             "Yk",
             np.concatenate(
-                [v["R_m"].ravel(), v["t_m"].ravel(), v["R_k"].ravel(), v["p_k"].ravel()]
+                [
+                    v["R_m"].ravel(),
+                    v["t_m"].ravel(),
+                    v["R_k"].ravel(),
+                    v["p_k"].ravel(),
+                    v["scale"],
+                ]
             ),
             lambda: _mtv(
                 v["R_k"][o.keyframe],
-                _mv(v["R_m"][o.marker], self.local) + v["t_m"][o.marker] - v["p_k"][o.keyframe],
+                _mv(v["R_m"][o.marker], self.local * v["scale"][0])
+                + v["t_m"][o.marker]
+                - v["p_k"][o.keyframe],
             ),
         )  # R_k^T (X - p_k)
 

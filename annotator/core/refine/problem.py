@@ -119,6 +119,7 @@ def build_problem(
     priors: Priors,
     moved_m: float = 0.05,
     initial: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+    length_sigma_rel: float = 0.0,
 ) -> tuple[Problem, dict[int, tuple[np.ndarray, np.ndarray]]]:
     """The problem over every marker seen in the keyframes (surveyed or not) and the start values.
 
@@ -126,6 +127,7 @@ def build_problem(
     the priors, are free; they start from the median of their views. A surveyed marker whose views
     put it more than ``moved_m`` (and 5 sigma) away from the survey starts from the views too.
     ``initial`` gives start poses for free markers (an earlier refinement's) instead.
+    ``length_sigma_rel`` > 0 lets the solve estimate the markers' printed size (prior 1 +- it).
     Returns the problem and the start poses that differ from the survey.
     """
     views = marker_views(keyframes, cameras, length)
@@ -223,5 +225,6 @@ def build_problem(
         np.array([kf.t_wb for kf in keyframes], float),
         obs,
         priors,
+        length_sigma_rel,
     )
     return prob, start_moved

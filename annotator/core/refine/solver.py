@@ -27,6 +27,7 @@ from annotator.core.refine.model import (
     INTR,
     READOUT,
     RIG,
+    SCALE,
     CameraParams,
     Observations,
     Problem,
@@ -92,6 +93,8 @@ def _solve(
     if s.mode == "all" and not all(supported_lens(c.model, c.dist) for c in prob.cameras):
         log.warning("refine: a lens model with more than 5 coefficients: distortion held fixed")
         blocks = (RIG, INTR, READOUT, BIAS)
+    if s.mode == "all" and prob.length_sigma_rel > 0:
+        blocks = (*blocks, SCALE)
     layout = _Layout(len(prob.R_k), len(prob.markers), len(prob.cameras), nd, seen, blocks)
     lm = _LM(prob, layout, s)
     x = np.zeros(layout.n_pose + layout.n_static)
@@ -136,6 +139,8 @@ def _solve(
     post = cov  # the posterior of the final solve, before what the gate holds back
     has_prior = np.isfinite(prob.marker_sigma[:, 1]) & ~lm.skip
     gated = _gate(x, cov, layout, s, has_prior)
+    # What the data say of the printed size, before the gate holds it at the stated length.
+    scale_found = float(lm.model.static_values(x)["scale"][0])
     held = np.zeros(layout.n_static)  # the corrections the data asked for and that were not applied
     if gated:
         g = layout.n_pose + np.array(gated)
@@ -168,6 +173,26 @@ def _solve(
     v = lm.model.static_values(x)
     u = lm.model.unpack(x)
     rejected = [prob.markers[m] for m in np.flatnonzero(lm.skip)]
+    gated_set = set(gated)
+    determined = {
+        cam.name: {
+            name: not any(i in gated_set for i in range(off + c * size, off + (c + 1) * size))
+            for name, (off, n, size) in layout.static_slices().items()
+            if name not in ("marker", SCALE)
+        }
+        for c, cam in enumerate(prob.cameras)
+    }
+    scale_sigma, scale_determined = float("nan"), False
+    if SCALE in layout.static_slices():
+        i = layout.static_slices()[SCALE][0]
+        scale_sigma = math.sqrt(max(float(post[i, i]), 0.0))
+        scale_determined = i not in gated
+        log.info(
+            "refine: markers printed %.4f x the stated length (+- %.4f)%s",
+            scale_found,
+            scale_sigma,
+            "" if scale_determined else ": within noise of 1, the stated length kept",
+        )
     moved = []
     mo = layout.n_pose + layout.static_slices()["marker"][0]
     for m in range(layout.M):
@@ -244,4 +269,8 @@ def _solve(
         it1 + it2,
         time.perf_counter() - t0,
         rejected,
+        scale_found,
+        scale_sigma,
+        scale_determined,
+        determined,
     )

@@ -556,3 +556,82 @@ def test_markers_held_at_their_survey_do_not_become_the_datum():
     d_refined, d_survey = refined.mean(axis=0), surveyed.mean(axis=0)
     print(f"held {held_ids}: datum {100 * d_survey} (survey) vs {100 * d_refined} cm (refined)")
     assert np.linalg.norm(d_refined - d_survey) < 0.3 * datum_sd
+
+
+def _printed_scene(scale: float, seed: int = 3):
+    """Keyframes of markers printed ``scale`` x the room's stated length, exact rig and lenses,
+    the survey 1.5 cm / 1 deg off."""
+    from annotator.vision.geometry import MarkerRoom
+    from bgt_core.formats.markers import read_marker_map
+    from bgt_core.sites import site_dir
+
+    rng = np.random.default_rng(seed)
+    stated = 0.298
+    printed = MarkerRoom.from_map(
+        read_marker_map(site_dir("tetam") / "marker_positions.dat"), stated * scale
+    )
+    rig = make_rig()
+    t, pos, rot = make_path(N_KF, 0.5, seed)
+    keyframes = []
+    for k in range(N_KF):
+        views = [
+            FrameView(
+                c,
+                *(lambda d: (d.ids, d.corners))(
+                    project(printed, rig[n], rot[k].as_matrix(), pos[k], 0.3, rng)
+                ),
+            )
+            for c, n in enumerate(rig)
+        ]
+        keyframes.append(
+            Keyframe(rot[k].as_matrix(), pos[k] + 0.005 * rng.standard_normal(3), views)
+        )
+    survey = {}
+    for i, m in enumerate(printed.ids):
+        d = Rotation.from_rotvec(np.radians(1.0) * rng.standard_normal(3)).as_matrix()
+        survey[int(m)] = (
+            d @ printed.R_world_marker[i],
+            printed.t_world_marker[i] + 0.015 * rng.standard_normal(3),
+        )
+    cams = [
+        CameraParams(
+            n,
+            rig[n].R_bundle_camera,
+            rig[n].t_bundle_camera,
+            rig[n].calibration.camera_matrix,
+            rig[n].calibration.dist_coeffs,
+            "radtan",
+            0.0,
+            540,
+        )
+        for n in rig
+    ]
+    priors = Priors(survey_sigma_m=0.015, survey_sigma_deg=1.0, readout_sigma_s=1e-4)
+    prob, starts = build_problem(survey, stated, cams, keyframes, priors, length_sigma_rel=0.01)
+    return solve(prob, RefineSettings(), starts)
+
+
+def test_markers_printed_one_percent_large_come_back_within_their_sigma():
+    """Issue 29: a printer's scaling taken as exact moves every pose; the refinement estimates
+    one printed scale for all markers (prior 1 +- markers.length_sigma) and reports it. On this
+    small scene (60 keyframes, 0.3 px noise) its sigma is 0.3 %: 1 % comes back within it, 2 %
+    is also told apart from an exact print (applied)."""
+    one = _printed_scene(1.01)
+    assert one.length_scale_sigma < 0.004
+    assert abs(one.length_scale - 1.01) < 2.5 * one.length_scale_sigma
+    two = _printed_scene(1.02)
+    assert two.length_scale_determined
+    assert abs(two.length_scale - 1.02) < 2.5 * two.length_scale_sigma
+
+
+def test_markers_printed_exactly_keep_the_stated_length():
+    sol = _printed_scene(1.0)
+    assert abs(sol.length_scale - 1.0) < 2.5 * sol.length_scale_sigma
+    assert not sol.length_scale_determined  # within noise of 1: the stated length is kept
+
+
+def test_no_length_sigma_no_scale_estimated():
+    truth, survey_map, cams, true_cams, keyframes, length = _scene()
+    _, sol = _solve(survey_map, cams, keyframes, length)
+    assert sol.length_scale == 1.0
+    assert np.isnan(sol.length_scale_sigma)
