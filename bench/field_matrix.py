@@ -8,8 +8,11 @@ camera adds to the picture and how the markers were printed, each with every fie
 Every cell renders its walk through the tetam room with `annotator.render.render_experiment`
 and the field errors of `annotator simulate --errors field` in the files (survey 1.5 cm / 1 deg,
 rig 3 mm / 1 deg, focal 0.4 %, principal point 1 px, wide k1 = -0.28 lens, 15 ms readout written
-as 0, 8 ms exposure, 10 % flicker), tracks it with today's defaults and scores the trajectory
-against the exact truth (bench/field_accuracy.py's scoring). Cells:
+as 0, 8 ms exposure, 10 % flicker), with hands over the bundle at 2 s and 3 s before the end
+and the RSSI the walk gives at the site's 12 sensors (`annotator.render.rssi`, 2 adverts/s).
+`annotator run` (today's defaults, `sync.mode: auto`: it is not told when the videos started)
+tracks, synchronises and labels it; the trajectory and every labelled reading are scored against
+the exact truth. Cells:
 
     walk        the default loop, held in front while walking (the renderer's own habit)
     push        a level cart pushed along the rectangle, stopping at each corner and turning
@@ -23,11 +26,13 @@ against the exact truth (bench/field_accuracy.py's scoring). Cells:
                 steps, noise 5) and the 0.7 % print
     push-real   the cart pushes of `push` with the imaging and print of `real`, at 1920x1080
 
-Columns per row: posed share of the frames; position error median and p95 (cm); rotation error
-median (deg); share of posed rows within 2.8 sigma_m (~95 % for an honest per-axis sigma);
-readout found by the refinement (ms, true 15) and focal change (%, the files are 0.4 % off at
-1 sigma); tracking time. Per cell: the mean over seeds and the worst seed; last, the mean over
-cells and the worst cell. Videos are cached like bench/field_accuracy.py's.
+Columns per row: posed share of the frames outside the covers; trajectory error median and p95
+(cm); rotation error median (deg); share of posed rows within 2.8 sigma_m (~95 % for an honest
+per-axis sigma); the labelled readings' error median and p95 (cm) and share within 2.8 x their
+sigma; the automatic sync's error (ms, mean over the cameras of |found - true| video start);
+readout found by the refinement (ms, true 15) and printed scale found (the print cells' truth
+1.007); run time. Per cell: the mean over seeds and the worst seed; last, the mean over cells
+and the worst cell. Videos are cached like bench/field_accuracy.py's.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ import json
 import shutil
 import sys
 import tempfile
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -46,10 +52,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import field_accuracy as fa  # noqa: E402  (the bench beside this one)
 
+from annotator.core.evaluate import compare_to_truth  # noqa: E402
+from annotator.io.trajectory import read_trajectory  # noqa: E402
 from annotator.render import render_experiment  # noqa: E402
 from annotator.render.conditions import IMAGING_NOISE, IMAGING_PRESETS, path_trajectory  # noqa: E402
+from annotator.render.rssi import COVER_RAMP_S, write_simulated_run  # noqa: E402
+from bgt_core import safe_yaml  # noqa: E402
 
 TRUE_READOUT_S = float(fa.FIELD["readout"])
+COVER_S = 1.5  # hands over the bundle at 2 s and 3 s before the end, this long
+
+
+def covers(duration: float) -> list[tuple[float, float]]:
+    return [(2.0, COVER_S), (duration - 3.0, COVER_S)]
 
 
 @dataclass(frozen=True)
@@ -99,12 +114,14 @@ def cell_video(cache: Path, cell: Cell, duration: float, seed: int, jobs: int) -
         "renderer": fa.renderer_digest(),
     }
 
+    args["covers"] = covers(duration)
+
     def render(tmp: Path) -> None:
-        walk = path_trajectory(cell.path, fa.T0, cell.speed, cell.dwell, True, cell.motion)
         render_experiment(
             tmp,
-            walk,
+            cell_walk(cell),
             (fa.T0, fa.T0 + duration),
+            covers=covers(duration),
             width=cell.width,
             height=cell.height,
             start_offset=fa.START_OFFSET,
@@ -123,6 +140,31 @@ def cell_video(cache: Path, cell: Cell, duration: float, seed: int, jobs: int) -
     return fa.render_once(cache, args, render, f"{cell.name} {duration:g} s (seed {seed})")
 
 
+def cell_walk(cell: Cell):  # noqa: ANN201 - a render trajectory
+    return path_trajectory(cell.path, fa.T0, cell.speed, cell.dwell, True, cell.motion)
+
+
+def make_experiment(
+    folder: Path, vdir: Path, cell: Cell, duration: float, seed: int, rssi_rate: float
+) -> Path:
+    """The cell's capture as a user hands it over: the field errors in the files, the simulated
+    readings in run/, `sync: {mode: auto}`."""
+    exp = fa.make_experiment(folder, vdir, fa.CONDITIONS["all"], seed, cell.width, cell.height)
+    write_simulated_run(
+        folder / "run",
+        cell_walk(cell),
+        (fa.T0, fa.T0 + duration),
+        covers=covers(duration),
+        seed=seed,
+        rate_hz=rssi_rate,
+    )
+    doc = safe_yaml.load_file(exp)
+    doc["rssi"] = "run"
+    doc["sync"] = {"mode": "auto"}
+    exp.write_text(safe_yaml.dump(doc, sort_keys=False), encoding="utf-8")
+    return exp
+
+
 @dataclass
 class MatrixRow:
     cell: str
@@ -132,23 +174,83 @@ class MatrixRow:
     p95_cm: float
     rot_median_deg: float
     within: float
+    label_median_cm: float = float("nan")
+    label_p95_cm: float = float("nan")
+    label_within: float = float("nan")
+    sync_error_ms: float = float("nan")
     readout_ms: list[float] = field(default_factory=list)
-    focal_change_pct: list[float] = field(default_factory=list)
+    printed_scale: float = float("nan")
     seconds: float = 0.0
     n_compared: int = 0
     n_within: int = 0
+    n_labels: int = 0
+    n_labels_within: int = 0
 
 
-def refinement_findings(track_dir: Path) -> tuple[list[float], list[float]]:
-    """Per camera: the readout the refinement settled on (ms) and its focal change (%, mean of
-    fx and fy); empty without a refinement record."""
-    record = track_dir / "refined" / "refinement.json"
-    if not record.is_file():
-        return [], []
-    cams = json.loads(record.read_text(encoding="utf-8")).get("cameras", {})
-    readout = [1000 * float(c.get("readout_s") or 0.0) for c in cams.values()]
-    focal = [100 * float(np.mean(c.get("focal_change_rel") or [0.0])) for c in cams.values()]
-    return readout, focal
+def run_and_score(exp: Path, cell: Cell, duration: float, seed: int, jobs: int) -> MatrixRow:
+    """`annotator run` in this process, scored against the render's exact walk."""
+    from annotator.commands.run import write_run_outputs
+    from annotator.io.experiment import load_experiment
+    from annotator.pipeline import RunSettings, TrackSettings, run_experiment
+
+    nan = float("nan")
+    t = time.perf_counter()
+    experiment = load_experiment(exp)
+    try:
+        run = run_experiment(experiment, RunSettings(track=TrackSettings(jobs=jobs)))
+    except Exception as e:  # noqa: BLE001 - a failed cell is a row, not the end of the bench
+        print(f"{cell.name} seed {seed}: annotator run failed: {e}", flush=True)
+        return MatrixRow(cell.name, seed, 0.0, nan, nan, nan, nan)
+    report = write_run_outputs(exp.parent / "results", experiment, run, plots=False)
+    seconds = time.perf_counter() - t
+    traj = read_trajectory(exp.parent / "results" / "trajectory.csv")
+    truth = read_trajectory(exp.parent / "truth.csv")
+    starts = {"front": fa.T0, "back": fa.T0 + fa.START_OFFSET}
+    found = {n: float(c["video_start"]) for n, c in report["sync"]["cameras"].items()}
+    sync = [abs(found[n] - starts[n]) * 1000 for n in found]
+    # The trajectory's times are the videos' clock mapped onto the RSSI clock by the sync: score
+    # it on the video clock (the sync's error is scored on its own, and in the labels).
+    shift = float(np.mean([found[n] - starts[n] for n in found]))
+    cmp = compare_to_truth(
+        traj.t - shift, traj.position, traj.rotation, truth.t, truth.position, truth.rotation
+    )
+    outside = np.ones(len(traj.t), bool)
+    for start, length in covers(duration):
+        t_video = traj.t - shift
+        outside &= ~(
+            (t_video >= fa.T0 + start) & (t_video <= fa.T0 + start + length + COVER_RAMP_S)
+        )
+    ok = np.isfinite(cmp.position_error)
+    err = cmp.position_error[ok]
+    sigma = traj.quality["sigma_m"][ok]
+    # labelled readings against the walk at their own time
+    lab = np.asarray(run.labels.labelled, bool)
+    t_s = np.asarray(run.rssi.t_ns, np.int64)[lab] / 1e9
+    true_pos, _ = cell_walk(cell)(t_s)
+    lerr = np.linalg.norm(np.asarray(run.labels.positions)[lab] - true_pos, axis=1)
+    lsig = np.asarray(run.labels.sigma)[lab]
+    cams = report.get("refinement", {}).get("cameras", {})
+    printed = report.get("refinement", {}).get("printed_length", {})
+    return MatrixRow(
+        cell.name,
+        seed,
+        float(np.mean(traj.valid[outside])),
+        100 * float(np.median(err)) if err.size else nan,
+        100 * float(np.percentile(err, 95)) if err.size else nan,
+        float(np.median(cmp.rotation_error_deg[ok])) if err.size else nan,
+        float(np.mean(err < fa.COVERAGE_K * sigma)) if err.size else nan,
+        100 * float(np.median(lerr)) if lerr.size else nan,
+        100 * float(np.percentile(lerr, 95)) if lerr.size else nan,
+        float(np.mean(lerr < fa.COVERAGE_K * lsig)) if lerr.size else nan,
+        float(np.mean(sync)),
+        [1000 * float(c.get("readout_s") or 0.0) for c in cams.values()],
+        float(printed.get("scale", nan)),
+        seconds,
+        int(err.size),
+        int(np.sum(err < fa.COVERAGE_K * sigma)),
+        int(lerr.size),
+        int(np.sum(lerr < fa.COVERAGE_K * lsig)),
+    )
 
 
 def fmt(v: float, spec: str) -> str:
@@ -157,17 +259,19 @@ def fmt(v: float, spec: str) -> str:
 
 def row_text(r: MatrixRow) -> str:
     ro = "/".join(fmt(v, ".1f") for v in r.readout_ms) or "-"
-    fo = "/".join(fmt(v, "+.2f") for v in r.focal_change_pct) or "-"
     return (
         f"{r.cell:10} {r.seed:4d} {fmt(100 * r.posed, '5.1f')}% {fmt(r.median_cm, '7.2f')} "
         f"{fmt(r.p95_cm, '7.2f')} {fmt(r.rot_median_deg, '8.3f')} {fmt(100 * r.within, '7.1f')}% "
-        f"{ro:>11} {fo:>13} {r.seconds:5.0f}s"
+        f"{fmt(r.label_median_cm, '7.2f')} {fmt(r.label_p95_cm, '7.2f')} "
+        f"{fmt(100 * r.label_within, '7.1f')}% {fmt(r.sync_error_ms, '6.1f')} {ro:>11} "
+        f"{fmt(r.printed_scale, '7.4f')} {r.seconds:5.0f}s"
     )
 
 
 HEADER = (
     f"{'cell':10} {'seed':>4} {'posed':>6} {'median':>7} {'p95':>7} {'rot med':>8} {'<2.8sig':>8} "
-    f"{'readout ms':>11} {'focal chg %':>13} {'time':>6}"
+    f"{'lab med':>7} {'lab p95':>7} {'lab<2.8':>8} {'sync':>6} {'readout ms':>11} {'printed':>7} "
+    f"{'time':>6}"
 )
 
 
@@ -179,6 +283,7 @@ def cell_summary(rows: list[MatrixRow]) -> list[str]:
         med = np.array([r.median_cm for r in mine])
         n, k = sum(r.n_compared for r in mine), sum(r.n_within for r in mine)
         within = k / n if n else float("nan")
+        nl, kl = sum(r.n_labels for r in mine), sum(r.n_labels_within for r in mine)
         readout = [v for r in mine for v in r.readout_ms]
         means[name] = (
             float(np.mean([r.posed for r in mine])),
@@ -191,7 +296,11 @@ def cell_summary(rows: list[MatrixRow]) -> list[str]:
             f"{name:10} seeds {len(mine)}: posed {100 * means[name][0]:5.1f} %, median "
             f"{fmt(means[name][1], '.2f')} cm, p95 {fmt(means[name][2], '.2f')} cm, within 2.8 "
             f"sigma {fmt(100 * within, '.1f')} % pooled; worst seed {worst.seed}: median "
-            f"{fmt(worst.median_cm, '.2f')} cm, posed {100 * worst.posed:.1f} %; readout "
+            f"{fmt(worst.median_cm, '.2f')} cm, posed {100 * worst.posed:.1f} %; labels median "
+            f"{fmt(float(np.nanmean([r.label_median_cm for r in mine])), '.2f')} cm, p95 "
+            f"{fmt(float(np.nanmean([r.label_p95_cm for r in mine])), '.2f')} cm, within "
+            f"{fmt(100 * kl / nl if nl else float('nan'), '.1f')} %; sync error median "
+            f"{fmt(float(np.nanmedian([r.sync_error_ms for r in mine])), '.1f')} ms; readout "
             f"{fmt(float(np.mean(readout)) if readout else float('nan'), '.1f')} ms "
             f"(true {1000 * TRUE_READOUT_S:.0f})"
         )
@@ -222,6 +331,13 @@ def main() -> None:
         help="rendered videos, keyed by their render arguments",
     )
     ap.add_argument("--json", type=Path, help="also write the rows as JSON here")
+    ap.add_argument(
+        "--rssi-rate",
+        type=float,
+        default=2.0,
+        help="adverts/s of the simulated beacon (2: about the published dataset's readings per "
+        "sensor; the hands-cover sync's error shrinks as it grows)",
+    )
     args = ap.parse_args()
     names = [c.strip() for c in args.cells.split(",") if c.strip()]
     unknown = [n for n in names if n not in CELLS]
@@ -230,35 +346,21 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     args.cache.mkdir(parents=True, exist_ok=True)
     work = args.keep or Path(tempfile.mkdtemp(prefix="field-matrix-"))
-    files = fa.CONDITIONS["all"]
     rows: list[MatrixRow] = []
-    print(f"walks of {args.duration:g} s, every field error on; cells {', '.join(names)}")
+    print(
+        f"walks of {args.duration:g} s, every field error on, RSSI {args.rssi_rate:g} adverts/s; "
+        f"cells {', '.join(names)}"
+    )
     print(HEADER, flush=True)
     try:
         for seed in seeds:
             for name in names:
                 cell = CELLS[name]
                 vdir = cell_video(args.cache, cell, args.duration, seed, args.jobs)
-                exp = fa.make_experiment(
-                    work / f"{name}-s{seed}", vdir, files, seed, cell.width, cell.height
+                exp = make_experiment(
+                    work / f"{name}-s{seed}", vdir, cell, args.duration, seed, args.rssi_rate
                 )
-                track = exp.parent / "track-default"
-                r = fa.track_and_score(exp, track, None, args.jobs, name, seed)
-                readout, focal = refinement_findings(track)
-                row = MatrixRow(
-                    name,
-                    seed,
-                    r.posed,
-                    r.median_cm,
-                    r.p95_cm,
-                    r.rot_median_deg,
-                    r.within,
-                    readout,
-                    focal,
-                    r.seconds,
-                    r.n_compared,
-                    r.n_within,
-                )
+                row = run_and_score(exp, cell, args.duration, seed, args.jobs)
                 rows.append(row)
                 print(row_text(row), flush=True)
     finally:
