@@ -8,6 +8,7 @@ wire. ``docs/protocol.md`` describes the same messages in prose.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, TypeGuard
@@ -293,6 +294,24 @@ class AgentStatus:
 # -- collector control (start, stop, status, runs) ---------------------------------------------
 
 
+# A run's name: what an operator types, stored as given in run.yaml and shown escaped.
+RUN_NAME_MAX = 200
+
+
+def check_run_name(name: object) -> None:
+    """InvalidField unless ``name`` is None or a string of at most RUN_NAME_MAX printable
+    characters (no control characters: a terminal would run them when the name is shown)."""
+    if name is None:
+        return
+    if not isinstance(name, str):
+        raise InvalidField("start: name must be a string or null")
+    if len(name) > RUN_NAME_MAX or not name.isprintable():
+        raise InvalidField(
+            f"start: name must be at most {RUN_NAME_MAX} printable characters "
+            f"(got {len(name)} characters{'' if name.isprintable() else ', some not printable'})"
+        )
+
+
 @dataclass(frozen=True, slots=True)
 class StartRequest:
     name: str | None = None
@@ -303,11 +322,14 @@ class StartRequest:
     def from_dict(cls, d: object) -> StartRequest:
         m = _mapping(d, "start request")
         name = m.get("name")
-        if name is not None and not isinstance(name, str):
-            raise InvalidField("start: name must be a string or null")
+        check_run_name(name)
         max_off = m.get("max_offset_ms")
-        if max_off is not None and (not _is_num(max_off) or max_off < 0):
-            raise InvalidField("start: max_offset_ms must be a non-negative number or null")
+        if max_off is not None and (
+            not _is_num(max_off) or not math.isfinite(max_off) or not 0 <= max_off <= 86_400_000
+        ):
+            raise InvalidField(
+                "start: max_offset_ms must be a finite number of ms in 0..86400000, or null"
+            )
         strict = m.get("strict", False)
         if not isinstance(strict, bool):
             raise InvalidField("start: strict must be true or false")

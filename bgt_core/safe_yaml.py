@@ -155,13 +155,17 @@ def decode_utf8(data: bytes, source: str) -> str:
 def read_bytes_limited(path: str | Path, max_bytes: int = MAX_BYTES) -> bytes:
     """The file's bytes, or YamlError if it cannot be read or is larger than ``max_bytes``
     (checked on what is read, so a growing file or a device cannot slip past)."""
+    from bgt_core.safe_open import FileRefused, open_regular
+
     path = Path(path)
     try:
-        with path.open("rb") as f:
+        with open_regular(path, "yaml", max_bytes=max_bytes * 4) as f:
             size = os.fstat(f.fileno()).st_size
             if size > max_bytes:
                 raise YamlError(f"{path}: {size} bytes; a YAML file may be at most {max_bytes}")
             data = f.read(max_bytes + 1)
+    except FileRefused as e:
+        raise YamlError(str(e)) from None
     except OSError as e:
         raise YamlError(f"{path}: cannot read ({e.strerror or e})") from None
     if len(data) > max_bytes:

@@ -35,7 +35,9 @@ BATCH_READING = struct.Struct("<qq6sb")  # t_ns, mono_ns, beacon MAC, RSSI
 BATCH_EXTRAS_LEN = struct.Struct("<I")
 
 _MAC_RE = re.compile(r"^[0-9a-f]{12}$")
-_ID_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+# Ids (agent, site, boot): also folder names under a run's rssi/, so never starting with a dot
+# (a hidden folder, or '..'). The one rule for the agent, the collector and the deploy tools.
+_ID_RE = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")
 _UUID_RE = re.compile(r"^[0-9a-f]{32}$")
 
 # Plausibility limits: a reading outside them is malformed, not merely unusual.
@@ -90,7 +92,10 @@ def colon_mac(mac: str) -> str:
 
 def check_id(value: object, what: str = "id") -> str:
     if not isinstance(value, str) or not _ID_RE.match(value):
-        raise InvalidField(f"{what} must be 1-64 characters of [A-Za-z0-9_.-], got {value!r}")
+        raise InvalidField(
+            f"{what} must be 1-64 characters of [A-Za-z0-9_.-], not starting with a dot, "
+            f"got {value!r:.80}"
+        )
     return value
 
 
@@ -432,7 +437,12 @@ def parse_ts(text: str) -> int:
     text = text.strip()
     neg = text.startswith("-")
     whole, _, frac = text.lstrip("+-").partition(".")
-    if not whole.isdigit() or (frac and not frac.isdigit()):
-        raise InvalidField(f"not a timestamp: {text!r}")
+    # isdecimal, not isdigit: int() refuses superscripts.
+    if not whole.isdecimal() or (frac and not frac.isdecimal()):
+        raise InvalidField(f"not a timestamp: {text[:40]!r}{'...' if len(text) > 40 else ''}")
+    if len(whole) > 20:  # far past 2100 (and int() of thousands of digits is refused)
+        raise InvalidField(
+            f"timestamp {text[:40]}{'...' if len(text) > 40 else ''} is outside 1970..2100"
+        )
     ns = int(whole) * 10**9 + int((frac + "000000000")[:9] or 0)
     return -ns if neg else ns

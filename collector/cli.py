@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import signal
 import threading
 import time
@@ -17,8 +18,10 @@ from rich.markup import escape
 from rich.table import Table
 
 from bgt_core.cli_help import flow_command_help
+from bgt_core.display import shown
+from bgt_core.messages import check_run_name
 from bgt_core.wire import WireError
-from collector.errors import CollectorError
+from collector.errors import CollectorError, ConfigError
 from collector.fleet import app as fleet_app
 
 app = typer.Typer(
@@ -33,8 +36,9 @@ app.add_typer(
     name="fleet",
     help="The fleet in a deploy/ inventory: agents alive, versions, adapters, clocks.",
 )
-console = Console()
-err_console = Console(stderr=True)
+# emoji off: text from outside (names, errors) is never read as ':shortcode:'.
+console = Console(emoji=False)
+err_console = Console(stderr=True, emoji=False)
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 ConfigOpt = Annotated[
@@ -57,7 +61,7 @@ InsecureOpt = Annotated[
 
 
 def _fail(e: Exception) -> typer.Exit:
-    err_console.print(f"[red]{escape(str(e))}", highlight=False, soft_wrap=True)
+    err_console.print(f"[red]{escape(shown(e, None))}", highlight=False, soft_wrap=True)
     return typer.Exit(1)
 
 
@@ -235,6 +239,16 @@ def start(
 ) -> None:
     """Start a capture run on a running collector; prints the run id. Agents' clocks are
     checked first: one warning line per agent off by more than --max-offset-ms."""
+    if not (math.isfinite(max_offset_ms) and 0 <= max_offset_ms <= 86_400_000):
+        raise _fail(
+            ConfigError(
+                f"--max-offset-ms must be a finite number in 0..86400000, not {max_offset_ms}"
+            )
+        )
+    try:
+        check_run_name(name)
+    except WireError as e:
+        raise _fail(ConfigError(f"--name: {e}")) from None
     try:
         with _client(connect, site, root_ca, cert, key) as c:
             reply = c.start_typed(name, max_offset_ms=max_offset_ms, strict=strict)
@@ -314,11 +328,11 @@ def runs(
         table.add_column(col, overflow="fold")
     for r in items:
         table.add_row(
-            str(r["run_id"]),
-            str(r.get("name") or ""),
-            str(r.get("start") or ""),
-            str(r.get("stop") or "[yellow]not stopped"),
-            str(r.get("readings") or 0),
+            escape(shown(r["run_id"])),
+            escape(shown(r.get("name") or "")),
+            escape(shown(r.get("start") or "")),
+            escape(shown(r.get("stop"))) if r.get("stop") else "[yellow]not stopped",
+            escape(shown(r.get("readings") or 0)),
         )
     console.print(table)
 

@@ -32,8 +32,8 @@ from deploy.inventory import InventoryError, load_inventory
 app = typer.Typer(
     name="fleet", no_args_is_help=True, help="The deployed fleet (reads deploy/'s inventory)."
 )
-console = Console()
-err_console = Console(stderr=True)
+console = Console(emoji=False)
+err_console = Console(stderr=True, emoji=False)
 
 
 @app.callback()

@@ -74,11 +74,6 @@ def batch_cost(batch: RawBatch) -> int:
     return BATCH_COST + ROW_COST * len(batch.rows)
 
 
-def _check_folder_name(agent: str) -> None:
-    if agent.startswith("."):  # would name a hidden folder (or ..) under rssi/
-        raise wire.InvalidField(f"agent id {agent!r} may not start with a dot")
-
-
 class Inbox:
     """The receive side: Zenoh samples are decoded and checked here (on Zenoh's or the receive
     thread), bad ones counted and queued for quarantine, good batches queued for the writer with
@@ -139,8 +134,7 @@ class Inbox:
         payload = b""
         try:
             payload = sample.payload.to_bytes()
-            _site, agent, sensor = wire.parse_data_key(key)
-            _check_folder_name(agent)
+            _site, agent, sensor = wire.parse_data_key(key)  # ids never start with a dot
             batch = decode(payload)
             # The key (which the ACL checks) says who sent it; the payload must agree.
             if batch.agent_id != agent or batch.sensor != sensor:

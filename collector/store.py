@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from bgt_core.atomic import write_atomic
+from bgt_core.safe_open import FileRefused, open_regular, read_limited
 from collector.errors import CollectorError
 
 log = logging.getLogger(__name__)
@@ -428,7 +429,8 @@ def find_active_state(data_dir: Path) -> list[tuple[Path, dict[str, Any]]]:
         return out
     for p in sorted(data_dir.glob(f"*/{STATE_FILE}"), reverse=True):
         try:
-            doc = json.loads(p.read_text(encoding="utf-8"))
+            with open_regular(p, "yaml") as f:
+                doc = json.loads(read_limited(f, p, "yaml").decode("utf-8"))
         except (OSError, ValueError) as e:
             log.warning("ignoring unreadable %s: %s", p, e)
             continue
@@ -493,7 +495,10 @@ def export_merged(run_dir: Path, out_dir: Path) -> dict[str, int]:
         rows: list[tuple[int, str]] = []
         for p in paths:
             try:
-                text = p.read_text(encoding="ascii")
+                with open_regular(p, "readings") as f:
+                    text = read_limited(f, p, "readings").decode("ascii")
+            except FileRefused as e:
+                raise CollectorError(str(e)) from None
             except (OSError, UnicodeDecodeError) as e:
                 raise CollectorError(f"{p}: cannot read: {e}") from None
             for lineno, line in enumerate(text.splitlines(), 1):

@@ -31,7 +31,7 @@ app = typer.Typer(
     help="Fleet deployment helpers (site PKI, Zenoh ACL, project wheel, wheelhouse).",
     no_args_is_help=True,
 )
-err = Console(stderr=True)
+err = Console(stderr=True, emoji=False)
 MANIFEST = "SHA256SUMS"  # in a wheelhouse: `sha256  file` per wheel
 REQUEST = "request.json"  # in a wheelhouse: the extras, platforms and Python it was made for
 

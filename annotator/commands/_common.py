@@ -27,7 +27,7 @@ from bgt_core.formats.mbd import MbdError
 from bgt_core.formats.occ import GridFormatError
 from bgt_core.safe_yaml import YamlError
 
-console = Console(stderr=True)
+console = Console(stderr=True, emoji=False)
 # The errors that mean "bad input": each carries one line naming the file and the field or line.
 KNOWN_ERRORS = (
     AnnotatorError,

@@ -15,7 +15,7 @@ from rich.table import Table
 
 from annotator.commands._common import console, one_line_errors, stage_columns, stage_progress
 
-out_console = Console()
+out_console = Console(emoji=False)
 
 
 def _utc(t_ns: int | None) -> str:

@@ -141,7 +141,7 @@ def track(
     from annotator.vision.detection import DetectorSettings
     from annotator.vision.paper import PaperSettings
 
-    console = Console(stderr=True)
+    console = Console(stderr=True, emoji=False)
     with one_line_errors():
         jobs = default_jobs() if jobs is None else jobs
         if jobs < 1:

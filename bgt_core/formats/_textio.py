@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from bgt_core.atomic import write_atomic
+from bgt_core.safe_open import LIMITS, iter_raw_lines, open_regular, read_limited
 
 
 def write_text_atomic(path: Path, text: str) -> None:
@@ -39,12 +40,16 @@ def not_utf8(
 
 
 def read_text(path: str | Path, error: type[Exception], what: str = "") -> str:
-    """A file's UTF-8 text; ``error`` (one line naming the file) when it cannot be read or holds
-    bytes that are not UTF-8 (then the line and byte offset of the first one are named)."""
+    """A file's UTF-8 text; ``error`` (one line naming the file) when it cannot be read, is not
+    a regular file or is over its kind's size limit (``what``, see bgt_core.safe_open; a site
+    file's by default), or holds bytes that are not UTF-8 (then the line and byte offset of the
+    first one are named)."""
     path = Path(path)
     label = f"{what} " if what else ""
+    kind = what if what in LIMITS else "site file"
     try:
-        data = path.read_bytes()
+        with open_regular(path, kind) as f:
+            data = read_limited(f, path, kind)
     except OSError as e:
         raise error(f"cannot read {label}{path}: {e.strerror or e}") from None
     try:
@@ -53,14 +58,18 @@ def read_text(path: str | Path, error: type[Exception], what: str = "") -> str:
         raise error(not_utf8(data, e, str(path))) from None
 
 
-def iter_lines(path: str | Path, error: type[Exception]) -> Iterator[tuple[int, str]]:
+def iter_lines(
+    path: str | Path, error: type[Exception], kind: str = "readings"
+) -> Iterator[tuple[int, str]]:
     """``(line number, text)`` of each line, newline kept, decoded one line at a time (a large
-    file is never held whole); ``error`` for undecodable bytes or an unreadable file."""
+    file is never held whole, nor a line longer than bgt_core.safe_open.MAX_LINE); ``error``
+    for undecodable bytes, an unreadable file, one that is not a regular file or is over the
+    size limit of its ``kind``."""
     path = Path(path)
     offset = 0
     try:
-        with path.open("rb") as f:
-            for lineno, raw in enumerate(f, 1):
+        with open_regular(path, kind) as f:
+            for lineno, raw in iter_raw_lines(f, path):
                 try:
                     yield lineno, raw.decode("utf-8")
                 except UnicodeDecodeError as e:

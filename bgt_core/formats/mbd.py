@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,22 +31,23 @@ class MbdRow:
     rest: tuple[str, ...] = ()  # pose columns of track files, kept as text
 
 
+_RSSI_TEXT = re.compile(r"[+-]?[0-9]+")
+
+
 def parse_line(line: str) -> MbdRow:
     parts = line.strip().split(",")
     if len(parts) < 4:
         raise ValueError(f"expected at least 4 comma-separated fields, got {len(parts)}")
     try:
-        row = MbdRow(
-            parse_ts(parts[0]),
-            normalize_mac(parts[1]),
-            normalize_mac(parts[2]),
-            int(parts[3]),
-            tuple(p.strip() for p in parts[4:]),
-        )
+        t_ns, sensor, beacon = parse_ts(parts[0]), normalize_mac(parts[1]), normalize_mac(parts[2])
     except WireError as e:
         raise ValueError(str(e)) from None
-    except ValueError:
-        raise ValueError(f"RSSI {parts[3].strip()[:40]!r} is not an integer") from None
+    text = parts[3].strip()
+    if not _RSSI_TEXT.fullmatch(text):
+        raise ValueError(f"RSSI {text[:40]!r} is not an integer")
+    if len(text) > 12:
+        raise ValueError(f"RSSI {text[:40]}... is outside {RSSI_LO}..{RSSI_HI} dBm")
+    row = MbdRow(t_ns, sensor, beacon, int(text), tuple(p.strip() for p in parts[4:]))
     if not T_NS_LO <= row.t_ns < T_NS_HI:
         raise ValueError(f"timestamp {parts[0].strip()[:40]} is outside 1970..2100")
     if not RSSI_LO <= row.rssi <= RSSI_HI:

@@ -67,7 +67,11 @@ def test_messages_round_trip_through_json(msg) -> None:
         (Ack, {"boot": "b", "streams": {"m": True}}, "ack: streams.m must be an integer, got True"),
         (Ack, {"streams": {}}, "ack: boot is missing"),
         (StartRequest, {"name": 3}, "start: name must be a string or null"),
-        (StartRequest, {"max_offset_ms": -1}, "start: max_offset_ms must be a non-negative number"),
+        (StartRequest, {"max_offset_ms": -1}, "start: max_offset_ms must be a finite number"),
+        (StartRequest, {"max_offset_ms": float("nan")}, "start: max_offset_ms must be a finite"),
+        (StartRequest, {"max_offset_ms": float("inf")}, "start: max_offset_ms must be a finite"),
+        (StartRequest, {"name": "a" * 201}, "start: name must be at most 200 printable"),
+        (StartRequest, {"name": "run\x1b[2J"}, "start: name must be at most 200 printable"),
         (StartRequest, {"strict": "yes"}, "start: strict must be true or false"),
         (AgentStatus, {"agent_id": "a", "now_ns": "x"}, "agent status: now_ns must be an integer"),
         (

@@ -121,6 +121,7 @@ def test_motion_profiles() -> None:
     hand = LoopTrajectory(t0=T0, **MOTION_PROFILES["hand"])  # type: ignore[arg-type]
     walk = LoopTrajectory(t0=T0)
     zh, zw = hand(t)[0][:, 2], walk(t)[0][:, 2]
+
     # the bounce: what is left of the height after a 1 s moving average (the slow swing)
     def fast(z: np.ndarray) -> float:
         return float(np.std((z - np.convolve(z, np.ones(50) / 50, "same"))[50:-50]))
