@@ -13,6 +13,7 @@ from typing import Any
 
 from bgt_core import wire
 from bgt_core.messages import Ack
+from collector.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
 
@@ -277,6 +278,7 @@ class StreamTracker:
         # (agent, sensor) -> [gaps, lost] of retired boots, counted since the run started
         self.retired: dict[tuple[str, str], list[int]] = {}
         self._boots: dict[tuple[str, str], list[str]] = {}
+        self.warnings = RateLimitedLog(log)
 
     def _new_stream(self, stream: tuple[str, str, str]) -> None:
         agent, boot, sensor = stream
@@ -351,20 +353,27 @@ class StreamTracker:
         return True
 
     def _give_up_gap(self, stream: tuple[str, str, str], st: StreamState) -> None:
-        """Too many seqs wait above a gap: count the gap's seqs lost and move on."""
-        low = min(st.ahead)
-        skipped = low - 1 - st.done_upto
+        """Too many seqs wait above gaps: the gaps below the lower half of the waiting seqs are
+        counted lost and the stream moves on. Halving the window (one sort per max_ahead / 2
+        batches) keeps the cost per batch bounded, whatever seqs an agent sends; a gap that old
+        had max_ahead / 2 newer batches arrive after it. The warning is rate-limited per agent."""
+        waiting = sorted(st.ahead)
+        cut = waiting[len(waiting) // 2]
+        below = waiting[: len(waiting) // 2]
+        skipped = (cut - 1 - st.done_upto) - len(below)
         st.lost += skipped
         self.given_up += skipped
-        st.done_upto = low - 1
+        st.ahead.difference_update(below)
+        st.done_upto = cut - 1
         self._advance(st)
-        log.warning(
-            "stream %s/%s/%s: more than %d batches waited above a gap; gave up on %d "
-            "missing batch(es) below seq %d (counted lost)",
-            *stream,
-            self.max_ahead,
+        agent, _boot, sensor = stream
+        self.warnings.warn(
+            f"{agent}/gap",
             skipped,
-            low,
+            f"stream {'/'.join(stream)}: more than {self.max_ahead} batches waited above gaps; "
+            f"gave up on {skipped} missing batch(es) below seq {cut} (counted lost)",
+            f"agent {agent}: gave up on %d more gap window(s), %d missing batch(es) in the last "
+            "%.0f s (counted lost)",
         )
 
     @staticmethod

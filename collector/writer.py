@@ -123,7 +123,8 @@ class StreamGate:
 
     def __init__(self, limits: Limits) -> None:
         self._limits = limits
-        # Streams (agent, sensor) accepted since this collector started; others are refused.
+        # Streams (agent, sensor) accepted in this run (or since the last run ended); the
+        # Writer makes a new gate at every start and stop, so a cap never outlives its run.
         self.admitted: set[tuple[str, str]] = set()
         self._agent_streams: Counter[str] = Counter()
         self._sensor_agents: dict[str, set[str]] = {}  # sensor MAC -> agents publishing it
@@ -549,6 +550,8 @@ class Writer:
             open_files=self._open_files,
         )
         self.tracker.reset_run_totals()
+        # A run's stream caps count that run's streams: whatever earlier runs admitted is free.
+        self.gate = StreamGate(self.cfg.limits)
         self.clock_log = {a: [smp] for a, smp in clock_samples.items()}
         self.restarts = self._quarantined_bytes = 0
         self.inbox.reset_quarantine_dropped()
@@ -619,6 +622,7 @@ class Writer:
             return
         self.stopping = self.run = None
         self.run_active = False
+        self.gate = StreamGate(self.cfg.limits)  # stopping a run frees its streams
         self.publish_acks({a for a, _b, _s in self.tracker.streams})
         log.info("run %s stopped: %d readings", run.run_id, run.readings)
         self._notifier.status("idle: no run active")

@@ -342,3 +342,52 @@ def test_20_s_of_max_size_batches_keep_collector_rss_bounded_and_honest_data_com
     flooded = doc["agents"]["pi-bad"]["sensors"][flood_mac(0)]["readings"]
     assert flooded >= 5 * wire.MAX_READINGS, flooded
     assert r.stop_s < 60
+
+
+def test_a_gap_flood_logs_a_bounded_number_of_lines_at_bounded_cost(caplog) -> None:
+    """Issue 35: an agent whose seq jumps by 2 on every batch made one WARNING per batch
+    (~6,600 lines/s) and each give-up scanned the whole window. Now: the first line, then one
+    summary per agent every 10 s; a sort per half window."""
+    t = StreamTracker()
+    s = ("pi-bad", "0123456789abcdef", A)
+    caplog.set_level("WARNING", logger="collector.ingest")
+    start = time.perf_counter()
+    for i in range(60_000):
+        t.accept(s, 2 * i, floor=0)
+    seconds = time.perf_counter() - start
+    st = t.streams[s]
+    assert len(st.ahead) <= t.max_ahead
+    assert st.lost + len(st.ahead) + (st.done_upto + 1) // 2 >= 59_000  # every other seq missing
+    assert t.warnings.lines <= 2  # within 10 s: the first line (and at most one summary)
+    assert len(caplog.records) <= 2
+    assert seconds < 5.0  # was O(window) per batch: ~4096 x 60,000 set scans
+
+
+def test_the_stream_cap_counts_one_run_only(collector, endpoint) -> None:
+    """Issue 35: once streams_total streams were admitted in any run, a new sensor in a later
+    run was refused until the collector restarted (and never acknowledged)."""
+    flooder = FakeAgent(endpoint, agent="pi-bad")
+    honest = FakeAgent(endpoint, agent="pi-01")
+    try:
+        collector.start_run("monday")
+        for mac in flood_macs(5):  # 4 admitted (per agent), 1 refused
+            flooder.put(with_floor(make_batch(0, agent="pi-bad", sensor=mac), 0))
+        honest.put(with_floor(make_batch(0, agent="pi-01", sensor=A), 0))  # the 5th: total cap
+        wait_for(lambda: honest.acked(A) == 0, what="monday's honest ack")
+        wait_for(lambda: collector.status()["streams"]["admitted"] == 5, what="5 streams")
+        collector.stop_run()
+        run = collector.start_run("tuesday")
+        honest.put(with_floor(make_batch(0, agent="pi-01", sensor=B), 0))  # a new sensor
+        wait_for(lambda: honest.acked(B) == 0, what="tuesday's new sensor acknowledged")
+        st = collector.status()
+        stopped = collector.stop_run()
+    finally:
+        flooder.close()
+        honest.close()
+    assert st["refused_streams"]["batches"] == 0
+    assert st["streams"]["admitted"] == 1
+    doc = run_yaml_doc(stopped["run_dir"])
+    assert doc["refused_streams"]["batches"] == 0
+    assert (Path(run["run_dir"]) / "rssi" / "pi-01" / f"{B}.mbd").read_text().splitlines() == (
+        expected_lines([make_batch(0, agent="pi-01", sensor=B)])
+    )
