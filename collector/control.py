@@ -201,10 +201,24 @@ class Control:
 
     def start_run(self, req: StartRequest, timeout: float = 10.0) -> StartReply:
         """Start a run; agents' clocks are measured first. With ``req.strict``, an agent whose
-        clock is off by more than ``req.max_offset_ms`` refuses the start (CollectorError)."""
+        clock is off by more than ``req.max_offset_ms`` refuses the start (CollectorError).
+
+        The run starts only within ``timeout`` of the request's arrival: a start that would land
+        later (a busy writer, slow agents) is refused, so an operator whose command timed out
+        never finds a run started behind its back."""
+        deadline = self._mono() + timeout
+        try:
+            return self._start_by(req, deadline)
+        except TimeoutError:
+            raise CollectorError(
+                f"the collector did not start the run within {timeout:g} s (its writer is busy); "
+                "nothing was started"
+            ) from None
+
+    def _start_by(self, req: StartRequest, deadline: float) -> StartReply:
         w = self.writer
         if w.run_active:  # answer at once, without asking the agents anything first
-            return w.call(lambda: w.start(req.name, {}), timeout)
+            return w.call(lambda: w.start(req.name, {}, deadline), deadline - self._mono())
         self.refresh_agents()
         samples = self.measure_clocks()
         warnings = []
@@ -221,7 +235,13 @@ class Control:
             raise CollectorError(
                 f"{warnings[0]}; fix its time sync (chrony) or start without --strict{more}"
             )
-        started = w.call(lambda: w.start(req.name, samples), timeout)
+        remaining = deadline - self._mono()
+        if remaining <= 0:
+            raise CollectorError(
+                "measuring the agents' clocks took longer than the start may wait; nothing was "
+                "started (try again)"
+            )
+        started = w.call(lambda: w.start(req.name, samples, deadline), remaining)
         clock = {a: AgentClock(v.offset_ms, v.rtt_ms) for a, v in samples.items()}
         return dataclasses.replace(started, clock=clock, clock_warnings=tuple(warnings))
 

@@ -529,7 +529,19 @@ class Writer:
             self.clock_log.setdefault(agent, []).append(smp)
         self._dirty = True
 
-    def start(self, name: str | None, clock_samples: dict[str, ClockSample]) -> StartReply:
+    def start(
+        self,
+        name: str | None,
+        clock_samples: dict[str, ClockSample],
+        deadline: float | None = None,
+    ) -> StartReply:
+        """Start a run, unless ``deadline`` (monotonic s) has passed: the operator's command has
+        given up by then and must not find a run started after it reported a failure."""
+        if deadline is not None and self._mono() > deadline:
+            raise CollectorError(
+                "the start request waited too long (the command that sent it has given up); "
+                "nothing was started"
+            )
         if self.run is not None:
             raise CollectorError(f"run {self.run.run_id} is already active; stop it first")
         t_ns = self._clock()

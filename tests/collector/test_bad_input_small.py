@@ -71,3 +71,27 @@ def test_a_replay_file_that_is_not_text_is_one_line(tmp_path) -> None:  # noqa: 
     backend = ReplayBackend([path])
     with pytest.raises(BackendError, match=r"rec.mbd:4: not UTF-8 text"):
         backend.check()
+
+
+def test_a_start_that_timed_out_leaves_nothing_started(tmp_path, endpoint) -> None:  # noqa: ANN001
+    """Issue 35: the start an operator saw fail (its writer was busy past the timeout) used to
+    start a run anyway once the writer got to it."""
+    import time
+
+    from bgt_core.messages import StartRequest
+    from collector.config import CollectorConfig
+    from collector.errors import CollectorError
+    from collector.service import Collector
+
+    c = Collector(CollectorConfig(data_dir=tmp_path / "data", listen=(endpoint,))).open()
+    try:
+        c.writer.post(lambda: time.sleep(1.5))  # the writer thread busy for 1.5 s
+        with pytest.raises(CollectorError, match="nothing was started"):
+            c.control.start_run(StartRequest("late"), timeout=0.5)
+        time.sleep(2.0)  # the writer has run the queued start by now: it must have refused
+        assert c.status()["run"] is None
+        assert not list((tmp_path / "data").glob("*-late"))
+        assert c.start_run("on-time")["run_id"].endswith("-on-time")  # and the next start works
+        c.stop_run()
+    finally:
+        c.close()
