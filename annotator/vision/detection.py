@@ -7,6 +7,7 @@ frame is thresholded once, and again at three window sizes only when that finds 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -41,6 +42,12 @@ class DetectorSettings:
     threshold_windows: tuple[int, int, int] = (7, 7, 10)
     retry_windows: tuple[int, int, int] | None = (3, 23, 10)
     retry_below: int = 2
+    # Frames that still show fewer than `sharpen_below` known markers are detected once more on
+    # a sharpened copy (unsharp mask of this sigma, detection pixels; None: never), and the
+    # markers it finds are added: a lens slightly out of focus (1.5 px) blurs small markers'
+    # cells past reading, and sharpening brings back a quarter of them (bench/detection_recall.py).
+    sharpen_px: float | None = 1.5
+    sharpen_below: int = 3
     # Board refinement only on frames with fewer than this many known markers (0 = every frame):
     # where several are found, one more adds little, and the search costs as much as a detection.
     board_refine_below: int = 4
@@ -137,6 +144,29 @@ class MarkerDetector:
         self._K_small = K
         self._dist = calibration.dist_coeffs
 
+    def _add_sharpened(
+        self, small: np.ndarray, corners: Any, ids: np.ndarray | None, rejected: Any
+    ) -> tuple[Any, np.ndarray | None, Any]:
+        """The detection plus the markers found on an unsharp-masked copy that it lacks."""
+        sigma = float(self.settings.sharpen_px or 0.0)
+        blurred = cv2.GaussianBlur(small, (0, 0), sigma)
+        sharp = cv2.addWeighted(small, 2.0, blurred, -1.0, 0)
+        more, more_ids, more_rejected = self._detector.detectMarkers(sharp)
+        if more_ids is None or len(more_ids) == 0:
+            return corners, ids, rejected
+        have = set() if ids is None else {int(i) for i in np.asarray(ids).reshape(-1)}
+        add = [k for k, i in enumerate(np.asarray(more_ids).reshape(-1)) if int(i) not in have]
+        if not add:
+            return corners, ids, rejected
+        new_corners = list(corners) + [more[k] for k in add]
+        new_ids = np.concatenate(
+            [
+                np.zeros((0, 1), np.int32) if ids is None else np.asarray(ids).reshape(-1, 1),
+                np.asarray(more_ids).reshape(-1, 1)[add],
+            ]
+        ).astype(np.int32)
+        return tuple(new_corners), new_ids, rejected
+
     def _known(self, ids: np.ndarray | None) -> int:
         return 0 if ids is None else int(np.count_nonzero(self.room.index(ids.reshape(-1)) >= 0))
 
@@ -144,11 +174,14 @@ class MarkerDetector:
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         s = self.scale
         small = gray if s == 1 else cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
-        corners, ids, rejected = self._detector.detectMarkers(small)
+        found: tuple[Any, Any, Any] = self._detector.detectMarkers(small)
+        corners, ids, rejected = found
         if self._retry is not None and self._known(ids) < self.settings.retry_below:
             again = self._retry.detectMarkers(small)
             if self._known(again[1]) > self._known(ids):
                 corners, ids, rejected = again
+        if self.settings.sharpen_px is not None and self._known(ids) < self.settings.sharpen_below:
+            corners, ids, rejected = self._add_sharpened(small, corners, ids, rejected)
         if ids is None or len(ids) == 0:
             if not self.settings.board_refine or not rejected:
                 return Detections.empty()
