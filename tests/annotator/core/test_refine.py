@@ -78,20 +78,24 @@ def _scene(
                 rc.calibration.height,
             )
         )
-    true_cams = [
+    return truth, survey_map, cams, _exact_cameras(rig_true), keyframes, room.length
+
+
+def _exact_cameras(rig) -> list[CameraParams]:  # noqa: ANN001 - track_helpers' rig
+    """The rig's cameras as the refinement takes them, exactly as rendered."""
+    return [
         CameraParams(
             n,
-            rig_true[n].R_bundle_camera,
-            rig_true[n].t_bundle_camera,
-            rig_true[n].calibration.camera_matrix,
-            rig_true[n].calibration.dist_coeffs,
+            rig[n].R_bundle_camera,
+            rig[n].t_bundle_camera,
+            rig[n].calibration.camera_matrix,
+            rig[n].calibration.dist_coeffs,
             "radtan",
             0.0,
             540,
         )
-        for n in names
+        for n in rig
     ]
-    return truth, survey_map, cams, true_cams, keyframes, room.length
 
 
 def _solve(survey_map, cams, keyframes, length, priors=None, mode="all", **settings):
@@ -593,19 +597,7 @@ def _printed_scene(scale: float, seed: int = 3):
             d @ printed.R_world_marker[i],
             printed.t_world_marker[i] + 0.015 * rng.standard_normal(3),
         )
-    cams = [
-        CameraParams(
-            n,
-            rig[n].R_bundle_camera,
-            rig[n].t_bundle_camera,
-            rig[n].calibration.camera_matrix,
-            rig[n].calibration.dist_coeffs,
-            "radtan",
-            0.0,
-            540,
-        )
-        for n in rig
-    ]
+    cams = _exact_cameras(rig)
     priors = Priors(survey_sigma_m=0.015, survey_sigma_deg=1.0, readout_sigma_s=1e-4)
     prob, starts = build_problem(survey, stated, cams, keyframes, priors, length_sigma_rel=0.01)
     return solve(prob, RefineSettings(), starts)
