@@ -18,8 +18,8 @@ from rich.markup import escape
 from rich.table import Table
 
 from bgt_core.cli_help import flow_command_help
+from bgt_core.control_messages import check_run_name
 from bgt_core.display import shown
-from bgt_core.messages import check_run_name
 from bgt_core.wire import WireError
 from collector.errors import CollectorError, ConfigError
 from collector.fleet import app as fleet_app
@@ -290,7 +290,7 @@ def status(
     key: KeyOpt = None,
 ) -> None:
     """Agents alive, per-sensor reading rates and last-seen times, and the current run."""
-    from bgt_core.messages import CollectorStatus
+    from bgt_core.control_messages import CollectorStatus
     from collector.live import render
 
     try:

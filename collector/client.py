@@ -7,7 +7,7 @@ import json
 from typing import TYPE_CHECKING, Any
 
 from bgt_core import wire
-from bgt_core.messages import Reply, StartReply, StartRequest, StopReply
+from bgt_core.control_messages import Reply, StartReply, StartRequest, StopReply
 from bgt_core.zenoh_config import DEFAULT_ENDPOINT, SessionSpec, TlsFiles, build_config
 from collector.errors import CommandFailed, Unreachable
 

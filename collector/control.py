@@ -16,18 +16,15 @@ from concurrent.futures import Future
 from typing import TYPE_CHECKING, Any
 
 from bgt_core import wire
-from bgt_core.messages import (
+from bgt_core.control_messages import (
     AgentClock,
-    AgentStatus,
-    ClockReply,
-    ClockRequest,
-    ClockSample,
     CollectorStatus,
     Reply,
     StartReply,
     StartRequest,
     StopReply,
 )
+from bgt_core.messages import AgentStatus, ClockReply, ClockRequest, ClockSample
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
 from collector.store import iso_utc, list_runs

@@ -19,13 +19,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from bgt_core import wire
-from bgt_core.messages import (
-    AdapterStatus,
-    AgentStatus,
-    ClockReply,
-    ClockRequest,
-    ClockSample,
-)
+from bgt_core.messages import AdapterStatus, AgentStatus, ClockReply, ClockRequest, ClockSample
 from bgt_core.zenoh_config import SessionSpec, TlsFiles, build_config, zenoh_reason
 from deploy.inventory import InventoryError, load_inventory
 

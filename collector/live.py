@@ -13,7 +13,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from bgt_core.messages import CollectorStatus
+from bgt_core.control_messages import CollectorStatus
 
 BARS = "▁▂▃▄▅▆▇█"
 RSSI_LO, RSSI_HI = -100, -30

@@ -19,7 +19,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bgt_core import wire
-from bgt_core.messages import ClockSample, StartRequest
+from bgt_core.control_messages import StartRequest
+from bgt_core.messages import ClockSample
 from bgt_core.sdnotify import Notifier
 from bgt_core.zenoh_config import AclFileError, build_config, load_acl, zenoh_reason
 from collector.config import CollectorConfig
@@ -364,7 +365,7 @@ class Collector:
         return None if stopped is None else stopped.to_dict()
 
     def status(self, timeout: float = 10.0) -> dict[str, Any]:
-        """The status reply as it goes on the wire (``messages.CollectorStatus.to_dict``)."""
+        """The status reply as it goes on the wire (``control_messages.CollectorStatus.to_dict``)."""
         return self.control.status(timeout).to_dict()
 
     def status_now(self) -> dict[str, Any]:

@@ -8,16 +8,15 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from bgt_core.messages import (
-    AdapterStatus,
+from bgt_core.control_messages import (
     AgentLive,
-    AgentStatus,
     CollectorStatus,
     RefusedStreams,
     RunStatus,
     SensorRate,
     StreamCounts,
 )
+from bgt_core.messages import AdapterStatus, AgentStatus
 from collector.store import RunWriter, iso_utc
 
 if TYPE_CHECKING:

@@ -19,7 +19,8 @@ from importlib import metadata
 from typing import Any, TypeVar
 
 from bgt_core import wire
-from bgt_core.messages import ClockSample, StartReply, StopReply
+from bgt_core.control_messages import StartReply, StopReply
+from bgt_core.messages import ClockSample
 from bgt_core.sdnotify import Notifier
 from collector.config import CollectorConfig, Limits
 from collector.control import AgentBook

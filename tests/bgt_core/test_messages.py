@@ -11,19 +11,8 @@ import pytest
 
 from bgt_core import wire
 from bgt_core.atomic import FileOps, temp_path, write_atomic
-from bgt_core.messages import (
-    Ack,
-    AgentStatus,
-    ClockReply,
-    ClockRequest,
-    ClockSample,
-    CollectorStatus,
-    Reply,
-    StartReply,
-    StartRequest,
-    StopReply,
-    clock_offset,
-)
+from bgt_core.control_messages import CollectorStatus, Reply, StartReply, StartRequest, StopReply
+from bgt_core.messages import Ack, AgentStatus, ClockReply, ClockRequest, ClockSample, clock_offset
 
 
 def test_clock_offset_is_the_four_timestamp_estimate() -> None:

@@ -78,7 +78,7 @@ def test_a_start_that_timed_out_leaves_nothing_started(tmp_path, endpoint) -> No
     start a run anyway once the writer got to it."""
     import time
 
-    from bgt_core.messages import StartRequest
+    from bgt_core.control_messages import StartRequest
     from collector.config import CollectorConfig
     from collector.errors import CollectorError
     from collector.service import Collector
