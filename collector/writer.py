@@ -1,6 +1,7 @@
 """The collector's writer thread, which owns all run state: ingest of what the receive side
 (``inbox.Inbox``) queued, dedupe, the stream caps, files, state.json, fsync, disk-full handling,
-quarantine files, acks, start/stop of runs.
+quarantine files, acks, start/stop of runs. The stream caps are ``admission.StreamGate``, the
+live per-sensor figures ``live_stats.SensorLive``.
 
 Everything else reaches run state through ``Writer.call``, which runs a function on the writer
 thread and waits for its result.
@@ -11,10 +12,9 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from importlib import metadata
 from typing import Any, TypeVar
 
@@ -22,7 +22,8 @@ from bgt_core import wire
 from bgt_core.control_messages import StartReply, StopReply
 from bgt_core.messages import ClockSample
 from bgt_core.sdnotify import Notifier
-from collector.config import CollectorConfig, Limits
+from collector.admission import MAX_AGENT_ENTRIES, StreamGate
+from collector.config import CollectorConfig
 from collector.control import AgentBook
 from collector.errors import CollectorError
 from collector.inbox import Inbox
@@ -30,6 +31,7 @@ from collector.ingest import (
     StreamTracker,
     format_rows,
 )
+from collector.live_stats import SensorLive
 from collector.store import STATE_FILE, FileWrite, RunWriter, is_disk_full, make_run_id
 
 log = logging.getLogger(__name__)
@@ -38,10 +40,7 @@ T = TypeVar("T")
 
 TICK_S = 0.2  # flush + ack period while data arrives
 REACK_S = 2.0  # acks are repeated this often, in case an agent missed one
-RATE_WINDOW_S = 5.0
-RSSI_HISTORY = 40  # readings kept per sensor for the live sparkline
 LIVE_IDLE_S = 3600.0  # live state of a stream silent this long is dropped
-MAX_AGENT_ENTRIES = 1024  # agents remembered per counter (unknown agents, refused streams)
 MAX_BUFFER_BYTES = 64 * 1024 * 1024  # rows held in memory while the disk refuses them
 DISK_RETRY_S = 1.0
 QUARANTINE_MAX_BYTES = 16 * 1024 * 1024  # per run; beyond it rejects are only counted
@@ -69,35 +68,6 @@ def software_version() -> str:
 
 
 @dataclass(slots=True)
-class SensorLive:
-    """What status/live show for one sensor (since the collector started)."""
-
-    agent_id: str
-    readings: int = 0
-    last_rssi: int | None = None
-    last_seen: float = 0.0  # monotonic seconds
-    # (monotonic s, readings) over RATE_WINDOW_S
-    window: deque[tuple[float, int]] = field(default_factory=deque)
-    rssi: deque[int] = field(default_factory=lambda: deque(maxlen=RSSI_HISTORY))
-
-    def add(self, now: float, rows: list[tuple[int, int, bytes, int]]) -> None:
-        self.readings += len(rows)
-        self.last_rssi = rows[-1][3]
-        self.last_seen = now
-        self.window.append((now, len(rows)))
-        self.rssi.extend([r[3] for r in rows[-RSSI_HISTORY:]])
-        self._prune(now)
-
-    def _prune(self, now: float) -> None:
-        while self.window and now - self.window[0][0] > RATE_WINDOW_S:
-            self.window.popleft()
-
-    def rate(self, now: float) -> float:
-        self._prune(now)
-        return sum(n for _, n in self.window) / RATE_WINDOW_S
-
-
-@dataclass(slots=True)
 class Stopping:
     """A stop request waiting for the run to drain."""
 
@@ -115,82 +85,6 @@ class Resumed:
     clock_log: dict[str, list[ClockSample]]
     restarts: int
     quarantined_bytes: int
-
-
-class StreamGate:
-    """Which (agent, sensor) streams the collector accepts: the stream caps
-    (``limits.streams_per_agent``, ``limits.streams_total``), counters of what they refused,
-    and sensors published by more than one agent. Writer thread only."""
-
-    def __init__(self, limits: Limits) -> None:
-        self._limits = limits
-        # Streams (agent, sensor) accepted in this run (or since the last run ended); the
-        # Writer makes a new gate at every start and stop, so a cap never outlives its run.
-        self.admitted: set[tuple[str, str]] = set()
-        self._agent_streams: Counter[str] = Counter()
-        self._sensor_agents: dict[str, set[str]] = {}  # sensor MAC -> agents publishing it
-        self.refused: Counter[str] = Counter()  # agent -> batches refused (stream caps)
-        self.refused_streams: set[tuple[str, str]] = set()  # at most MAX_AGENT_ENTRIES kept
-        self._refused_log: dict[str, float] = {}
-
-    def admit(self, agent: str, sensor: str, now: float) -> bool:
-        """Accept a new (agent, sensor) stream under the stream caps, or refuse its batch (not
-        written, not acknowledged, counted)."""
-        lim = self._limits
-        key = (agent, sensor)
-        if (
-            self._agent_streams[agent] >= lim.streams_per_agent
-            or len(self.admitted) >= lim.streams_total
-        ):
-            if agent in self.refused or len(self.refused) < MAX_AGENT_ENTRIES:
-                self.refused[agent] += 1
-            else:
-                self.refused["(other agents)"] += 1
-            if len(self.refused_streams) < MAX_AGENT_ENTRIES:
-                self.refused_streams.add(key)
-            if (
-                now - self._refused_log.get(agent, -1e9) >= 60
-                and len(self._refused_log) < MAX_AGENT_ENTRIES
-            ):
-                self._refused_log[agent] = now
-                which = (
-                    f"agent {agent} already has {lim.streams_per_agent} streams"
-                    if self._agent_streams[agent] >= lim.streams_per_agent
-                    else f"the collector already has {lim.streams_total} streams"
-                )
-                log.warning(
-                    "refused sensor %s of agent %s: %s (limits.streams_per_agent / "
-                    "streams_total); its batches are not written (%d refused so far)",
-                    sensor,
-                    agent,
-                    which,
-                    self.refused[agent],
-                )
-            return False
-        self.admit_known(key)
-        return True
-
-    def admit_known(self, key: tuple[str, str]) -> None:
-        """Count a stream as admitted without checking the caps (a resumed run's streams)."""
-        if key in self.admitted:
-            return
-        agent, sensor = key
-        self.admitted.add(key)
-        self._agent_streams[agent] += 1
-        agents = self._sensor_agents.setdefault(sensor, set())
-        agents.add(agent)
-        if len(agents) > 1:
-            log.warning(
-                "sensor %s is published by agents %s: kept as separate streams "
-                "(rssi/<agent>/%s.mbd); a copied adapter address or a misconfigured agent?",
-                sensor,
-                ", ".join(sorted(agents)),
-                sensor,
-            )
-
-    def shared_sensors(self) -> dict[str, list[str]]:
-        """Sensor MACs published by more than one agent since the collector started."""
-        return {m: sorted(a) for m, a in sorted(self._sensor_agents.items()) if len(a) > 1}
 
 
 class Writer:
