@@ -40,15 +40,17 @@ def flow_command_help(app: Any) -> None:
     """Flow the help of every command of a ``typer.Typer`` (and of its sub-apps): the explicit
     ``help=`` if given, else the callback's docstring; each command without a class of its own
     gets the classes of :func:`plain_help_classes` (help printed as written)."""
+    from typer.core import TyperCommand, TyperGroup
+
     command_cls, group_cls = plain_help_classes()
     own = getattr(app.info.cls, "value", app.info.cls)  # typer wraps its default in a placeholder
-    if own is None or own.__name__ == "TyperGroup":
+    if own in (None, TyperGroup):
         app.info.cls = group_cls
     for info in app.registered_commands:
         doc = info.help if info.help is not None else inspect.getdoc(info.callback)
         if doc:
             info.help = flow(doc)
-        if info.cls is None or info.cls.__name__ == "TyperCommand":
+        if info.cls in (None, TyperCommand):
             info.cls = command_cls
     for group in app.registered_groups:
         if group.typer_instance is not None:

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from bgt_core.atomic import write_atomic
-from bgt_core.safe_open import LIMITS, iter_raw_lines, open_regular, read_limited
+from bgt_core.safe_open import LIMITS, FileRefused, iter_raw_lines, open_regular, read_limited
 
 
 def write_text_atomic(path: Path, text: str) -> None:
@@ -50,6 +50,8 @@ def read_text(path: str | Path, error: type[Exception], what: str = "") -> str:
     try:
         with open_regular(path, kind) as f:
             data = read_limited(f, path, kind)
+    except FileRefused as e:  # names the file itself
+        raise error(str(e)) from None
     except OSError as e:
         raise error(f"cannot read {label}{path}: {e.strerror or e}") from None
     try:
@@ -75,6 +77,8 @@ def iter_lines(
                 except UnicodeDecodeError as e:
                     raise error(not_utf8(raw, e, str(path), lineno, offset)) from None
                 offset += len(raw)
+    except FileRefused as e:  # names the file itself
+        raise error(str(e)) from None
     except OSError as e:
         raise error(f"cannot read {path}: {e.strerror or e}") from None
 

@@ -15,8 +15,8 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
+from bgt_core.formats._textio import iter_lines
 from bgt_core.formats.mbd import parse_line
-from bgt_core.safe_open import FileRefused, iter_raw_lines, open_regular
 from bgt_core.wire import RSSI_MAX, RSSI_MIN, T_NS_MAX, T_NS_MIN, Reading
 from sensor_agent.errors import BackendError
 from sensor_agent.scanning.base import AdapterInfo, AdvertSink, Clocks, ScannerBackend
@@ -47,37 +47,19 @@ def _rows(path: Path, skipped: _Skipped | None = None) -> Iterator[_Row]:
     """Rows of one file (extra columns dropped); a malformed line raises BackendError naming file
     and line. A reading with an implausible RSSI (the dataset holds a +42 dBm) is skipped and
     counted in ``skipped``: one absurd value must not stop the replay of all the others."""
-    try:
-        f = open_regular(path, "readings")
-    except FileRefused as e:
-        raise BackendError(str(e)) from None
-    except OSError as e:
-        raise BackendError(f"{path}: cannot read ({e.strerror or e})") from None
-    with f:
+    for lineno, line in iter_lines(path, BackendError):
+        if not line.strip():
+            continue
         try:
-            for lineno, raw in iter_raw_lines(f, path):
-                try:
-                    line = raw.decode("utf-8")
-                except UnicodeDecodeError:
-                    raise BackendError(
-                        f"{path}:{lineno}: not UTF-8 text (a replay file holds .mbd rows)"
-                    ) from None
-                if not line.strip():
-                    continue
-                try:
-                    r = parse_line(line)
-                except ValueError as e:
-                    raise BackendError(f"{path}:{lineno}: {e}") from None
-                if not RSSI_MIN <= r.rssi <= RSSI_MAX:
-                    if skipped is not None:
-                        skipped.count += 1
-                        skipped.first = (
-                            skipped.first or f"{path}:{lineno}: RSSI {r.rssi} dBm out of range"
-                        )
-                    continue
-                yield _Row(r.t_ns, r.sensor, r.beacon, r.rssi)
-        except FileRefused as e:
-            raise BackendError(str(e)) from None
+            r = parse_line(line)
+        except ValueError as e:
+            raise BackendError(f"{path}:{lineno}: {e}") from None
+        if not RSSI_MIN <= r.rssi <= RSSI_MAX:
+            if skipped is not None:
+                skipped.count += 1
+                skipped.first = skipped.first or f"{path}:{lineno}: RSSI {r.rssi} dBm out of range"
+            continue
+        yield _Row(r.t_ns, r.sensor, r.beacon, r.rssi)
 
 
 class ReplayBackend(ScannerBackend):

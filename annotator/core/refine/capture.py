@@ -303,16 +303,21 @@ def refine_capture(
         )
     # The markers as printed: the next pass measures with the length the capture found (held at
     # the stated one when the data cannot tell them apart).
-    length = exp.markers.length * (sol.length_scale if sol.length_scale_determined else 1.0)
     refined = replace(
         exp,
-        markers=replace(exp.markers, markers=markers, length=length),
+        markers=replace(exp.markers, markers=markers, length=length_used(exp, sol)),
         rig=Rig(rig, exp.rig.source),
     )
     report = refinement_report(
         prob, sol, cams, exp, s, len(keyframes), mapped, time.perf_counter() - t0
     )
     return Refinement(refined, sol, sol.covariance, report, mapped)
+
+
+def length_used(exp: Experiment, sol: Solution) -> float:
+    """The markers' length the next pass measures with: the printed size the capture found, or
+    the stated length when the data could not tell them apart."""
+    return exp.markers.length * (sol.length_scale if sol.length_scale_determined else 1.0)
 
 
 # The blocks a camera's refinement may change, as report.json names them, with what the prior is.
@@ -399,9 +404,7 @@ def refinement_report(
             scale_sigma=round(sol.length_scale_sigma, 5),
             found_m=round(exp.markers.length * sol.length_scale, 5),
             determined=sol.length_scale_determined,
-            used_m=round(
-                exp.markers.length * (sol.length_scale if sol.length_scale_determined else 1.0), 5
-            ),
+            used_m=round(length_used(exp, sol), 5),
             note=(
                 "the capture measured the printed size"
                 if sol.length_scale_determined

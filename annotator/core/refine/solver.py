@@ -174,17 +174,18 @@ def _solve(
     u = lm.model.unpack(x)
     rejected = [prob.markers[m] for m in np.flatnonzero(lm.skip)]
     gated_set = set(gated)
+    slices = layout.static_slices()
     determined = {
         cam.name: {
             name: not any(i in gated_set for i in range(off + c * size, off + (c + 1) * size))
-            for name, (off, n, size) in layout.static_slices().items()
+            for name, (off, _n, size) in slices.items()
             if name not in ("marker", SCALE)
         }
         for c, cam in enumerate(prob.cameras)
     }
     scale_sigma, scale_determined = float("nan"), False
-    if SCALE in layout.static_slices():
-        i = layout.static_slices()[SCALE][0]
+    if SCALE in slices:
+        i = slices[SCALE][0]
         scale_sigma = math.sqrt(max(float(post[i, i]), 0.0))
         scale_determined = i not in gated
         log.info(
