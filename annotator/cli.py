@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "run",
     "track",
     "evaluate",
+    "import-log",
     "simulate",
     "calibrate",
     "markers",
@@ -34,9 +35,9 @@ COMMAND_MODULES = (
 
 for _name in COMMAND_MODULES:
     try:
-        _mod = importlib.import_module(f"annotator.commands.{_name}")
+        _mod = importlib.import_module(f"annotator.commands.{_name.replace('-', '_')}")
     except ModuleNotFoundError as _e:  # a command still being written; the others work
-        if _e.name != f"annotator.commands.{_name}":
+        if _e.name != f"annotator.commands.{_name.replace('-', '_')}":
             raise
         continue
     _mod.register(app)

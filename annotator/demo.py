@@ -465,14 +465,20 @@ def score(
     t0: float,
     true_starts: dict[str, float],
     duration_s: float | None = None,
+    antenna: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The annotation against the truth: position error of every labelled reading (truth = the
-    path at that reading's own timestamp), coverage and each camera's sync error: at its first
-    frame, and (given ``duration_s``) at its last, which differs when a drift was fitted."""
+    path at that reading's own timestamp, moved to ``antenna`` in the bundle frame when given),
+    coverage and each camera's sync error: at its first frame, and (given ``duration_s``) at its
+    last, which differs when a drift was fitted."""
     labels, table, rep = run.labels, run.rssi, run.report
     lab = np.asarray(labels.labelled, bool)
     t_s = (np.asarray(table.t_ns, np.int64)[lab] - round(t0 * 1e9)) / 1e9
-    truth = np.array([path.position_at(float(s)) for s in t_s]).reshape(-1, 3)
+    if antenna is None or not t_s.size:
+        truth = np.array([path.position_at(float(s)) for s in t_s]).reshape(-1, 3)
+    else:
+        pos, rot = bundle_pose_at(path, 0.0)(t_s)
+        truth = pos.reshape(-1, 3) + rot.apply(antenna).reshape(-1, 3)
     err = np.linalg.norm(np.asarray(labels.positions)[lab] - truth, axis=1)
     cams = {}
     for name, cam in rep["sync"]["cameras"].items():
@@ -508,6 +514,7 @@ def score(
             "labelled": int(lab.sum()),
             "readings_of_beacon": len(table),
         },
+        "mode": rep.get("mode", "beacon"),
         "counts": rep["counts"],
         "sync": cams,
         "rssi_events": len(rep["sync"].get("rssi_events", [])),

@@ -409,6 +409,9 @@ class RunSettings:
     track: TrackSettings = field(default_factory=TrackSettings)
     max_gap: float = 0.5  # s: a reading between poses further apart than this stays unlabelled
     beacon: str | None = None  # the bundle's beacon; default: sync.beacon, else the most heard one
+    # Receiver mode: label every reading taken by this sensor on the bundle (default: the
+    # experiment's `receiver:`); excludes `beacon`.
+    receiver: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -418,7 +421,7 @@ class RunResult:
     trajectory: Trajectory
     sync: SyncResult
     labels: Labels  # one per reading of `rssi`
-    rssi: RssiTable  # the bundle beacon's readings
+    rssi: RssiTable  # the readings labelled: of the bundle's beacon, or taken by its receiver
     report: dict[str, Any]  # report.json's content, without the names of the files written
     refinement: Refinement | None = (
         None  # what the self-calibration did (None: --refine none, paper)
@@ -458,7 +461,8 @@ def run_experiment(
     exp: Experiment, settings: RunSettings | None = None, progress: Progress | None = None
 ) -> RunResult:
     """Everything `annotator run` computes: track, synchronise with the RSSI log, label every
-    reading of the bundle's beacon. Writes nothing (see annotator.commands.run.write_run_outputs)."""
+    reading of the bundle's beacon (beacon mode) or every reading its receiver took (receiver
+    mode). Writes nothing (see annotator.commands.run.write_run_outputs)."""
     from dataclasses import replace
 
     from annotator.core.labeling import label_readings
@@ -471,16 +475,31 @@ def run_experiment(
     )
     from annotator.errors import ConfigError
     from annotator.io.outputs import build_report
-    from annotator.io.rssi import bundle_beacon, load_rssi
+    from annotator.io.rssi import bundle_beacon, load_rssi, receiver_readings
     from annotator.io.sync import brightness_series
 
     settings = settings or RunSettings()
     track = settings.track
     if exp.rssi is None:
         raise ConfigError(f"{exp.path}: no 'rssi:' entry; annotator run needs the RSSI recording")
+    receiver = settings.receiver or exp.receiver
+    asked_beacon = settings.beacon or exp.sync.beacon
+    if receiver is not None and asked_beacon is not None:
+        raise ConfigError(
+            f"receiver {receiver} and beacon {asked_beacon} both given: receiver mode labels the "
+            "receiver's readings of every beacon, beacon mode one beacon's readings; choose one"
+        )
     everything = load_rssi(exp.rssi)
-    beacon = bundle_beacon(everything, settings.beacon or exp.sync.beacon)
-    table = everything.select(everything.beacon == beacon)
+    if receiver is not None:
+        # Receiver mode: the readings the bundle's receiver took, of any beacon. Hands over the
+        # bundle dim every beacon at once, so the cover event pools over beacons.
+        table = receiver_readings(everything, receiver)
+        subject, pooled_by, antenna = f"receiver {receiver}", table.beacon, "receiver"
+        beacon = None
+    else:
+        beacon = bundle_beacon(everything, asked_beacon)
+        table = everything.select(everything.beacon == beacon)
+        subject, pooled_by, antenna = f"beacon {beacon}", table.sensor, "beacon"
 
     if exp.sync_mode == "auto":
         sc = exp.sync
@@ -489,8 +508,8 @@ def run_experiment(
         rssi_events = detect_rssi_events(
             table.t_seconds(),
             table.rssi,
-            table.sensor,
-            name=f"RSSI of beacon {beacon}",
+            pooled_by,
+            name=f"RSSI of {subject}",
             min_duration=cover_s[0],
             max_duration=cover_s[1],
         )
@@ -532,9 +551,10 @@ def run_experiment(
         result = frames_to_result(frames, exp, track, pool)
     traj = result.trajectory
 
-    # Readings while hands covered the beacon carry the hands' attenuation: never labelled.
+    # Readings while hands covered the bundle carry the hands' attenuation: never labelled. Each
+    # reading gets the pose of the antenna that took part in it (the beacon's or the receiver's).
     labels = label_readings(
-        traj,
+        traj.at_point(exp.rig.antenna(antenna)),
         table.t_ns,
         max_gap=settings.max_gap,
         exclude=cover_intervals(sync.rssi_events),
@@ -544,6 +564,8 @@ def run_experiment(
         experiment=exp.path,
         sync=sync,
         beacon=beacon,
+        receiver=receiver,
+        antenna=exp.rig.antenna(antenna),
         readings_total=len(everything),
         table=table,
         labels=labels,

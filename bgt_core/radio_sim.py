@@ -1,4 +1,5 @@
-"""A simulated beacon heard by fixed sensors: the radio model and a seeded advert generator.
+"""A simulated beacon heard by fixed sensors (or fixed beacons heard by a moving receiver): the
+radio model and seeded advert generators.
 
 Standard library only. The simulated sensor agent paces :class:`Simulation` in real time; the
 annotator's renderer (``annotator simulate``) runs it at once to write the readings a rendered
@@ -111,17 +112,62 @@ class Simulation:
             cover = cover_at(self.events, t)
             t_ns = self.t0_ns + round(t * 1e9)
             for s in self.sensors:
-                # Draw every random number whether or not the advert survives, so that a
-                # change of drop probability does not reshuffle the noise of other readings.
-                lost = rng.random() < radio.drop_prob
-                lost_cover = rng.random() < (cover.drop_prob if cover else 0.0)
-                noise = rng.gauss(0.0, radio.sigma_db)
-                if lost or lost_cover:
-                    continue
-                rssi = radio.mean_rssi(math.dist(pos, s.position)) + noise
-                if cover is not None:
-                    rssi -= cover.attenuation_db
-                if rssi < radio.floor_dbm:
-                    continue
-                rssi_i = max(RSSI_MIN, min(RSSI_MAX, round(rssi)))
-                out.append((s.mac, Reading(t_ns, self.beacons[i], rssi_i)))
+                rssi_i = _heard(rng, radio, cover, math.dist(pos, s.position))
+                if rssi_i is not None:
+                    out.append((s.mac, Reading(t_ns, self.beacons[i], rssi_i)))
+
+
+def _heard(
+    rng: random.Random, radio: RadioModel, cover: CoverEvent | None, distance_m: float
+) -> int | None:
+    """One advert at one receiver: its RSSI, or None when it is lost or below the floor.
+
+    Every random number is drawn whether or not the advert survives, so that a change of drop
+    probability does not reshuffle the noise of other readings."""
+    lost = rng.random() < radio.drop_prob
+    lost_cover = rng.random() < (cover.drop_prob if cover else 0.0)
+    noise = rng.gauss(0.0, radio.sigma_db)
+    if lost or lost_cover:
+        return None
+    rssi = radio.mean_rssi(distance_m) + noise
+    if cover is not None:
+        rssi -= cover.attenuation_db
+    if rssi < radio.floor_dbm:
+        return None
+    return max(RSSI_MIN, min(RSSI_MAX, round(rssi)))
+
+
+def receiver_readings(
+    beacons: Sequence[Sensor],
+    receiver: Track,
+    t0_ns: int,
+    until_s: float,
+    *,
+    seed: int = 0,
+    rate_hz: float = 10.0,
+    radio: RadioModel | None = None,
+    events: Sequence[CoverEvent] = (),
+) -> list[Reading]:
+    """The other direction: fixed ``beacons`` (MAC and position) advertising at ``rate_hz`` each,
+    heard by one receiver moving along ``receiver`` (a :class:`Track`) from 0 to ``until_s``
+    seconds after ``t0_ns``. Cover events are hands over the receiver: every beacon is dimmed.
+    Readings in time order; the same seed gives the same readings."""
+    if not beacons:
+        raise SimulationError("the simulation has no beacons")
+    radio = radio or RadioModel()
+    rng = random.Random(seed)
+    interval = 1 / rate_hz
+    nxt = [rng.uniform(0, interval) for _ in beacons]
+    out: list[Reading] = []
+    while True:
+        i = min(range(len(beacons)), key=nxt.__getitem__)
+        t = nxt[i]
+        if t >= until_s:
+            return out
+        nxt[i] = t + interval * (1 + rng.uniform(-_JITTER, _JITTER))
+        b = beacons[i]
+        rssi = _heard(
+            rng, radio, cover_at(events, t), math.dist(receiver.position_at(t), b.position)
+        )
+        if rssi is not None:
+            out.append(Reading(t0_ns + round(t * 1e9), b.mac, rssi))

@@ -53,8 +53,9 @@ def result_table(summary: dict[str, Any]) -> Table:
         "position error (labelled readings)",
         f"median {cm(e['median'])}, p95 {cm(e['p95'])}, max {cm(e['max'])} (n = {e['n']})",
     )
+    whose = "taken by the receiver" if summary.get("mode") == "receiver" else "of the beacon"
     table.add_row(
-        f"readings of the beacon ({c['readings_of_beacon']})",
+        f"readings {whose} ({c['readings_of_beacon']})",
         escape(describe_counts(summary["counts"])),
     )
     for name, s in summary["sync"].items():
@@ -101,6 +102,15 @@ def demo(
     seed: Annotated[
         int, typer.Option(help="Seed of the simulated radio and the render noise.")
     ] = 0,
+    receiver: Annotated[
+        bool,
+        typer.Option(
+            "--receiver",
+            help="The other direction: beacons at the site's 12 sensor positions, a receiver on "
+            "the bundle. The readings are simulated (no collector or agents), the walk rendered, "
+            "and `annotator run` in receiver mode labels every reading the receiver took.",
+        ),
+    ] = False,
 ) -> None:
     """Run the whole pipeline on this machine with no hardware, then score it.
 
@@ -112,6 +122,8 @@ def demo(
 
     Writes OUT/capture (the run), OUT/experiment (videos, experiment.yaml), OUT/results (annotated
     files, report.json, plots), OUT/logs and OUT/demo_summary.json.
+
+    With --receiver the same walk runs the other way (fixed beacons, a receiver on the bundle).
     """
     with one_line_errors():
         from annotator.demo import DemoError, DemoSettings, run_demo
@@ -134,7 +146,13 @@ def demo(
                 bar.console.print(capture_table(cap))
 
             try:
-                result = run_demo(settings, progress, note, on_capture)
+                if receiver:
+                    from annotator.demo_receiver import run_receiver_demo
+
+                    result = run_receiver_demo(settings, progress)
+                    on_capture(result.capture)
+                else:
+                    result = run_demo(settings, progress, note, on_capture)
             except KeyboardInterrupt:
                 # The child processes are already stopped (annotator.demo cleans up on any exit).
                 raise DemoError("interrupted; the collector and agents were stopped") from None

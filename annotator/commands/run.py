@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
+import numpy as np
 import typer
 
 from annotator.commands._common import (
@@ -34,15 +35,34 @@ def write_run_outputs(
     the plots, refined/ (after a self-calibration) and report.json. Returns the report as
     written: ``result.report`` plus the names of the plot and refined files."""
     from annotator.core.uncertainty import sigma_budget
-    from annotator.io.outputs import write_annotated_mbd, write_parquet, write_report
+    from annotator.io.outputs import (
+        POINT_TRAJECTORY,
+        write_annotated_mbd,
+        write_parquet,
+        write_report,
+    )
     from annotator.io.trajectory import write_trajectory
 
     traj, table, labels = result.trajectory, result.rssi, result.labels
     report = dict(result.report)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    receiver_mode = report.get("mode") == "receiver"
+    by = "beacon" if receiver_mode else "sensor"
     write_trajectory(out / "trajectory.csv", traj)
-    write_annotated_mbd(out / "annotated", table, labels)
+    # The labelled antenna's own path, when it is not the bundle's origin: the truth that
+    # `annotator score` takes for position estimates of that antenna.
+    point = np.asarray(report.get("labelled_point_bundle_m", [0.0, 0.0, 0.0]), dtype=float)
+    antenna_csv = out / POINT_TRAJECTORY["receiver" if receiver_mode else "beacon"]
+    stale = [out / name for name in POINT_TRAJECTORY.values() if out / name != antenna_csv]
+    if receiver_mode or point.any():
+        write_trajectory(antenna_csv, traj.at_point(point))
+        report["antenna_trajectory"] = antenna_csv.name
+    else:
+        stale.append(antenna_csv)
+    for old in stale:  # an earlier run's into the same folder would be taken for this one's
+        old.unlink(missing_ok=True)
+    write_annotated_mbd(out / "annotated", table, labels, by=by)
     write_parquet(out / "annotated.parquet", table, labels)
     if plots:
         from annotator.plots.run import write_run_plots
@@ -53,13 +73,14 @@ def write_run_outputs(
             trajectory=traj.position,
             t_s=table.t_seconds(),
             rssi=table.rssi,
-            sensor=table.sensor,
+            sensor=table.beacon if receiver_mode else table.sensor,
             labelled=labels.labelled,
             label_positions=labels.positions,
             events=[(e.cover, e.release) for e in result.sync.rssi_events],
             span=(float(valid_t[0]), float(valid_t[-1])) if valid_t.size else None,
             markers=exp.markers.markers,
             video_starts={n: c.video_start for n, c in result.sync.clocks.items()},
+            by=by,
         )
         report["plots"] = {k: p.name for k, p in written.items()}
     budget = sigma_budget(traj.quality)
@@ -109,6 +130,15 @@ def run(
             help="MAC of the bundle's beacon (default: sync.beacon, else the most often heard one)."
         ),
     ] = None,
+    receiver: Annotated[
+        str | None,
+        typer.Option(
+            help="Receiver mode: MAC of the sensor on the bundle; every reading it took, of any "
+            "beacon, is labelled with its antenna's position (rig.yaml antennas.receiver). "
+            "Excludes --beacon.",
+            show_default="experiment.yaml's receiver:, else beacon mode",
+        ),
+    ] = None,
     plots: Annotated[bool, typer.Option("--plots/--no-plots", help="Write the PNG plots.")] = True,
     refine: Annotated[
         str | None,
@@ -122,8 +152,14 @@ def run(
     """Write DIR/trajectory.csv, DIR/annotated/<sensor>.mbd + all_sensors.mbd (the dataset's trk
     rows), DIR/annotated.parquet (plus quality columns), DIR/report.json and plots.
 
+    Beacon mode (the default) labels every reading of the bundle's beacon by the fixed sensors.
+    Receiver mode (--receiver, or receiver: in experiment.yaml) labels every reading the
+    bundle's receiver took, of any beacon: DIR/annotated/<beacon>.mbd per beacon heard, and
+    DIR/receiver_trajectory.csv, the receiver antenna's path (`annotator score`'s truth).
+
     With `sync.mode: auto` each video's clock is found from the hands-cover event (video goes
-    dark, the beacon's RSSI drops); with `manual`, sync.video_start is used as given.
+    dark, the RSSI drops: of the beacon at every sensor, or of every beacon at the receiver);
+    with `manual`, sync.video_start is used as given.
     """
     with one_line_errors():
         from annotator.core.labeling import describe_counts
@@ -138,17 +174,20 @@ def run(
         jobs = default_jobs() if jobs is None else jobs
         if max_gap <= 0 or jobs < 1:
             raise ConfigError("--max-gap must be > 0 and --jobs >= 1")
-        mac = None
-        if beacon is not None:
+        macs: dict[str, str | None] = {}
+        for flag, value in (("--beacon", beacon), ("--receiver", receiver)):
             try:
-                mac = normalize_mac(beacon)
+                macs[flag] = None if value is None else normalize_mac(value)
             except ValueError:
-                raise ConfigError(f"--beacon {beacon!r} is not a MAC address") from None
+                raise ConfigError(f"{flag} {value!r} is not a MAC address") from None
+        if beacon is not None and receiver is not None:
+            raise ConfigError("--beacon and --receiver exclude each other; give one")
         exp = load_experiment(experiment)
         settings = RunSettings(
             track=TrackSettings(method=method, jobs=jobs, refine=refine or exp.priors.mode),
             max_gap=max_gap,
-            beacon=mac,
+            beacon=macs["--beacon"],
+            receiver=macs["--receiver"],
         )
         # Lazy: the bars appear with the first frame, so an error in the RSSI files (read
         # first) is printed alone.
@@ -162,8 +201,13 @@ def run(
                 f"{name}: video_start {cam['video_start']:.4f}{sig_text} ({cam['method']})",
                 highlight=False,
             )
+        who = (
+            f"receiver {rep['receiver']} ({len(rep['per_beacon'])} beacons heard)"
+            if rep.get("mode") == "receiver"
+            else f"beacon {rep['beacon']}"
+        )
         console.print(
-            f"beacon {rep['beacon']}: {describe_counts(rep['counts'])} -> {out}",
+            f"{who}: {describe_counts(rep['counts'])} -> {out}",
             highlight=False,
             markup=False,
         )

@@ -333,6 +333,17 @@ def simulate(
             max=100.0,
         ),
     ] = 2.0,
+    receiver: Annotated[
+        bool,
+        typer.Option(
+            "--receiver",
+            help="The other direction: beacons at the site's 12 sensor positions, heard by a "
+            "receiver on the bundle (10 cm above its beacon). Writes run/rssi/simulated/"
+            "<receiver>.mbd, `receiver:` into experiment.yaml and `antennas:` into rig.yaml, so "
+            "`annotator run` labels every reading the receiver took.",
+            rich_help_panel="Radio",
+        ),
+    ] = False,
 ) -> None:
     """Render the tetam marker room along a path into front.mp4/back.mp4 plus experiment.yaml,
     rig.yaml, front.yaml/back.yaml (calibrations), marker_positions.dat, truth.csv, the RSSI
@@ -431,6 +442,8 @@ def simulate(
         trajectory = RestFirst(walk, jig) if jig > 0 else walk
         if jig > 0 and jig >= duration - start_offset:
             raise ConfigError(f"--jig {jig}: the rest must end before the video (--duration)")
+        if receiver and not rssi:
+            raise ConfigError("--receiver simulates readings: it needs --rssi")
         with Progress(*stage_columns(6), console=console) as bar:
             progress = stage_progress(bar)
 
@@ -464,7 +477,7 @@ def simulate(
         frames = ", ".join(f"{k} {v} frames" for k, v in result.frames.items())
         extra = [result.truth.name]
         if rssi:
-            from annotator.render.rssi import write_simulated_run
+            from annotator.render.rssi import RECEIVER_MAC, add_receiver, write_simulated_run
 
             run = write_simulated_run(
                 out / "run",
@@ -473,10 +486,19 @@ def simulate(
                 covers=covers,
                 seed=seed,
                 rate_hz=rssi_rate,
+                receiver=RECEIVER_MAC if receiver else None,
             )
-            extra.append(
-                f"run/ ({run.readings} readings of beacon {run.beacon} at {len(run.files)} sensors)"
-            )
+            if receiver:
+                add_receiver(result.experiment)
+                extra.append(
+                    f"run/ ({run.readings} readings of {len(run.beacons)} fixed beacons at "
+                    f"receiver {run.receiver})"
+                )
+            else:
+                extra.append(
+                    f"run/ ({run.readings} readings of beacon {run.beacon} at "
+                    f"{len(run.files)} sensors)"
+                )
         if (result.out_dir / "path.yaml").exists():
             extra.append("path.yaml")
         console.print(

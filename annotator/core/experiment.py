@@ -46,10 +46,25 @@ class RigCamera:
     t_bundle_camera: np.ndarray  # camera centre in the bundle frame, metres
 
 
+# What the bundle carries besides its cameras, and may give an antenna position for in rig.yaml.
+ANTENNAS = ("beacon", "receiver")
+
+
 @dataclass(frozen=True, eq=False)
 class Rig:
+    """The bundle's cameras and the antenna positions of what it carries (bundle frame, metres).
+
+    The bundle's origin is its beacon unless ``antennas`` says otherwise; an antenna not given
+    sits at the origin.
+    """
+
     cameras: dict[str, RigCamera]
     source: str = ""
+    antennas: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def antenna(self, name: str) -> np.ndarray:
+        """Position of ``name`` ("beacon" or "receiver") in the bundle frame, metres."""
+        return np.asarray(self.antennas.get(name, np.zeros(3)), dtype=float)
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,6 +99,9 @@ class Experiment:
     video_start: dict[str, float] | None  # wall time of each video's first frame (manual sync)
     sync: SyncSettings = field(default_factory=SyncSettings)
     priors: Priors = field(default_factory=Priors)  # the `refine:` section: survey/rig/lens sigmas
+    # Receiver mode: the sensor on the bundle (12 lower-case hex digits) whose readings of every
+    # beacon are labelled; None = beacon mode (readings of the bundle's beacon by fixed sensors).
+    receiver: str | None = None
 
     @property
     def sync_mode(self) -> str:

@@ -71,6 +71,16 @@ class Trajectory:
         keep = np.concatenate([[True], np.diff(t) > 0]) if t.size else np.zeros(0, dtype=bool)
         return self.select(idx[keep])
 
+    def at_point(self, offset: np.ndarray) -> Trajectory:
+        """The same motion followed at ``offset`` (metres, bundle frame) instead of the bundle's
+        origin: position + R_world_bundle @ offset per row, rotations and quality unchanged (a
+        lever of a few centimetres adds well under a millimetre of rotation uncertainty)."""
+        offset = np.asarray(offset, dtype=float).reshape(3)
+        if not offset.any():
+            return self
+        moved = self.position + np.einsum("nij,j->ni", self.rotation, offset)
+        return Trajectory(self.t, moved, self.rotation, dict(self.quality))
+
     def interpolate(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Poses at ``times``: (positions (M, 3), rotations (M, 3, 3), ok (M,)). A time outside the
         trajectory's span, or whose bracketing rows are not both poses, is not ok and gets NaN:

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from annotator.core.experiment import (
+    ANTENNAS,
     CameraCalibration,
     Experiment,
     MarkerSetup,
@@ -227,7 +228,7 @@ def _rotation(value: Any, source: str, key: str) -> np.ndarray:
 
 
 # Keys of rig.yaml, and of each of its cameras.
-RIG_KEYS = ("cameras",)
+RIG_KEYS = ("cameras", "antennas")
 RIG_CAMERA_KEYS = ("calibration", "R_bundle_camera", "t_bundle_camera")
 
 
@@ -255,7 +256,26 @@ def parse_rig(obj: Any, path: Path) -> Rig:
             R_bundle_camera=_rotation(spec["R_bundle_camera"], where, "R_bundle_camera"),
             t_bundle_camera=_matrix(spec["t_bundle_camera"], where, "t_bundle_camera", (3,)),
         )
-    return Rig(out, source)
+    return Rig(out, source, _antennas(d.get("antennas"), source))
+
+
+def _antennas(value: Any, source: str) -> dict[str, np.ndarray]:
+    """rig.yaml's ``antennas:``: {beacon: [x, y, z], receiver: [x, y, z]} in the bundle frame,
+    metres, each within 2 m of the origin."""
+    if value is None:
+        return {}
+    d = _mapping(value, source, "antennas")
+    _known_keys(d, ANTENNAS, source, "antennas")
+    out = {}
+    for name, v in d.items():
+        xyz = _matrix(v, source, f"antennas.{name}", (3,))
+        if not np.linalg.norm(xyz) <= 2.0:
+            raise ConfigError(
+                f"{source}: antennas.{name}: {np.linalg.norm(xyz):.3g} m from the bundle's "
+                "origin; expected metres within 2 m"
+            )
+        out[str(name)] = xyz
+    return out
 
 
 def load_rig(path: str | Path) -> Rig:
@@ -267,7 +287,7 @@ def load_rig(path: str | Path) -> Rig:
 
 
 # Keys of experiment.yaml's top level and of its `markers:` section.
-EXPERIMENT_KEYS = ("markers", "rig", "videos", "rssi", "sync", "refine")
+EXPERIMENT_KEYS = ("markers", "rig", "videos", "rssi", "sync", "refine", "receiver")
 MARKERS_KEYS = ("file", "dictionary", "length", "length_sigma")
 
 
@@ -306,8 +326,6 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> SyncSettings:
     """The `sync:` section, checked and normalised: numbers as floats, the beacon as a 12-hex MAC.
     Unknown keys, values that are not numbers, NaN, infinities and times outside 1970..2100 are one
     ConfigError line naming the field."""
-    from bgt_core.wire import WireError, normalize_mac
-
     sync = dict(_mapping(obj, source, "sync"))
     _known_keys(sync, SYNC_KEYS, source, "sync")
     mode = sync.get("mode", "manual")
@@ -343,12 +361,7 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> SyncSettings:
             f"{source}: sync.min_cover_s ({lo:g}) must be less than sync.max_cover_s ({hi:g})"
         )
     if sync.get("beacon") is not None:
-        try:
-            sync["beacon"] = normalize_mac(sync["beacon"])
-        except WireError:
-            raise ConfigError(
-                f"{source}: sync.beacon: not a MAC address: {sync['beacon']!r:.40}"
-            ) from None
+        sync["beacon"] = _mac(sync["beacon"], f"{source}: sync.beacon")
     return SyncSettings(**sync)
 
 
@@ -381,7 +394,29 @@ def parse_experiment(obj: Any, path: Path) -> Experiment:
 
     sync = parse_sync(d.get("sync", {"mode": "manual"}), source, list(videos))
     priors = parse_priors(d.get("refine"), source)
-    return Experiment(path, markers, rig, videos, rssi, sync.video_start, sync, priors)
+    receiver = None
+    if d.get("receiver") is not None:
+        receiver = _mac(d["receiver"], f"{source}: receiver")
+        if sync.beacon is not None:
+            raise ConfigError(
+                f"{source}: receiver and sync.beacon exclude each other (receiver mode labels "
+                "the receiver's readings of every beacon; remove one)"
+            )
+    return Experiment(
+        path, markers, rig, videos, rssi, sync.video_start, sync, priors, receiver=receiver
+    )
+
+
+def _mac(value: Any, where: str) -> str:
+    from bgt_core.wire import WireError, normalize_mac
+
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        # 020000000001 unquoted is a number to YAML (octal, even): its digits are lost.
+        raise ConfigError(f"{where}: {value!r:.40} was read as a number; quote the MAC ('...')")
+    try:
+        return normalize_mac(value)
+    except WireError:
+        raise ConfigError(f"{where}: not a MAC address: {value!r:.40}") from None
 
 
 def load_experiment(path: str | Path) -> Experiment:

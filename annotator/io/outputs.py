@@ -26,6 +26,8 @@ log = logging.getLogger(__name__)
 POSITION_DECIMALS = 5  # 10 um: well below the tracking error, short lines
 ROTATION_DECIMALS = 6
 ALL_SENSORS = "all_sensors.mbd"
+# The path of the labelled antenna (when it is not the bundle's origin), beside trajectory.csv.
+POINT_TRAJECTORY = {"receiver": "receiver_trajectory.csv", "beacon": "beacon_trajectory.csv"}
 
 
 def _atomic_write_text(path: Path, lines: Iterable[str]) -> None:
@@ -51,11 +53,14 @@ def track_lines(table: RssiTable, labels: Labels, rows: np.ndarray) -> list[str]
     return out
 
 
-def write_annotated_mbd(out_dir: str | Path, table: RssiTable, labels: Labels) -> dict[str, Path]:
-    """``<out_dir>/<sensor>.mbd`` per sensor and ``all_sensors.mbd``, labelled rows in time order.
+def write_annotated_mbd(
+    out_dir: str | Path, table: RssiTable, labels: Labels, *, by: str = "sensor"
+) -> dict[str, Path]:
+    """``<out_dir>/<MAC>.mbd`` per sensor (``by="sensor"``, beacon mode) or per beacon heard
+    (``by="beacon"``, receiver mode) and ``all_sensors.mbd``, labelled rows in time order.
 
     ``out_dir`` belongs to these files: other ``.mbd`` files in it (an earlier run's) are removed.
-    Returns {sensor MAC or "all": path}.
+    Returns {MAC or "all": path}.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -63,9 +68,11 @@ def write_annotated_mbd(out_dir: str | Path, table: RssiTable, labels: Labels) -
     rows = rows[np.argsort(table.t_ns[rows], kind="stable")]
     lines = track_lines(table, labels, rows)
     written: dict[str, Path] = {}
-    sensors = table.sensor[rows]
-    for s in sorted(set(sensors.tolist())):
-        mine = np.flatnonzero(sensors == s)
+    if by not in ("sensor", "beacon"):
+        raise ValueError(f"by must be 'sensor' or 'beacon', not {by!r}")
+    keys = (table.sensor if by == "sensor" else table.beacon)[rows]
+    for s in sorted(set(keys.tolist())):
+        mine = np.flatnonzero(keys == s)
         path = out_dir / f"{s}.mbd"
         _atomic_write_text(path, (lines[k] for k in mine))
         written[s] = path
@@ -77,7 +84,7 @@ def write_annotated_mbd(out_dir: str | Path, table: RssiTable, labels: Labels) -
         if old not in written.values():
             log.warning("removing %s: not part of this run", old)
             old.unlink()
-    log.info("wrote %d annotated rows for %d sensors to %s", len(lines), len(written) - 1, out_dir)
+    log.info("wrote %d annotated rows for %d %ss to %s", len(lines), len(written) - 1, by, out_dir)
     return written
 
 
@@ -168,7 +175,7 @@ def build_report(
     *,
     experiment: str | Path,
     sync: Any,
-    beacon: str,
+    beacon: str | None,
     readings_total: int,
     table: RssiTable,
     labels: Labels,
@@ -176,11 +183,14 @@ def build_report(
     traj_valid: np.ndarray,
     max_gap: float,
     method: str,
+    receiver: str | None = None,
+    antenna: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """What report.json says: sync offsets with uncertainty, counts, coverage and quality.
 
-    ``sync`` is an :class:`annotator.core.sync.SyncResult`; ``table`` and ``labels`` are the bundle
-    beacon's readings and their labels.
+    ``sync`` is an :class:`annotator.core.sync.SyncResult`; ``table`` and ``labels`` are the
+    readings labelled (the bundle beacon's, or in receiver mode those ``receiver`` took) and their
+    labels; ``antenna`` is the labelled point in the bundle frame.
     """
     from annotator.core.labeling import tracked_span_coverage
 
@@ -201,10 +211,15 @@ def build_report(
         }
     sync_part["rssi_events"] = [_event_dict(e) for e in sync.rssi_events]
     markers = labels.markers[lab]
+    by = "beacon" if receiver is not None else "sensor"
+    column = table.beacon if receiver is not None else table.sensor
     return {
         "experiment": str(experiment),
         "method": method,
+        "mode": "receiver" if receiver is not None else "beacon",
         "beacon": beacon,
+        "receiver": receiver,
+        "labelled_point_bundle_m": [0.0, 0.0, 0.0] if antenna is None else antenna,
         "sync": sync_part,
         "tracked_span": {
             "start": float(tv[0]) if tv.size else None,
@@ -214,7 +229,7 @@ def build_report(
         },
         "counts": {
             "readings_in_files": int(readings_total),
-            "readings_of_beacon": len(table),
+            "readings_of_beacon" if receiver is None else "readings_of_receiver": len(table),
             **{k.replace(" ", "_"): v for k, v in labels.counts.items()},
         },
         "coverage": {
@@ -230,11 +245,11 @@ def build_report(
                 "zero": int(np.sum(markers == 0)),
             },
         },
-        "per_sensor": {
+        f"per_{by}": {
             s: {
-                "readings": int(np.sum(table.sensor == s)),
-                "labelled": int(np.sum(lab & (table.sensor == s))),
+                "readings": int(np.sum(column == s)),
+                "labelled": int(np.sum(lab & (column == s))),
             }
-            for s in sorted(set(table.sensor.tolist()))
+            for s in sorted(set(column.tolist()))
         },
     }

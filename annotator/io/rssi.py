@@ -150,3 +150,22 @@ def bundle_beacon(table: RssiTable, beacon: str | None = None) -> str:
             n,
         )
     return top
+
+
+def receiver_readings(table: RssiTable, receiver: str) -> RssiTable:
+    """Every reading taken by the sensor ``receiver`` (receiver mode), of any beacon."""
+    mine = table.sensor == receiver
+    if not mine.any():
+        sensors = sorted(set(table.sensor.tolist()))
+        shown = ", ".join(sensors[:12]) + (
+            f" and {len(sensors) - 12} more" if len(sensors) > 12 else ""
+        )
+        raise NoDataError(f"rssi: receiver {receiver} took no readings (sensors: {shown})")
+    out = table.select(mine)
+    log.info(
+        "rssi: receiver %s heard %d beacon(s) in %d readings",
+        receiver,
+        len(set(out.beacon.tolist())),
+        len(out),
+    )
+    return out

@@ -13,6 +13,7 @@ import numpy as np
 
 from annotator.core.scoring import Score, Truth
 from annotator.errors import AnnotatorError, NoDataError
+from annotator.io.outputs import POINT_TRAJECTORY
 
 ESTIMATE_COLUMNS = ("t", "x", "y")  # then an optional z; other columns are ignored
 
@@ -115,12 +116,15 @@ def _truth_from_trajectory(path: Path) -> Truth:
 
 
 def read_truth(path: str | Path) -> Truth:
-    """Ground truth from: an annotated run directory (its trajectory.csv, whose sigma_m column
-    is the truth's 1-sigma; else its annotated/all_sensors.mbd), a trajectory.csv, a published
-    track file (``*_all_sensors.mbd`` or one sensor's ``.mbd``) or a published track folder."""
+    """Ground truth from: an annotated run directory (the path of the antenna its readings were
+    labelled at: receiver_trajectory.csv in receiver mode, beacon_trajectory.csv when the beacon
+    is off the bundle's origin, else trajectory.csv, whose sigma_m column is the truth's 1-sigma;
+    else its annotated/all_sensors.mbd), a trajectory.csv, a published track file
+    (``*_all_sensors.mbd`` or one sensor's ``.mbd``) or a published track folder."""
     path = Path(path)
     if path.is_dir():
-        for cand in (path / "trajectory.csv", path / "annotated" / "all_sensors.mbd"):
+        named = [path / name for name in POINT_TRAJECTORY.values()]
+        for cand in (*named, path / "trajectory.csv", path / "annotated" / "all_sensors.mbd"):
             if cand.is_file():
                 return read_truth(cand)
         merged = sorted(path.glob("*all_sensors.mbd"))

@@ -162,8 +162,9 @@ def rssi_time_figure(
     aliases: dict[str, str] | None = None,
     t0: float | None = None,
     video_starts: dict[str, float] | None = None,
+    by: str = "sensor",
 ) -> Figure:
-    """RSSI over time, one panel per sensor, with a legend for what the marks are: shaded, the
+    """RSSI over time, one panel per sensor (per beacon with ``by="beacon"``: receiver mode), with a legend for what the marks are: shaded, the
     cover events used for sync; dashed, the tracked span's ends; dotted, each video's start.
 
     ``t`` and the event/span/start times are on the same clock (Unix seconds); the axis shows
@@ -199,7 +200,8 @@ def rssi_time_figure(
         ax.tick_params(labelsize=7)
     axes[-1].set_xlabel("time since the capture's start (s)")
     start = dt.datetime.fromtimestamp(t0, dt.UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
-    fig.suptitle(f"RSSI of the beacon per sensor (dBm); capture start {start} UTC", fontsize=10)
+    what = "RSSI at the receiver per beacon" if by == "beacon" else "RSSI of the beacon per sensor"
+    fig.suptitle(f"{what} (dBm); capture start {start} UTC", fontsize=10)
     handles, labels = axes[0].get_legend_handles_labels()
     if handles:
         fig.legend(
@@ -224,8 +226,10 @@ def rssi_on_trajectory_figure(
     floor: FloorMap | None = None,
     devices: Devices | None = None,
     aliases: dict[str, str] | None = None,
+    by: str = "sensor",
 ) -> Figure:
-    """One panel per sensor: the labelled reading positions coloured by RSSI, over the path."""
+    """One panel per sensor (or per beacon heard, ``by="beacon"``): the labelled reading positions
+    coloured by RSSI, over the path."""
     sensors = sorted(set(np.asarray(sensor).tolist()), key=lambda s: (aliases or {}).get(s, s))
     n = max(len(sensors), 1)
     cols = min(4, n)
@@ -248,7 +252,7 @@ def rssi_on_trajectory_figure(
         ax.set_visible(False)
     if sc is not None:
         fig.colorbar(sc, ax=list(axes[: len(sensors)]), label="RSSI (dBm)", shrink=0.8)
-    fig.suptitle("RSSI of each labelled reading at its position, one panel per sensor")
+    fig.suptitle(f"RSSI of each labelled reading at its position, one panel per {by}")
     return fig
 
 
@@ -265,10 +269,13 @@ def write_run_plots(
     span: tuple[float, float] | None,
     markers: dict[int, MarkerPose] | None = None,
     video_starts: dict[str, float] | None = None,
+    by: str = "sensor",
 ) -> dict[str, Path]:
     """The three plots of `annotator run`; the floor map is drawn when the marker map is a built-in site's.
 
-    ``t_s``, ``rssi``, ``sensor`` are the bundle beacon's readings (Unix seconds); ``labelled``
+    ``t_s``, ``rssi``, ``sensor`` are the readings labelled (Unix seconds); ``sensor`` holds what
+    the panels are per: the sensors (beacon mode), or the beacons heard (``by="beacon"``,
+    receiver mode); ``labelled``
     and ``label_positions`` their labels; ``events`` the RSSI cover intervals used for sync;
     ``video_starts`` each camera's first frame on the RSSI clock.
     """
@@ -294,6 +301,7 @@ def write_run_plots(
             span=span,
             aliases=aliases,
             video_starts=video_starts,
+            by=by,
         ),
         "rssi_on_trajectory": plot_rssi_on_trajectory(
             out / "rssi_on_trajectory.png",
@@ -304,6 +312,7 @@ def write_run_plots(
             floor=floor,
             devices=devices,
             aliases=aliases,
+            by=by,
         ),
     }
     log.info("plots: %s", ", ".join(str(p) for p in paths.values()))
