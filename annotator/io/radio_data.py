@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -92,11 +92,15 @@ def _complete_devices(
     given: Devices | None, seen_sensors: dict[str, str], seen_beacons: Iterable[str]
 ) -> Devices:
     """The devices written into the .hst: the given file's (or the built-in tetam site's when it
-    knows every sensor seen), plus anything seen in the data but not listed there."""
+    knows every sensor seen, or every beacon seen as one of its sensors: receiver mode, with
+    beacons at the sensors' places), plus anything seen in the data but not listed there. A
+    beacon that the devices list as a sensor keeps that sensor's position and alias."""
+    seen_beacons = set(seen_beacons)
     base = given
     if base is None:
         tetam = builtin_devices()
-        base = tetam if set(seen_sensors) <= set(tetam.dongles) else Devices({}, {})
+        known = set(tetam.dongles)
+        base = tetam if set(seen_sensors) <= known or seen_beacons <= known else Devices({}, {})
     dongles = dict(base.dongles)
     for mac, alias in seen_sensors.items():
         if mac not in dongles:
@@ -108,16 +112,18 @@ def _complete_devices(
                 )
             dongles[mac] = Device(mac, (), 0, alias)
     beacons = dict(base.beacons)
-    for i, mac in enumerate(sorted(set(seen_beacons) - set(beacons)), len(beacons) + 1):
-        beacons[mac] = Device(mac, (), 0, f"beacon{i}")
+    for i, mac in enumerate(sorted(seen_beacons - set(beacons)), len(beacons) + 1):
+        fixed = base.dongles.get(mac)
+        beacons[mac] = fixed if fixed is not None else Device(mac, (), 0, f"beacon{i}")
     return Devices(dongles, beacons)
 
 
 def _beacon_filter(devices: Devices | None) -> set[str] | None:
     # An explicit devices file that lists beacons restricts the fingerprints to them (a capture
-    # also hears phones and other people's tags); without one every beacon is kept.
+    # also hears phones and other people's tags); without one every beacon is kept. Its sensors
+    # count too: in receiver mode the site's fixed devices are the beacons heard.
     if devices is not None and devices.beacons:
-        return set(devices.beacons)
+        return set(devices.beacons) | set(devices.dongles)
     return None
 
 
@@ -331,6 +337,8 @@ def make_grid(
 class SensorMap:
     grid: RadioMapGrid
     mean: np.ndarray  # [iy, ix] mean RSSI over beacons (NaN outside the mask)
+    # [iy, ix] mean RSSI of each beacon on its own (a receiver hearing wall beacons: one map each)
+    beacon_means: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def radio_maps(
@@ -364,6 +372,7 @@ def radio_maps(
                 if np.isfinite(hist[m]).all():
                     cells.setdefault(key, {})[b] = tuple(float(v) for v in hist[m])
         mean = np.full(grid.mask.shape, np.nan)
+        beacon_means = {}
         if per_beacon:
             means = np.stack([rm.mean_rssi(hh, edges) for hh in per_beacon.values()])
             ok = np.isfinite(means)
@@ -371,7 +380,14 @@ def radio_maps(
             mean[iy, ix] = np.where(
                 n > 0, np.where(ok, means, 0.0).sum(axis=0) / np.maximum(n, 1), np.nan
             )
-        out.append(SensorMap(RadioMapGrid(s, grid.limits, grid.cell, tuple(h.bins), cells), mean))
+            for b, row in zip(per_beacon, means, strict=True):
+                beacon_means[b] = np.full(grid.mask.shape, np.nan)
+                beacon_means[b][iy, ix] = row
+        out.append(
+            SensorMap(
+                RadioMapGrid(s, grid.limits, grid.cell, tuple(h.bins), cells), mean, beacon_means
+            )
+        )
         progress(1)
     return out
 
@@ -391,7 +407,9 @@ def write_radio_maps(
     site: Site | None = None,
     progress: Progress = _noop,
 ) -> list[Path]:
-    """``<stem>_<sensor>_<cell>.grd`` (and ``.png`` heat map) per sensor in ``out_dir``."""
+    """``<stem>_<sensor>_<cell>.grd`` (and ``.png`` heat map) per sensor in ``out_dir``; for a
+    sensor that hears several beacons (a receiver on the bundle) also ``..._beacons.png``, one
+    panel per beacon."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
@@ -426,5 +444,26 @@ def write_radio_maps(
                 params=site.params if site else None,
             )
             written.append(png_path)
+            if len(m.beacon_means) > 1:  # a receiver hearing several beacons: a map of each
+                from annotator.plots.radiomap import plot_beacon_maps
+
+                where = {
+                    mac: (d.position[0], d.position[1])
+                    for mac, d in [*h.devices.dongles.items(), *h.devices.beacons.items()]
+                    if len(d.position) >= 2
+                }
+                names = {mac: d.alias for mac, d in h.devices.dongles.items()}
+                beacons_png = out_dir / f"{base}_beacons.png"
+                plot_beacon_maps(
+                    beacons_png,
+                    grid.xs,
+                    grid.ys,
+                    grid.cell,
+                    m.beacon_means,
+                    title=f"{name}: mean RSSI of each beacon heard, {grid.cell:g} m cells",
+                    positions=where,
+                    names=names,
+                )
+                written.append(beacons_png)
         progress(1)
     return written

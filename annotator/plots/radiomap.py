@@ -89,3 +89,55 @@ def plot_mean_rssi(
     finally:
         plt.close(fig)
     return path
+
+
+def plot_beacon_maps(
+    path: str | Path,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    cell: float,
+    means: dict[str, np.ndarray],
+    *,
+    title: str,
+    positions: dict[str, tuple[float, float]] | None = None,
+    names: dict[str, str] | None = None,
+) -> Path:
+    """Write a PNG with one panel per beacon: its mean RSSI ``means[beacon][iy, ix]`` (dBm) on the
+    grid with lower-left corners ``xs`` x ``ys``, on one colour scale, the beacon's position
+    marked where ``positions`` knows it. What a receiver on the bundle makes of each wall beacon."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    xs = np.asarray(xs, dtype=float)
+    ys = np.asarray(ys, dtype=float)
+    gx, gy = np.meshgrid(np.append(xs, xs[-1] + cell), np.append(ys, ys[-1] + cell))
+    beacons = sorted(means, key=lambda b: (names or {}).get(b, b))
+    values = np.concatenate([np.ravel(means[b]) for b in beacons])
+    values = values[np.isfinite(values)]
+    lo, hi = np.percentile(values, [2, 98]) if values.size else (-100.0, -40.0)
+    cols = min(4, len(beacons))
+    rows = -(-len(beacons) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols + 0.8, 3.2 * rows), squeeze=False)
+    try:
+        mesh = None
+        for ax, b in zip(axes.ravel(), beacons, strict=False):
+            masked = np.ma.masked_invalid(np.asarray(means[b], dtype=float))
+            mesh = ax.pcolormesh(gx, gy, masked, cmap="viridis", vmin=lo, vmax=hi, shading="flat")
+            if positions and b in positions:
+                bx, by = positions[b]
+                ax.scatter([bx], [by], marker="*", s=120, c="red", edgecolors="black", zorder=3)
+            ax.set_title((names or {}).get(b, b), fontsize=8)
+            ax.set_aspect("equal")
+            ax.tick_params(labelsize=7)
+        for ax in axes.ravel()[len(beacons) :]:
+            ax.set_visible(False)
+        if mesh is not None:
+            fig.colorbar(mesh, ax=list(axes.ravel()[: len(beacons)]), label="mean RSSI (dBm)")
+        fig.suptitle(f"{title} (x, y in m; red star: the beacon)", fontsize=10)
+        path = Path(path)
+        fig.savefig(path, dpi=90)
+    finally:
+        plt.close(fig)
+    return path

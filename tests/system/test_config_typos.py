@@ -77,6 +77,20 @@ EXPERIMENT_TYPOS = [
         "'cameras.front.t_bundle_cam'",
         "did you mean 't_bundle_camera'?",
     ),
+    (
+        "rig.yaml",
+        "cameras:\n",
+        "antennas: {reciever: [0, 0, 0.1]}\ncameras:\n",
+        "'antennas.reciever'",
+        "did you mean 'receiver'?",
+    ),
+    (
+        "experiment.yaml",
+        "rig: rig.yaml\n",
+        "rig: rig.yaml\nreciever: aabbccddeeff\n",
+        "'reciever'",
+        "did you mean 'receiver'?",
+    ),
 ]
 
 

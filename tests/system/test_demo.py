@@ -302,3 +302,25 @@ def test_ctrl_c_during_capture_stops_every_child(tmp_path: Path) -> None:
     assert "interrupted" in stderr
     assert "Traceback" not in stderr
     assert _processes_mentioning(str(out)) == []
+
+
+@pytest.mark.slow
+def test_receiver_demo_end_to_end(tmp_path: Path) -> None:
+    """`annotator demo --receiver` (issue 36): the same walk the other way round, no hardware."""
+    out = tmp_path / "demo"
+    proc = subprocess.run(
+        [*annotator_cmd(), "demo", "--receiver", "--out", str(out), "--duration", "12"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "readings taken by the receiver" in proc.stdout
+    summary = json.loads((out / "demo_summary.json").read_text())
+    assert summary["mode"] == "receiver"
+    assert len(summary["beacons"]) == 12
+    assert summary["error_cm"]["median"] < 1.0
+    assert summary["error_cm"]["n"] > 500
+    assert all(abs(s["error_ms"]) < 20 for s in summary["sync"].values())
+    assert (out / "results" / "receiver_trajectory.csv").is_file()

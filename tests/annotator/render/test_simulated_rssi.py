@@ -65,3 +65,47 @@ def test_same_seed_same_readings(tmp_path: Path) -> None:
     mac = next(iter(a.files))
     assert a.files[mac].read_text() == b.files[mac].read_text()
     assert a.files[mac].read_text() != c.files[mac].read_text()
+
+
+def test_receiver_mode_hears_every_site_beacon(tmp_path: Path) -> None:
+    """The other direction (issue 36): beacons at the sensors' positions, one receiver on the
+    bundle at its antenna; RSSI by the same model, every beacon dimmed while covered."""
+    walk = LoopTrajectory(t0=T0)
+    antenna = (0.0, 0.05, 0.10)
+    run = write_simulated_run(
+        tmp_path / "run",
+        walk,
+        (T0, T0 + DURATION),
+        covers=[(10.0, 2.0)],
+        seed=3,
+        receiver="020000000001",
+        receiver_antenna=antenna,
+    )
+    sensors, _ = site_sensors()
+    assert run.receiver == "020000000001"
+    assert run.beacon == ""
+    assert sorted(run.beacons) == sorted(s.mac for s in sensors)
+    assert list(run.files) == ["020000000001"]
+    table = load_rssi(tmp_path / "run")
+    assert set(table.sensor) == {"020000000001"}
+    assert set(table.beacon) == set(run.beacons)
+    info = load_file(tmp_path / "run" / "run.yaml")
+    assert info["simulated"]["receiver"] == "020000000001"
+    assert list(info["agents"]["simulated"]["sensors"]) == ["020000000001"]
+    t = table.t_seconds()
+    span = DURATION + 2 * MARGIN_S
+    assert 1.7 < len(table) / len(sensors) / span < 2.0
+    # the distance is from each beacon to the receiver's antenna, not to the bundle's origin
+    pos, rot = walk(t)
+    at = pos + rot.apply(np.array(antenna))
+    where = {s.mac: np.array(s.position) for s in sensors}
+    d = np.linalg.norm(at - np.array([where[b] for b in table.beacon]), axis=1)
+    covered = (t >= T0 + 10.1) & (t < T0 + 11.9)
+    radio = RadioModel()
+    residual = table.rssi - (radio.tx_1m - 10 * radio.path_loss_exponent * np.log10(d))
+    assert abs(np.median(residual[~covered])) < 1.0
+    assert abs(np.std(residual[~covered]) - radio.sigma_db) < 0.3
+    # every beacon is ~20 dB weaker while the hands cover the receiver (and 60 % more lost)
+    assert -24 < np.median(residual[covered]) < -16
+    assert len(set(table.beacon[covered])) >= 8
+    assert covered.sum() / len(sensors) / 1.8 < 1.0
