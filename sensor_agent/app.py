@@ -47,7 +47,8 @@ def new_boot_id() -> str:
 
 
 def make_backend(cfg: AgentConfig, clocks: Clocks) -> ScannerBackend:
-    """The scanner backend the config asks for (bleak is imported only when chosen)."""
+    """The scanner backend the config asks for (bleak is imported only when chosen): ``auto``
+    is the kernel's management socket, or bleak when the socket cannot be used."""
     if cfg.backend == "replay":
         from sensor_agent.scanning.replay import ReplayBackend
 
@@ -58,16 +59,29 @@ def make_backend(cfg: AgentConfig, clocks: Clocks) -> ScannerBackend:
         from sensor_agent.scanning.simulated import SimulatedBackend
 
         return SimulatedBackend.from_config(cfg.simulated, clocks)
-    if cfg.backend == "bleak":
-        from sensor_agent.scanning.bleak_backend import BleakBackend
+    if cfg.backend in ("bleak", "mgmt", "auto"):
 
-        return BleakBackend(
-            cfg.adapters,
-            cfg.scan_mode,
-            clocks,
-            watchdog_silence_s=cfg.watchdog.silent_s,
-            power_cycle_after=cfg.watchdog.power_cycle_after,
-        )
+        def bleak() -> ScannerBackend:
+            from sensor_agent.scanning.bleak_backend import BleakBackend
+
+            return BleakBackend(
+                cfg.adapters,
+                cfg.scan_mode,
+                clocks,
+                watchdog_silence_s=cfg.watchdog.silent_s,
+                power_cycle_after=cfg.watchdog.power_cycle_after,
+            )
+
+        def mgmt() -> ScannerBackend:
+            from sensor_agent.scanning.mgmt_backend import MgmtBackend
+
+            return MgmtBackend(cfg.adapters, clocks)
+
+        if cfg.backend == "auto":
+            from sensor_agent.scanning.auto import AutoBackend
+
+            return AutoBackend(mgmt, bleak)
+        return bleak() if cfg.backend == "bleak" else mgmt()
     raise BackendError(f"unknown backend {cfg.backend!r}")
 
 

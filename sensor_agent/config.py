@@ -18,7 +18,7 @@ from bgt_core.wire import WireError, check_id, normalize_mac
 from bgt_core.zenoh_config import DEFAULT_ENDPOINT, TlsFiles
 from sensor_agent.errors import ConfigError
 
-BACKENDS = ("bleak", "replay", "simulated")
+BACKENDS = ("auto", "mgmt", "bleak", "replay", "simulated")
 SCAN_MODES = ("active", "passive")
 _ENDPOINT_RE = re.compile(r"^[a-z0-9+-]+/\S+$")
 _UUID_RE = re.compile(r"^[0-9a-f]{32}$")
@@ -78,7 +78,7 @@ class AgentConfig:
     agent_id: str
     site: str = "default"
     connect: tuple[str, ...] = (DEFAULT_ENDPOINT,)
-    backend: str = "bleak"
+    backend: str = "auto"  # auto: the management socket if it can be used, else bleak
     batch_ms: int = 100
     adapters: tuple[str, ...] = ()  # names (hci0) or MACs; empty = every adapter
     scan_mode: str = "active"

@@ -323,3 +323,73 @@ def test_implausible_bluez_rssi_reaches_the_agent_unclamped_and_is_skipped(bluez
     assert kept == [-60, -61]
     assert agent.bad_readings == 2
     assert agent.stats["000102030405"].bad_readings == 2
+
+
+def test_active_scanning_sets_a_discovery_filter(bluez) -> None:
+    """Without a discovery filter BlueZ reports an advertiser again only when its RSSI moved by
+    8 dB (src/device.c RSSI_THRESHOLD): the filter must be set, with DuplicateData on (issue 31)."""
+    bluez.AddAdapter("hci0", "pi-a", dbus_interface=BLUEZ_MOCK_IFACE)
+
+    async def main() -> None:
+        backend = BleakBackend((), "active")
+        await backend.start(lambda mac, r: None)
+        await backend.stop()
+
+    asyncio.run(main())
+    adapter = dbusmock.DBusTestCase.get_dbus(True).get_object("org.bluez", "/org/bluez/hci0")
+    calls = adapter.GetMethodCalls("SetDiscoveryFilter", dbus_interface=dbusmock.MOCK_IFACE)
+    # set when scanning starts, cleared (an empty filter) when it stops
+    assert [len(args[0]) > 0 for _, args in calls] == [True, False]
+    _, (arguments,) = calls[0]
+    assert bool(arguments["DuplicateData"]) is True
+    assert str(arguments["Transport"]) == "le"
+
+
+def test_auto_falls_back_to_bleak_with_one_line(bluez, caplog) -> None:
+    """backend: auto on a machine whose kernel has no Bluetooth (this one): one warning naming
+    why, then the D-Bus path scans."""
+    from sensor_agent.app import make_backend
+    from sensor_agent.config import AgentConfig
+    from sensor_agent.scanning.auto import AutoBackend
+    from sensor_agent.scanning.base import Clocks
+    from sensor_agent.scanning.mgmt_backend import MgmtUnavailable, open_mgmt_socket
+
+    try:
+        open_mgmt_socket().close()
+        pytest.skip("this machine has a usable management socket")
+    except MgmtUnavailable:
+        pass
+    bluez.AddAdapter("hci0", "pi-a", dbus_interface=BLUEZ_MOCK_IFACE)
+    backend = make_backend(AgentConfig(agent_id="pi-1"), Clocks())
+    assert isinstance(backend, AutoBackend)
+
+    async def main() -> None:
+        await backend.start(lambda mac, r: None)
+        assert [(a.name, a.backend) for a in backend.adapters] == [("hci0", "bleak")]
+        await backend.stop()
+
+    with caplog.at_level("WARNING"):
+        asyncio.run(main())
+    assert isinstance(backend.active, BleakBackend)
+    assert backend.fallback_reason is not None
+    assert "no kernel Bluetooth stack" in backend.fallback_reason
+    warned = [
+        r.getMessage() for r in caplog.records if "management socket unavailable" in r.getMessage()
+    ]
+    assert len(warned) == 1
+    assert "\n" not in warned[0]
+
+
+def test_demanded_mgmt_exits_with_one_line(system_bus: str, tmp_path) -> None:
+    """backend: mgmt where the socket cannot be used: the agent stops with that one line."""
+    cfg = tmp_path / "agent.yaml"
+    cfg.write_text("agent_id: pi-1\nbackend: mgmt\nconnect: [tcp/127.0.0.1:9]\n")
+    proc = subprocess.run(
+        [*AGENT, "run", "--config", str(cfg)], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode != 0
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert any("no kernel Bluetooth stack" in ln or "CAP_NET_ADMIN" in ln for ln in lines), (
+        proc.stderr
+    )
+    assert "Traceback" not in proc.stderr
