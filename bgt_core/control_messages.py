@@ -197,6 +197,7 @@ class SensorRate:
     last_rssi: int | None = None
     readings: int = 0
     recent_rssi: tuple[int, ...] = ()  # the last readings' RSSI, oldest first (sparkline)
+    beacons: dict[str, float] = field(default_factory=dict)  # readings/s of the most heard beacons
 
     @classmethod
     def from_dict(cls, d: object, what: str = "sensor") -> SensorRate:
@@ -204,12 +205,23 @@ class SensorRate:
         recent = m.get("recent_rssi") or []
         if not (isinstance(recent, list) and all(is_int(v) for v in recent)):
             raise InvalidField(f"{what}: recent_rssi must be a list of integers")
+        beacons = m.get("beacons") or {}
+        if not (
+            isinstance(beacons, dict)
+            and len(beacons) <= 64
+            and all(
+                isinstance(k, str) and isinstance(v, int | float) and not isinstance(v, bool)
+                for k, v in beacons.items()
+            )
+        ):
+            raise InvalidField(f"{what}: beacons must map at most 64 MACs to rates")
         return cls(
             num_field(m, "rate_hz", what, 0.0),
             num_field(m, "last_seen_age_s", what, None),
             int_field(m, "last_rssi", what, None),
             int_field(m, "readings", what, 0),
             tuple(recent),
+            {str(k): float(v) for k, v in beacons.items()},
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -219,6 +231,7 @@ class SensorRate:
             "last_rssi": self.last_rssi,
             "readings": self.readings,
             "recent_rssi": list(self.recent_rssi),
+            "beacons": dict(self.beacons),
         }
 
 

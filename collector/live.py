@@ -57,12 +57,14 @@ def render(reply: CollectorStatus | Mapping[str, Any]) -> Group:
     )
     for col, just in columns:
         table.add_column(col, justify=just, no_wrap=True, min_width=widths.get(col, len(col)))
+    # Per beacon, the most heard first: a sensor whose rate for a beacon sags stands out.
+    table.add_column("beacons/s", no_wrap=True, overflow="ellipsis", max_width=26)
     # The sparkline gives way first when the terminal is narrow.
     table.add_column("recent RSSI", no_wrap=True, overflow="crop", max_width=SPARK_WIDTH)
     for agent, a in sorted(agents.items()):
         alive = "[green]yes" if a.alive else "[red]no"
         if not a.sensors:
-            table.add_row(agent, "-", alive, "", "", "", "", "")
+            table.add_row(agent, "-", alive, "", "", "", "", "", "")
         for mac, s in sorted(a.sensors.items()):
             age = s.last_seen_age_s
             table.add_row(
@@ -73,6 +75,7 @@ def render(reply: CollectorStatus | Mapping[str, Any]) -> Group:
                 "" if s.last_rssi is None else str(s.last_rssi),
                 f"{age:.1f}s" if age is not None else "",
                 str(s.readings),
+                "  ".join(f"{b[-4:]} {r:.1f}" for b, r in list(s.beacons.items())[:3]),
                 sparkline(list(s.recent_rssi[-SPARK_WIDTH:])),
             )
     rejected = dict(status.rejected_payloads)

@@ -6,6 +6,8 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 
+from collector.beacon_rates import MAX_BEACONS, BeaconTrend, Drop
+
 RATE_WINDOW_S = 5.0
 RSSI_HISTORY = 40  # readings kept per sensor for the live sparkline
 
@@ -21,14 +23,42 @@ class SensorLive:
     # (monotonic s, readings) over RATE_WINDOW_S
     window: deque[tuple[float, int]] = field(default_factory=deque)
     rssi: deque[int] = field(default_factory=lambda: deque(maxlen=RSSI_HISTORY))
+    beacons: dict[bytes, BeaconTrend] = field(default_factory=dict)  # per-beacon rates and trend
 
-    def add(self, now: float, rows: list[tuple[int, int, bytes, int]]) -> None:
+    def add(
+        self,
+        now: float,
+        rows: list[tuple[int, int, bytes, int]],
+        counts: dict[bytes, list[int]] | None = None,
+    ) -> list[tuple[bytes, Drop]]:
+        """Count a batch's rows (``counts``: its per-beacon readings and RSSI sums,
+        beacon_rates.count_beacons); returns the beacons whose rate just dropped."""
         self.readings += len(rows)
         self.last_rssi = rows[-1][3]
         self.last_seen = now
         self.window.append((now, len(rows)))
         self.rssi.extend([r[3] for r in rows[-RSSI_HISTORY:]])
         self._prune(now)
+        drops = []
+        for mac, (n, rssi_sum) in (counts or {}).items():
+            trend = self.beacons.get(mac)
+            if trend is None:
+                if len(self.beacons) >= MAX_BEACONS:
+                    continue
+                trend = self.beacons[mac] = BeaconTrend(now)
+            drop = trend.add(now, n, rssi_sum)
+            if drop is not None:
+                drops.append((mac, drop))
+        return drops
+
+    def check(self, now: float) -> list[tuple[bytes, Drop]]:
+        """Close finished bins of beacons not heard lately (a beacon gone silent drops too)."""
+        return [(mac, d) for mac, t in self.beacons.items() if (d := t.roll(now)) is not None]
+
+    def beacon_rates(self, now: float, top: int = 8) -> dict[str, float]:
+        """Readings/s of the ``top`` most heard beacons over the last seconds."""
+        rates = {mac.hex(): round(t.rate(now), 2) for mac, t in self.beacons.items()}
+        return dict(sorted(rates.items(), key=lambda kv: -kv[1])[:top])
 
     def _prune(self, now: float) -> None:
         while self.window and now - self.window[0][0] > RATE_WINDOW_S:

@@ -16,7 +16,7 @@ import os
 import re
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -179,10 +179,35 @@ class SensorAppender:
         self.release()
 
 
+# Beacons counted per sensor in run.yaml (a flood of random addresses is not listed whole).
+MAX_BEACONS_LISTED = 256
+
+
 @dataclass(slots=True)
 class SensorStats:
     readings: int = 0
     batches: int = 0
+    beacons: dict[str, int] = field(default_factory=dict)  # readings per beacon MAC
+
+    def count(self, counts: dict[bytes, list[int]]) -> None:
+        for mac, (n, _) in counts.items():
+            key = mac.hex()
+            if key in self.beacons:
+                self.beacons[key] += n
+            elif len(self.beacons) < MAX_BEACONS_LISTED:
+                self.beacons[key] = n
+
+    def to_state(self) -> dict[str, Any]:
+        return {"readings": self.readings, "batches": self.batches, "beacons": self.beacons}
+
+    @classmethod
+    def from_state(cls, st: dict[str, Any]) -> SensorStats:
+        beacons = st.get("beacons") or {}
+        return cls(
+            int(st["readings"]),
+            int(st["batches"]),
+            {str(k): int(v) for k, v in beacons.items()} if isinstance(beacons, dict) else {},
+        )
 
 
 StreamKey = tuple[str, str]  # (agent id, sensor MAC)
@@ -301,7 +326,7 @@ class RunWriter:
                 )
         for name, st in state.get("sensors", {}).items():
             key = parse_stream_name(name)
-            self.sensors[key] = SensorStats(int(st["readings"]), int(st["batches"]))
+            self.sensors[key] = SensorStats.from_state(st)
             if self.path(key).exists():
                 self.appenders[key] = self._appender(key)
         self.readings = int(state.get("readings", 0))
@@ -334,7 +359,14 @@ class RunWriter:
     def open_count(self) -> int:
         return len(self._open)
 
-    def append(self, agent_id: str, sensor: str, text: str, nrows: int) -> None:
+    def append(
+        self,
+        agent_id: str,
+        sensor: str,
+        text: str,
+        nrows: int,
+        counts: dict[bytes, list[int]] | None = None,
+    ) -> None:
         key = (agent_id, sensor)
         app = self.appenders.get(key)
         if app is None:
@@ -347,6 +379,8 @@ class RunWriter:
         app.append(text, nrows)
         st.readings += nrows
         st.batches += 1
+        if counts:
+            st.count(counts)
         self.readings += nrows
 
     @property
@@ -392,10 +426,7 @@ class RunWriter:
             "meta": self.meta,
             "readings": self.readings,
             "files": {stream_name(k): a.size for k, a in self.appenders.items()},
-            "sensors": {
-                stream_name(k): {"readings": st.readings, "batches": st.batches}
-                for k, st in self.sensors.items()
-            },
+            "sensors": {stream_name(k): st.to_state() for k, st in self.sensors.items()},
             **extra,
         }
 

@@ -56,6 +56,7 @@ def write_run_yaml(w: Writer, run: RunWriter, reason: str, stop_ns: int) -> RunT
     agents: dict[str, Any] = {}
     gaps_total = missing_total = lost_total = 0
     per_stream = w.tracker.stream_totals()
+    span_s = (stop_ns - run.start_ns) / 1e9
     for (agent_id, sensor), stats in sorted(run.sensors.items()):
         info = infos.get(agent_id) or AgentStatus(agent_id)
         a = agents.setdefault(
@@ -85,6 +86,11 @@ def write_run_yaml(w: Writer, run: RunWriter, reason: str, stop_ns: int) -> RunT
             "mode": adapter.mode,
             "readings": stats.readings,
             "batches": stats.batches,
+            # readings and readings/s over the run per beacon, the most heard first
+            "beacons": {
+                mac: {"readings": n, "rate_hz": round(n / span_s, 3) if span_s > 0 else None}
+                for mac, n in sorted(stats.beacons.items(), key=lambda kv: -kv[1])
+            },
             "gaps": gaps,
             "missing_batches": missing,
             "lost_batches": lost,
@@ -127,6 +133,7 @@ def build_status(w: Writer, now: float) -> CollectorStatus:
             last_rssi=sl.last_rssi,
             readings=sl.readings,
             recent_rssi=tuple(sl.rssi),
+            beacons=sl.beacon_rates(now),
         )
     agents = {a: AgentLive(alive.get(a, False), s) for a, s in sensors.items()}
     run = None

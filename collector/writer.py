@@ -23,6 +23,7 @@ from bgt_core.control_messages import StartReply, StopReply
 from bgt_core.messages import ClockSample
 from bgt_core.sdnotify import Notifier
 from collector.admission import MAX_AGENT_ENTRIES, StreamGate
+from collector.beacon_rates import count_beacons, report_drop
 from collector.config import CollectorConfig
 from collector.control import AgentBook
 from collector.errors import CollectorError
@@ -350,10 +351,12 @@ class Writer:
                 sl = live.get((b.agent_id, b.sensor))
                 if sl is None:
                     sl = live[(b.agent_id, b.sensor)] = SensorLive(b.agent_id)
-                sl.add(now, b.rows)
+                counts = count_beacons(b.rows)
+                for mac, drop in sl.add(now, b.rows, counts):
+                    report_drop(b.agent_id, b.sensor, mac, drop)
                 if run is not None:
                     text = format_rows(b.sensor, b.rows)
-                    run.append(b.agent_id, b.sensor, text, len(b.rows))
+                    run.append(b.agent_id, b.sensor, text, len(b.rows), counts)
                     buffered += len(text) if capped else 0
                 else:
                     self.discarded += len(b.rows)
@@ -370,6 +373,9 @@ class Writer:
             self.unknown_agents[agent] = n + 1
 
     def _prune_live(self, now: float) -> None:
+        for (agent, sensor), sl in self.live.items():
+            for mac, drop in sl.check(now):
+                report_drop(agent, sensor, mac, drop)
         for k in [k for k, sl in self.live.items() if now - sl.last_seen > LIVE_IDLE_S]:
             del self.live[k]
         for a in [a for a, t in self._recent.items() if now - t >= 60]:

@@ -172,6 +172,82 @@ def check(config: ConfigOpt = None) -> None:
     out.print(dump(cfg.to_dict(), sort_keys=False), end="", highlight=False)
 
 
+@app.command()
+def doctor(
+    seconds: Annotated[
+        float, typer.Option(help="How long each mode scans.", min=2.0, max=600.0)
+    ] = 20.0,
+    adapter: Annotated[
+        list[str] | None,
+        typer.Option(help="Adapter name (hci0) or MAC; repeatable. Default: every adapter."),
+    ] = None,
+) -> None:
+    """Tell whether this machine hands in every advertisement, and which backend to use.
+
+    Scans SECONDS with each mode it can use (the kernel's management socket, bleak active, bleak
+    passive) while beacons advertise nearby, then prints per adapter and beacon: reports per
+    second, the share of reports repeating the previous RSSI exactly, and the largest gap.
+    A mode under half the best one's rate, or with gaps over 5 s, is throttled (a controller's
+    duplicate filter, or BlueZ reporting only 8 dB changes). Recommends a mode for agent.yaml's
+    `backend:`; exits 1 without Bluetooth, 2 when every mode is throttled.
+    """
+    from rich.table import Table
+
+    from sensor_agent.doctor import diagnose
+    from sensor_agent.scanning.bleak_backend import BleakBackend
+    from sensor_agent.scanning.mgmt_backend import MgmtBackend
+
+    wanted = tuple(adapter or ())
+    modes = [
+        ("mgmt", lambda: MgmtBackend(wanted)),
+        ("bleak active", lambda: BleakBackend(wanted, "active")),
+        ("bleak passive", lambda: BleakBackend(wanted, "passive")),
+    ]
+    with err.status("scanning ...") as status:  # transient: gone once the answer is printed
+        diagnosis = asyncio.run(
+            diagnose(
+                modes, seconds, lambda m: status.update(f"scanning {seconds:g} s with {m} ...")
+            )
+        )
+    if not diagnosis.usable:
+        why = "; ".join(f"{m.mode}: {m.error}" for m in diagnosis.modes)
+        err.print(
+            f"no usable Bluetooth here ({why})", markup=False, highlight=False, soft_wrap=True
+        )
+        raise typer.Exit(1)
+    table = Table(title=f"reports over {seconds:g} s per mode, adapter and beacon")
+    for col in ("mode", "adapter", "beacon", "reports/s", "same RSSI as previous", "largest gap"):
+        table.add_column(col, justify="right" if col[0] in "rsl" and col != "mode" else "left")
+    for m in diagnosis.modes:
+        if m.error is not None:
+            table.add_row(m.mode, "-", "-", "-", "-", f"unavailable: {m.error}")
+            continue
+        for (ad, beacon), f in sorted(m.beacons.items()):
+            table.add_row(
+                m.mode,
+                ad,
+                beacon,
+                f"{f.per_s:.2f}",
+                f"{f.repeated_share:.0%}",
+                f"{f.largest_gap_s:.1f} s",
+            )
+        verdict = "THROTTLED" if m.throttled else "ok"
+        table.add_row(m.mode, "", "median", f"{m.median_rate:.2f}", "", verdict, end_section=True)
+    out.print(table)
+    if diagnosis.recommended is None:
+        out.print(
+            "every mode is throttled: no beacon in range, or a controller that filters "
+            "duplicates in every mode (try a USB dongle)",
+            markup=False,
+        )
+        raise typer.Exit(2)
+    backend = "mgmt" if diagnosis.recommended == "mgmt" else "bleak"
+    mode = "" if backend == "mgmt" else f", scan_mode: {diagnosis.recommended.split()[1]}"
+    out.print(
+        f"recommended: {diagnosis.recommended} (agent.yaml: backend: {backend}{mode})", markup=False
+    )
+
+
 flow_command_help(app)  # after every command is declared
 
 

@@ -237,6 +237,11 @@ def test_agent_status_goes_into_run_yaml(agent, client) -> None:
         "replay",
         [agent.boot],
     )
+    # readings per beacon over the run, and their rate (the run lasted well under a minute)
+    beacons = a["sensors"][A].pop("beacons")
+    assert list(beacons) == ["e78f135624ce"]
+    assert beacons["e78f135624ce"]["readings"] == 5
+    assert 5 / 60 < beacons["e78f135624ce"]["rate_hz"] < 5 / 0.01
     assert a["sensors"][A] == {
         "adapter": "hci0",
         "mac": A,

@@ -79,7 +79,10 @@ def test_empty_file_gives_defaults(tmp_path: Path) -> None:
         ("batch_ms: x", "agent.yaml: batch_ms must be a positive integer, got 'x'"),
         ("batch_ms: 0", "agent.yaml: batch_ms must be a positive integer, got 0"),
         ("agent_id: 'pi 01'", "agent.yaml: agent_id must be 1-64 characters"),
-        ("backend: usb", "agent.yaml: backend must be auto | mgmt | bleak | replay | simulated, got 'usb'"),
+        (
+            "backend: usb",
+            "agent.yaml: backend must be auto | mgmt | bleak | replay | simulated, got 'usb'",
+        ),
         ("scan_mode: loud", "agent.yaml: scan_mode must be active | passive"),
         ("connect: tcp/1.2.3.4:7447", "agent.yaml: connect must be a list of strings"),
         ("connect: [localhost]", "agent.yaml: connect[0] must be a Zenoh endpoint"),
