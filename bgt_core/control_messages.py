@@ -335,11 +335,13 @@ class StreamCounts:
 
 @dataclass(frozen=True, slots=True)
 class RefusedStreams:
-    """Batches refused by the stream caps: total, streams, and the worst agents."""
+    """Batches refused by the stream caps (total, streams, the worst agents) and by the per-agent
+    quotas (``over_quota``: "agent: rate" or "agent: disk" -> batches, the worst first)."""
 
     batches: int = 0
     streams: int = 0
     by_agent: dict[str, int] = field(default_factory=dict)
+    over_quota: dict[str, int] = field(default_factory=dict)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RefusedStreams:
@@ -348,10 +350,16 @@ class RefusedStreams:
             int_field(d, "batches", what, 0),
             int_field(d, "streams", what, 0),
             _counts(d, "by_agent", what),
+            _counts(d, "over_quota", what),
         )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"batches": self.batches, "streams": self.streams, "by_agent": dict(self.by_agent)}
+        return {
+            "batches": self.batches,
+            "streams": self.streams,
+            "by_agent": dict(self.by_agent),
+            "over_quota": dict(self.over_quota),
+        }
 
 
 @dataclass(frozen=True, slots=True)

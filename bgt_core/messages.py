@@ -108,12 +108,40 @@ class ClockSample:
 # -- acknowledgements (contract 2) -------------------------------------------------------------
 
 
+# A refusal's reason is at most this long on the wire (the agent logs it).
+MAX_REASON = 200
+
+
+@dataclass(frozen=True, slots=True)
+class Refusal:
+    """Batches of one stream the collector refused and will never write: every seq up to
+    ``upto`` is either durable or refused, so the agent may drop them (spool.on_refused)."""
+
+    upto: int
+    reason: str
+
+    @classmethod
+    def from_dict(cls, d: object, what: str) -> Refusal:
+        m = mapping(d, what)
+        upto, reason = m.get("upto"), m.get("reason")
+        if not is_int(upto):
+            raise InvalidField(f"{what}.upto must be an integer, got {upto!r:.40}")
+        if not isinstance(reason, str) or not 0 < len(reason) <= MAX_REASON:
+            raise InvalidField(f"{what}.reason must be 1-{MAX_REASON} characters of text")
+        return cls(int(upto), reason)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"upto": self.upto, "reason": self.reason}
+
+
 @dataclass(frozen=True, slots=True)
 class Ack:
-    """The collector's durable watermark for one boot of an agent: sensor MAC -> last seq."""
+    """The collector's durable watermark for one boot of an agent: sensor MAC -> last seq, and
+    the streams whose batches it refused (the negative acknowledgement): sensor MAC -> Refusal."""
 
     boot: str
     streams: dict[str, int] = field(default_factory=dict)
+    refused: dict[str, Refusal] = field(default_factory=dict)
 
     @classmethod
     def from_dict(cls, d: object) -> Ack:
@@ -125,10 +153,20 @@ class Ack:
         for mac, seq in streams.items():
             if not (isinstance(mac, str) and is_int(seq)):
                 raise InvalidField(f"ack: streams.{mac} must be an integer, got {seq!r}")
-        return cls(boot, dict(streams))
+        raw = m.get("refused") or {}
+        if not isinstance(raw, dict):
+            raise InvalidField("ack: refused must be an object")
+        refused = {
+            str(mac): Refusal.from_dict(r, f"ack: refused.{str(mac)[:20]}")
+            for mac, r in raw.items()
+        }
+        return cls(boot, dict(streams), refused)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"boot": self.boot, "streams": dict(self.streams)}
+        out: dict[str, Any] = {"boot": self.boot, "streams": dict(self.streams)}
+        if self.refused:
+            out["refused"] = {mac: r.to_dict() for mac, r in self.refused.items()}
+        return out
 
 
 # -- agent status -------------------------------------------------------------------------------

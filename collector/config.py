@@ -40,19 +40,27 @@ class Limits:
     streams are refused (not written, not acknowledged), counted and reported. open_files: .mbd
     files open at once (least recently used closed first; also kept under half the descriptor
     limit). queue_mb: received batches waiting for the writer, in MiB of decoded rows.
+    agent_readings_per_s: what one agent may write, on average over 10 s; agent_mb_per_run: how
+    much of one run's files one agent may fill. Batches past either are refused with a negative
+    acknowledgement (the agent drops them, see protocol.md) and counted by agent.
     """
 
     streams_per_agent: int = 64
     streams_total: int = 1024
     open_files: int = 256
     queue_mb: float = 64.0
+    agent_readings_per_s: float = 20_000.0
+    agent_mb_per_run: float = 4096.0
 
     RANGES = {
         "streams_per_agent": (1, 100_000),
         "streams_total": (1, 1_000_000),
         "open_files": (1, 65_536),
         "queue_mb": (1, 65_536),
+        "agent_readings_per_s": (1, 10_000_000),
+        "agent_mb_per_run": (1, 10_000_000),
     }
+    FLOATS = frozenset({"queue_mb", "agent_readings_per_s", "agent_mb_per_run"})
 
 
 @dataclass(frozen=True, slots=True)
@@ -228,7 +236,7 @@ def _limits(raw: Any, name: str) -> Limits:
     kw: dict[str, Any] = {}
     for k, v in raw.items():
         lo, hi = Limits.RANGES[k]
-        whole = k != "queue_mb"
+        whole = k not in Limits.FLOATS
         ok = (
             not isinstance(v, bool)
             and isinstance(v, int if whole else int | float)

@@ -126,6 +126,15 @@ def _alerts(status: CollectorStatus) -> list[Text]:
                 style="red",
             )
         )
+    if refused.over_quota:
+        worst = ", ".join(f"{k} ({n})" for k, n in list(refused.over_quota.items())[:5])
+        out.append(
+            Text(
+                f"{sum(refused.over_quota.values())} batches refused over the per-agent quotas "
+                f"(limits.agent_readings_per_s / agent_mb_per_run): {worst}",
+                style="red",
+            )
+        )
     for mac, names in list(status.shared_sensors.items())[:5]:
         out.append(
             Text(

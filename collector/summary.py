@@ -42,11 +42,13 @@ class RunTotals:
 
 
 def refused_summary(w: Writer) -> RefusedStreams:
-    """Batches refused by the stream caps: total, streams, and the 20 worst agents."""
+    """Batches refused by the stream caps (total, streams, the 20 worst agents) and by the
+    per-agent quotas (the 20 worst)."""
     return RefusedStreams(
         sum(w.gate.refused.values()),
         len(w.gate.refused_streams),
         dict(w.gate.refused.most_common(20)),
+        dict(w.gate.over_quota.most_common(20)),
     )
 
 

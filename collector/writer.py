@@ -20,7 +20,7 @@ from typing import Any, TypeVar
 
 from bgt_core import wire
 from bgt_core.control_messages import StartReply, StopReply
-from bgt_core.messages import ClockSample
+from bgt_core.messages import Ack, ClockSample
 from bgt_core.sdnotify import Notifier
 from collector.admission import MAX_AGENT_ENTRIES, StreamGate
 from collector.beacon_rates import count_beacons, report_drop
@@ -335,6 +335,7 @@ class Writer:
         admitted = gate.admitted
         for b in batches:
             if (b.agent_id, b.sensor) not in admitted and not gate.admit(b.agent_id, b.sensor, now):
+                gate.refuse(b.agent_id, b.boot_id, b.sensor, b.seq, gate.reason_for_cap(b.agent_id))
                 continue
             self._recent[b.agent_id] = now
             if capped and buffered >= self._max_buffer:
@@ -356,6 +357,12 @@ class Writer:
                     report_drop(b.agent_id, b.sensor, mac, drop)
                 if run is not None:
                     text = format_rows(b.sensor, b.rows)
+                    why = gate.quota(b.agent_id, len(b.rows), len(text), now)
+                    if why is not None:
+                        # Refused after the tracker took it: the seq counts as handled (nothing
+                        # waits for it) and the agent drops it on the negative acknowledgement.
+                        gate.refuse(b.agent_id, b.boot_id, b.sensor, b.seq, why)
+                        continue
                     run.append(b.agent_id, b.sensor, text, len(b.rows), counts)
                     buffered += len(text) if capped else 0
                 else:
@@ -410,16 +417,24 @@ class Writer:
             self.inbox.count_quarantine_dropped(dropped)
 
     def publish_acks(self, agents: set[str]) -> None:
+        """The acks of these agents (and the negative acknowledgements owed to any): called
+        after the tick's fsync, so everything below a refused seq that was written is durable."""
         if self.publish is None:
             return
-        for agent in agents:
-            for msg in self.tracker.ack_messages(agent):
-                if not msg.streams:
+        gate = self.gate
+        for agent in agents | gate.nacks_due:
+            msgs = {m.boot: m for m in self.tracker.ack_messages(agent)}
+            for (boot, sensor), refusal in gate.refusals.pop(agent, {}).items():
+                m = msgs.get(boot) or Ack(boot)
+                msgs[boot] = Ack(boot, m.streams, {**m.refused, sensor: refusal})
+            for msg in msgs.values():
+                if not msg.streams and not msg.refused:
                     continue
                 try:
                     self.publish(wire.ack_key(self.cfg.site, agent), wire.to_json(msg.to_dict()))
                 except Exception as e:  # noqa: BLE001 - the next tick retries
                     log.warning("could not publish ack for %s: %s", agent, e)
+        gate.nacks_due.clear()
 
     # -- run start and stop (on the writer thread, through `call`) ---------------------------------
 

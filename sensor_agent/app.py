@@ -278,6 +278,7 @@ class Agent:
                 status=self.status,
                 chrony=lambda: self._chrony,
                 resend_s=RESEND_S if self.resend_s is None else self.resend_s,
+                on_refused=cfg.spool.on_refused,
             )
             log.info(
                 "agent %s (boot %s) on %s, backend %s, spool %s",

@@ -65,6 +65,9 @@ class SimulatedConfig:
 class SpoolConfig:
     dir: Path | None = None
     max_mb: int = 256
+    # Batches the collector refuses (a stream cap, a quota): drop them on its negative
+    # acknowledgement, or keep re-sending them until it takes them (limits raised).
+    on_refused: str = "drop"
 
 
 @dataclass(frozen=True, slots=True)
@@ -129,6 +132,7 @@ class AgentConfig:
             "spool": {
                 "dir": None if self.spool.dir is None else str(self.spool.dir),
                 "max_mb": self.spool.max_mb,
+                "on_refused": self.spool.on_refused,
             },
             "watchdog": {
                 "silent_s": self.watchdog.silent_s,
@@ -367,11 +371,12 @@ def _replay(f: _Fields, raw: Any) -> ReplayConfig:
 
 
 def _spool(f: _Fields, raw: Any) -> SpoolConfig:
-    s = f.mapping(raw, "spool", ("dir", "max_mb"))
+    s = f.mapping(raw, "spool", ("dir", "max_mb", "on_refused"))
     sdir = s.get("dir")
     return SpoolConfig(
         None if sdir is None else f.path(sdir, "spool.dir"),
         f.pos_int(s.get("max_mb", 256), "spool.max_mb"),
+        f.choice(s.get("on_refused", "drop"), "spool.on_refused", ("drop", "keep")),
     )
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bgt_core import wire
-from bgt_core.messages import Ack, ClockReply, ClockRequest
+from bgt_core.messages import Ack, ClockReply, ClockRequest, Refusal
 from bgt_core.wire import Batch, Reading
 from sensor_agent.spool import SpoolError
 
@@ -71,6 +71,7 @@ class Publisher:
         chrony: Callable[[], dict[str, Any] | None] | None = None,
         max_batch: int = MAX_BATCH_READINGS,
         resend_s: float = RESEND_S,
+        on_refused: str = "drop",
     ) -> None:
         import time
 
@@ -99,6 +100,11 @@ class Publisher:
         ] = {}  # stream id -> current re-send interval (ns), backed off
         self._old_boots: set[str] = set()
         self.resent = 0
+        # Batches the collector refused (negative acknowledgements): drop them, or keep
+        # re-sending in case the collector's limits are raised (spool.on_refused).
+        self.on_refused = on_refused
+        self.refused: dict[str, int] = {}  # sensor -> highest refused seq (this boot)
+        self._refusals_logged: set[tuple[str, str]] = set()
         self.last_ack_ns: int | None = None  # monotonic time of the last ack for this agent
         # Held for a whole re-send pass; close() takes it so no pass outlives the publishers.
         self._resend_lock = threading.Lock()
@@ -345,6 +351,8 @@ class Publisher:
                     self._interval.pop(sid, None)
                     if boot == self.boot_id:
                         self._acked[mac] = seq
+            for mac, r in msg.refused.items():
+                self._on_refusal(boot, mac, r, now, advanced)
         if self.spool is not None:
             for sid, seq in advanced:
                 try:
@@ -352,6 +360,36 @@ class Publisher:
                 except (SpoolError, OSError) as e:  # closing: a late ack costs a re-send next start
                     log.debug("spool ack of %s failed: %s", sid, e)
                     return
+
+    def _on_refusal(
+        self, boot: str, mac: str, r: Refusal, now: int, advanced: list[tuple[str, int]]
+    ) -> None:
+        """A negative acknowledgement: log it once per sensor and reason; with on_refused drop,
+        everything of that stream up to ``r.upto`` counts as handled (written or refused)."""
+        if boot == self.boot_id:
+            self.refused[mac] = max(r.upto, self.refused.get(mac, -1))
+        if (mac, r.reason) not in self._refusals_logged and len(self._refusals_logged) < 1024:
+            self._refusals_logged.add((mac, r.reason))
+            log.warning(
+                "the collector refused sensor %s's batches (up to seq %d): %s; %s",
+                mac,
+                r.upto,
+                r.reason,
+                "dropped from the spool (spool.on_refused: drop)"
+                if self.on_refused == "drop"
+                else "kept and re-sent (spool.on_refused: keep)",
+            )
+        if self.on_refused != "drop":
+            return
+        sid = stream_id(boot, mac)
+        if r.upto > self._sid_acked.get(sid, -1):
+            self._sid_acked[sid] = r.upto
+            advanced.append((sid, r.upto))
+            self._interval.pop(sid, None)
+            if sid in self._progress:
+                self._progress[sid] = now
+            if boot == self.boot_id:
+                self._acked[mac] = max(self._acked.get(mac, -1), r.upto)
 
     def unacked(self) -> dict[str, tuple[int, int]]:
         """This boot's streams with batches not yet acknowledged: sensor -> (last built, last acked)."""

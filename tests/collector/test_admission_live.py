@@ -34,3 +34,33 @@ def test_live_rate_counts_the_last_window() -> None:
         5 / RATE_WINDOW_S
     )  # first batch aged out
     assert list(live.rssi)[-1] == -70
+
+
+def test_per_agent_quotas_refuse_and_count() -> None:
+    """limits.agent_readings_per_s (a 10 s token bucket) and agent_mb_per_run (issue 35)."""
+    gate = StreamGate(Limits(agent_readings_per_s=10, agent_mb_per_run=1))
+    # 100 readings of burst, then 10/s
+    assert all(gate.quota("a", 10, 100, 0.0) is None for _ in range(10))
+    why = gate.quota("a", 10, 100, 0.0)
+    assert why is not None
+    assert why.startswith("over limits.agent_readings_per_s (10 readings/s over 10 s)")
+    assert gate.quota("b", 10, 100, 0.0) is None  # another agent has its own bucket
+    assert gate.quota("a", 10, 100, 1.0) is None  # a second later: 10 more
+    assert gate.quota("a", 10, 100, 1.0) is not None
+    # the disk quota: 1 MB of run files per agent
+    assert gate.quota("c", 1, 1024 * 1024 - 10, 0.0) is None
+    why = gate.quota("c", 1, 20, 0.0)
+    assert why is not None
+    assert "agent_mb_per_run (1 MB in this run)" in why
+    assert dict(gate.over_quota) == {"a: rate": 2, "c: disk": 1}
+
+
+def test_refusals_are_owed_once_with_the_highest_seq() -> None:
+    gate = StreamGate(Limits(streams_per_agent=1))
+    gate.refuse("a", "boot1", "m2", 3, "stream cap: x")
+    gate.refuse("a", "boot1", "m2", 7, "stream cap: x")
+    gate.refuse("a", "boot1", "m2", 5, "stream cap: x")
+    assert gate.nacks_due == {"a"}
+    (key, r), *_ = gate.refusals["a"].items()
+    assert key == ("boot1", "m2")
+    assert (r.upto, r.reason) == (7, "stream cap: x")

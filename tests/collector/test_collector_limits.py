@@ -218,6 +218,9 @@ def test_streams_over_the_caps_are_refused_counted_and_reported(collector, endpo
         honest.put(with_floor(make_batch(0, agent="pi-01", sensor=B), 0))  # total cap (5) reached
         wait_for(lambda: honest.acked(A) == 1, what="honest ack after the flood")
         wait_for(lambda: collector.status()["refused_streams"]["batches"] == 7, what="7 refused")
+        # each refused batch gets a negative acknowledgement, with the reason (issue 35)
+        wait_for(lambda: len(flooder.refused()) == 6, what="the flooder's refusals")
+        wait_for(lambda: B in honest.refused(), what="the honest agent's refusal")
         st = collector.status()
         stopped = collector.stop_run()
     finally:
@@ -227,6 +230,14 @@ def test_streams_over_the_caps_are_refused_counted_and_reported(collector, endpo
         "batches": 7,
         "streams": 7,
         "by_agent": {"pi-bad": 6, "pi-01": 1},
+        "over_quota": {},
+    }
+    assert {r["reason"] for r in flooder.refused().values()} == {
+        "stream cap: agent pi-bad already has 4 streams"
+    }
+    assert {r["upto"] for r in flooder.refused().values()} == {0}
+    assert honest.refused() == {
+        B: {"upto": 0, "reason": "stream cap: the collector already has 5 streams"}
     }
     assert st["streams"]["admitted"] == 5
     doc = run_yaml_doc(stopped["run_dir"])
@@ -312,7 +323,12 @@ def test_5000_macs_under_1024_descriptors_honest_agents_complete_stop_works_exce
     _honest_complete(r)
     st = r.status
     # the excess is reported: every refused batch, distinct streams (counted up to 1,024), by agent
-    assert st["refused_streams"] == {"batches": 3000, "streams": 1024, "by_agent": {"pi-bad": 3000}}
+    assert st["refused_streams"] == {
+        "batches": 3000,
+        "streams": 1024,
+        "by_agent": {"pi-bad": 3000},
+        "over_quota": {},
+    }
     assert st["streams"]["admitted"] == 2002
     assert st["streams"]["open_files"] <= 256  # limits.open_files (under half of 1,024)
     assert st["streams"]["shown"] <= 200  # summarised
@@ -391,3 +407,115 @@ def test_the_stream_cap_counts_one_run_only(collector, endpoint) -> None:
     assert (Path(run["run_dir"]) / "rssi" / "pi-01" / f"{B}.mbd").read_text().splitlines() == (
         expected_lines([make_batch(0, agent="pi-01", sensor=B)])
     )
+
+
+@pytest.mark.parametrize("policy", ["drop", "keep"])
+def test_a_refused_batch_leaves_the_agents_spool_by_policy(
+    tmp_path, endpoint, policy, caplog
+) -> None:
+    """Issue 35: a batch refused by a stream cap was never acknowledged, so the agent's spool
+    kept it and re-sent it forever. Now the collector says why (a negative acknowledgement):
+    the agent logs it once and, with spool.on_refused: drop, forgets it."""
+    from bgt_core.zenoh_config import SessionSpec, build_config
+    from sensor_agent.publisher import Publisher, stream_id
+    from sensor_agent.spool import Spool
+
+    c = Collector(
+        CollectorConfig(
+            data_dir=tmp_path / "data",
+            listen=(endpoint,),
+            fsync_interval_s=0.1,
+            limits=Limits(streams_per_agent=1),
+        ),
+        drain_timeout_s=2.0,
+    ).open()
+    session = zenoh.open(build_config(SessionSpec(mode="client", connect=[endpoint])))
+    spool = Spool(tmp_path / "spool", 1 << 20)
+    boot = "00112233aabbccdd"
+    pub = Publisher(
+        session,
+        site="default",
+        agent_id="pi-01",
+        boot_id=boot,
+        wall_ns=time.time_ns,
+        spool=spool,
+        resend_s=0.3,
+        on_refused=policy,
+    )
+    batch = make_batch(0)
+    try:
+        c.start_run("nack")
+        with caplog.at_level("WARNING", logger="sensor_agent.publisher"):
+            for i in range(4):
+                for sensor in (A, B):  # A is admitted first; B is over the cap of one stream
+                    pub.add(sensor, batch.readings[i])
+                pub.flush()
+                time.sleep(0.05)
+            wait_for(lambda: pub.unacked().get(A) is None, what="A acknowledged")
+            wait_for(lambda: pub.refused.get(B) == 3, what="B's refusal up to its last batch")
+            if policy == "drop":
+                wait_for(lambda: spool.lowest_pending(stream_id(boot, B)) is None, what="B dropped")
+            else:
+                time.sleep(1.0)  # re-sent and refused again, several times
+                assert spool.lowest_pending(stream_id(boot, B)) == 0
+        c.stop_run()
+    finally:
+        pub.close()
+        spool.close()
+        session.close()
+        c.close()
+    told = [r.getMessage() for r in caplog.records if r.name == "sensor_agent.publisher"]
+    assert len(told) == 1  # once, however often it was refused
+    assert f"sensor {B}" in told[0]
+    assert "stream cap: agent pi-01 already has 1 streams" in told[0]
+    assert ("dropped from the spool" if policy == "drop" else "kept and re-sent") in told[0]
+    assert spool_is_empty_for(A, boot, tmp_path)
+
+
+def spool_is_empty_for(sensor: str, boot: str, tmp_path) -> bool:
+    from sensor_agent.publisher import stream_id
+    from sensor_agent.spool import Spool
+
+    again = Spool(tmp_path / "spool", 1 << 20)
+    try:
+        return again.lowest_pending(stream_id(boot, sensor)) is None
+    finally:
+        again.close()
+
+
+def test_an_agent_over_its_rate_quota_is_refused_and_told(tmp_path, endpoint) -> None:
+    """limits.agent_readings_per_s: one agent cannot write faster than its share (issue 35);
+    what it sends beyond is refused, counted and told, and another agent is not held back."""
+    c = Collector(
+        CollectorConfig(
+            data_dir=tmp_path / "data",
+            listen=(endpoint,),
+            fsync_interval_s=0.1,
+            limits=Limits(agent_readings_per_s=10),  # 100 readings of burst, then 10/s
+        ),
+        drain_timeout_s=2.0,
+    ).open()
+    fast = FakeAgent(endpoint, agent="pi-fast")
+    calm = FakeAgent(endpoint, agent="pi-01")
+    try:
+        run = c.start_run("quota")
+        for seq in range(40):  # 200 readings at once
+            fast.put(with_floor(make_batch(seq, agent="pi-fast", sensor=A), 0))
+        calm.put(with_floor(make_batch(0, agent="pi-01", sensor=A), 0))
+        wait_for(lambda: calm.acked(A) == 0, what="the calm agent acknowledged")
+        wait_for(lambda: A in fast.refused(), what="the fast agent told")
+        wait_for(lambda: fast.acked(A) == 39, what="every seq handled")
+        st = c.status()
+        stopped = c.stop_run()
+    finally:
+        fast.close()
+        calm.close()
+        c.close()
+    refused = st["refused_streams"]["over_quota"]["pi-fast: rate"]
+    assert 15 <= refused <= 21  # 20 batches fit the 10 s burst, a little more trickles in
+    assert fast.refused()[A]["reason"].startswith("over limits.agent_readings_per_s (10 readings/s")
+    doc = run_yaml_doc(stopped["run_dir"])
+    assert doc["refused_streams"]["over_quota"] == {"pi-fast: rate": refused}
+    written = (Path(run["run_dir"]) / "rssi" / "pi-fast" / f"{A}.mbd").read_text().splitlines()
+    assert len(written) == 5 * (40 - refused)
+    assert doc["agents"]["pi-01"]["sensors"][A]["readings"] == 5

@@ -90,6 +90,7 @@ class FakeAgent:
         self.acks: dict[str, int] = {}
         self.boot_acks: dict[str, dict[str, int]] = {}  # every boot's acks (contract 2)
         self.ack_msgs: list[dict] = []
+        self.refusals: dict[str, dict] = {}  # sensor -> the latest negative acknowledgement
         self._lock = threading.Lock()
         self._ack_sub = self.session.declare_subscriber(wire.ack_key(site, agent), self._on_ack)
         self.token = None
@@ -101,6 +102,11 @@ class FakeAgent:
             self.boot_acks.setdefault(msg["boot"], {}).update(msg["streams"])
             if msg["boot"] == self.boot:
                 self.acks.update(msg["streams"])
+                self.refusals.update(msg.get("refused", {}))
+
+    def refused(self) -> dict[str, dict]:
+        with self._lock:
+            return dict(self.refusals)
 
     def acked(self, sensor: str) -> int:
         with self._lock:
