@@ -1,121 +1,27 @@
-"""How good each pose is: the parts of a trajectory row's ``sigma_m`` beyond the smoother's noise.
-
-The smoother treats every frame's corner noise as independent, so its sigma shrinks as frames
-are averaged. Errors of the static inputs (marker map, rig, intrinsics, rolling-shutter readout)
-do not average out: a marker surveyed 1.5 cm off moves every frame that sees it the same way.
-This module propagates the parameters' covariance into each pose, linearised per frame:
-
-    pose error  d = -(J^T W J)^-1 J^T W B dtheta,   Cov(d) = A Sigma A^T,  A = (J^T W J)^-1 J^T W B
-
-with J the corners' pixel residuals' Jacobian w.r.t. the bundle pose (world-frame rotation,
-position), B their Jacobian w.r.t. the parameters (analytic for markers and rig, numeric for the
-intrinsics, from the bundle's motion for the readout) and W the robust weights, all at the
-smoothed pose. Parameter errors stay correlated from frame to frame, so the smoothed pose keeps
-them: each row's parameter variance is a short kernel average of its neighbours' (an upper bound
-of the variance of the averaged pose).
-
-``scale_priors``: the stated priors may be too pessimistic or too optimistic. The residuals left
-after a per-frame fit measure the part of the parameter errors that the frame sees as
-inconsistency between markers and cameras; a regression of their energy on the corner noise and
-on each block's predicted energy over the whole capture gives each block a scale. The upper end
-of its 2-sigma confidence range is used (never below ``min_scale``, never above ``max_scale``),
-so a block the capture cannot check keeps its prior.
-
-Motion blur: the smear of a frame is the corners' image speed (from the smoothed motion) times
-the exposure; frames smearing more than ``max_smear_px`` are down-weighted (dropped beyond three
-times that). The time within the exposure at which the detector places a smeared corner is
-unknown: a time error of exposure / sqrt(12) (uniform over the exposure), which moves the pose
-along the direction of motion only. Per axis, as every other part of sigma_m (the rms over x, y
-and z), that is ``sigma_blur_m`` = speed x exposure / sqrt(12) / sqrt(3) = speed x exposure / 6.
-
-With a refinement's record (``ParameterCovariance.joint``), A Sigma A^T runs over every block at
-once (markers, rig, intrinsics and distortion, readout, and the detector's corner bias), with the
-refinement's cross-covariances: the surveyed markers fix where the map sits in the room together,
-so that error is common to every marker and a frame that sees many markers keeps all of it, while
-a principal point shift and a turn of that camera in the rig, fitted to the same corners, largely
-cancel. Each block's column is its share of the joint total. Without a joint record (priors) the
-blocks are independent.
-
-``sigma_unmodelled_m`` is a floor for what no model here covers (the detector's corner bias on
-small markers, the renderer's or a real lens's residual distortion), added in quadrature.
-"""
+"""The parameters' covariance through each frame's pose: per-frame Jacobians of the corner
+residuals w.r.t. the pose (J) and the parameters (B), ``A = (J^T W J)^-1 J^T W B``, and
+``Cov(d) = A Sigma A^T``, jointly over the blocks when a refinement's record allows; the rest on a
+jig conditions it."""
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.linalg import block_diag
-from scipy.optimize import nnls
 from scipy.spatial.transform import Rotation
 
 from annotator.core.experiment import CameraCalibration, Experiment
 from annotator.core.priors import ParameterCovariance
+from annotator.core.uncertainty.records import BLOCKS, UncertaintySettings, VideoFrames
 from annotator.vision.geometry import MarkerRoom, marker_corners_local
 from annotator.vision.lens import undistort_points
 
 if TYPE_CHECKING:
-    from annotator.vision.detection import Detections
-
-log = logging.getLogger(__name__)
-
-BLOCKS = ("markers", "rig", "intrinsics", "readout")
-
-
-class VideoFrames(Protocol):
-    """What this module reads of one camera's frames (the pipeline's CameraFrames)."""
-
-    @property
-    def camera(self) -> str: ...
-    @property
-    def t(self) -> np.ndarray: ...  # (N,) wall-clock seconds
-    @property
-    def detections(self) -> Sequence[Detections]: ...
-    @property
-    def frame_interval(self) -> float: ...
-
-
-class VideoClock(Protocol):
-    """What :func:`sync_time_sigma` reads of a camera's clock map (``annotator.core.sync.ClockMap``)."""
-
-    def to_video(self, t_rssi: np.ndarray | float) -> np.ndarray: ...
-    def sigma_at(self, pts: np.ndarray | float) -> np.ndarray: ...
-
-
-@dataclass(frozen=True, slots=True)
-class UncertaintySettings:
-    huber_px: float = 1.5  # robust weights of corner residuals at the smoothed pose
-    marker_gate_px: float = 3.0  # a marker whose RMS exceeds max(this, 4 x median) gets no weight
-    param_window_s: float = 0.05  # Gaussian kernel sigma of the per-row parameter variance average
-    scale_priors: bool = True  # check the priors against the residuals and rescale each block
-    min_scale: float = 0.02
-    max_scale: float = 4.0
-    max_smear_px: float = 10.0  # frames smearing more are down-weighted, beyond 3x dropped
-    unmodelled_m: float = 0.0015  # floor added in quadrature to every row's sigma
-    # Propagate a refined record's joint covariance (cross-block terms, the rig's gauge, the map's
-    # datum) instead of each block on its own; off, or without a joint record, blocks are independent.
-    joint_covariance: bool = True
-    default_exposure_frac: float = (
-        0.5  # exposure as a share of the frame interval when not calibrated
-    )
-
-
-@dataclass(frozen=True, eq=False)
-class RowUncertainty:
-    """Per trajectory row (NaN where there is no pose): the parts of sigma_m and the smear."""
-
-    params_var: np.ndarray  # (N, 4) per-axis position variance from each block (BLOCKS order), m^2
-    blur_m: np.ndarray  # (N,)
-    smear_px: np.ndarray  # (N,) median predicted corner smear over the cameras' frames
-    scales: dict[str, float]  # the block scales applied (1 = the priors as stated)
-
-    @property
-    def params_m(self) -> np.ndarray:
-        return np.sqrt(self.params_var.sum(1))
+    pass
 
 
 def parameter_covariance(
@@ -144,7 +50,7 @@ def _sqrt_psd(cov: np.ndarray) -> np.ndarray:
     return vecs * np.sqrt(np.maximum(vals, 0.0))[None, :]
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
+def skew(v: np.ndarray) -> np.ndarray:
     """(..., 3) -> (..., 3, 3) cross-product matrices: skew(a) @ b = a x b."""
     z = np.zeros(v.shape[:-1])
     return np.stack(
@@ -204,7 +110,7 @@ def _undistort(
 
 
 @dataclass(frozen=True, eq=False)
-class _ViewBlock:
+class ViewBlock:
     """One view's residuals and Jacobians (rows: its corners' x, y in order)."""
 
     camera: str
@@ -222,7 +128,7 @@ class _ViewBlock:
     n_markers: int
 
 
-def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> _ViewBlock | None:
+def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> ViewBlock | None:
     idx = room.index(v.ids)
     keep = idx >= 0
     if not keep.any():
@@ -251,13 +157,13 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
     dp[:, :, 2] = -proj / z[:, None]
     b_cam = focal * dp @ v.R_bc.T  # d pixels / d bundle-frame point
     a = b_cam @ v.R_wb.T  # d pixels / d world point
-    J = np.concatenate([a @ _skew(d), -a], axis=2)  # world-frame rotation, then position
+    J = np.concatenate([a @ skew(d), -a], axis=2)  # world-frame rotation, then position
     r = focal * (proj - xn)
     # Markers: corner = exp(w) (c - centre) + centre + dp -> d corner = -skew(c - centre) w + dp.
     rel = np.einsum(
         "mij,kj->mki", room.R_world_marker[idx], marker_corners_local(room.length)
     ).reshape(-1, 3)
-    Bm = np.concatenate([-a @ _skew(rel), a], axis=2)  # (m, 2, 6)
+    Bm = np.concatenate([-a @ skew(rel), a], axis=2)  # (m, 2, 6)
     # Corner noise: what is left of each square's residual after its own rigid motion (the map
     # error of one marker is exactly such a motion): 2 of its 8 degrees of freedom.
     Mk = Bm.reshape(len(ids), 8, 6)
@@ -267,7 +173,7 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
     inner = np.sum((rk - np.einsum("kij,kj->ki", Mk, xk)) ** 2, axis=1)
     markers = [(int(mid), 8 * k, Mk[k]) for k, mid in enumerate(ids) if int(mid) in params.markers]
     # Rig: R_bc = exp(w) R_bc0, t_bc + dt -> the corner moves by skew(e) w - dt in the camera's eyes.
-    Br = np.concatenate([b_cam @ _skew(e), -b_cam], axis=2).reshape(-1, 6)
+    Br = np.concatenate([b_cam @ skew(e), -b_cam], axis=2).reshape(-1, 6)
     # Intrinsics (and distortion, when the record has it): the observation moves;
     # r = focal (proj - xn) -> dr = -focal dxn.
     dist_cov = _distortion(params).get(v.camera)
@@ -305,7 +211,7 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
         if getattr(params, "joint", None) is not None
         else np.zeros(pix.size)
     )
-    return _ViewBlock(
+    return ViewBlock(
         v.camera,
         r.reshape(-1),
         J.reshape(-1, 6),
@@ -344,7 +250,7 @@ def frame_jacobians(
     params: ParameterCovariance,
     readout_sigma_s: float,
     settings: UncertaintySettings,
-    cache: dict[int, _ViewBlock | None] | None = None,
+    cache: dict[int, ViewBlock | None] | None = None,
 ) -> FrameJacobians | None:
     """Residuals, weights and the pose / parameter Jacobians of one output row's frames.
 
@@ -454,7 +360,7 @@ def _row_joint(
     params: ParameterCovariance,
     B: dict[str, np.ndarray],
     L: dict[str, np.ndarray],
-    blocks: Sequence[_ViewBlock],
+    blocks: Sequence[ViewBlock],
     starts: np.ndarray,
     mids: Sequence[int],
     cams: Sequence[str],
@@ -576,11 +482,11 @@ def condition_on_rest(
         return params
     omega, vel = trajectory_twist(t_out, pos, R)
     sel = np.flatnonzero(rows)
-    views = _views_at(frames, exp, t_out[sel], pos[sel], R[sel], omega[sel], vel[sel])
+    views = views_at(frames, exp, t_out[sel], pos[sel], R[sel], omega[sel], vel[sel])
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
     H = np.zeros((6, P.shape[0]))
     used = 0
-    cache: dict[int, _ViewBlock | None] = {}
+    cache: dict[int, ViewBlock | None] = {}
     for vs in views:
         jac = (
             frame_jacobians(vs, room, params, exp.priors.readout_sigma_s, s, cache) if vs else None
@@ -603,7 +509,7 @@ def condition_on_rest(
     return replace(params, joint=0.5 * (P_after + P_after.T))
 
 
-def _views_at(
+def views_at(
     frames: Sequence[VideoFrames],
     exp: Experiment,
     t_out: np.ndarray,
@@ -642,313 +548,3 @@ def _views_at(
             for kk in range(lo, hi):
                 rows[kk].append(view)
     return rows
-
-
-def _scales(
-    var: np.ndarray,
-    q: np.ndarray,
-    e: np.ndarray,
-    dof: np.ndarray,
-    settings: UncertaintySettings,
-) -> dict[str, float]:
-    """Each block's prior scale from the residual energy of the whole capture.
-
-    Regression over the rows: e = c dof + sum_b s_b^2 q_b (e: energy beyond the within-marker
-    noise; c: corner noise the within-marker estimate misses, correlated over a square). A block
-    is shrunk to the upper end of its 2-sigma range when that is below 1 (the capture rules its
-    prior out); a block the capture cannot check keeps its prior. Then, if the residuals still
-    hold significantly more than the (shrunk) priors predict, every block is inflated by the
-    lower end of that common factor's 2-sigma range (the priors were optimistic, or something
-    unmodelled moves the corners).
-    Priors only: a posterior (refinement) was fitted to these same residuals, see row_uncertainty.
-    """
-    out = {b: 1.0 for b in BLOCKS}
-    use = np.isfinite(e) & (dof > 2) & np.isfinite(q).all(1)
-    if not settings.scale_priors or use.sum() < 20:
-        return out
-    wt = 1.0 / np.maximum(dof[use], 1.0)  # rows differ a lot in corner count
-
-    def fit(cols: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        X = np.column_stack(cols) * wt[:, None]
-        y = e[use] * wt
-        coef, _ = nnls(X, y)
-        res = y - X @ coef
-        s2 = float(res @ res) / max(len(y) - X.shape[1], 1)
-        return coef, np.sqrt(np.maximum(np.diag(s2 * np.linalg.pinv(X.T @ X)), 0.0))
-
-    ks = [k for k in range(4) if q[use, k].sum() > 0]
-    coef, se = fit([dof[use]] + [q[use, k] for k in ks])
-    for c, k in enumerate(ks, 1):
-        upper = coef[c] + 2.0 * se[c]
-        out[BLOCKS[k]] = float(np.clip(math.sqrt(max(upper, 0.0)), settings.min_scale, 1.0))
-    shrunk = q[use] @ np.array([out[b] ** 2 for b in BLOCKS])
-    coef2, se2 = fit([dof[use], shrunk])
-    lower = coef2[1] - 2.0 * se2[1]
-    inflate = float(np.clip(math.sqrt(max(lower, 1.0)), 1.0, settings.max_scale))
-    out = {b: v * inflate for b, v in out.items()}
-    log.debug(
-        "scale^2 regression: %s; common factor^2 %.3g +- %.2g",
-        ", ".join(f"{BLOCKS[k]} {coef[c]:.3g} +- {se[c]:.2g}" for c, k in enumerate(ks, 1)),
-        coef2[1],
-        se2[1],
-    )
-    log.info(
-        "prior scales from the residuals: %s", ", ".join(f"{b} {v:.2f}" for b, v in out.items())
-    )
-    return out
-
-
-def row_uncertainty(
-    frames: Sequence[VideoFrames],
-    exp: Experiment,
-    t_out: np.ndarray,
-    pos: np.ndarray,
-    R: np.ndarray,
-    params: ParameterCovariance | None = None,
-    settings: UncertaintySettings | None = None,
-) -> RowUncertainty:
-    """Parameter, blur and smear figures of every trajectory row (pose of the smoothed trajectory).
-
-    ``params`` None: the experiment's priors, checked against the capture's residuals (see
-    ``_scales``). Given: a posterior (refinement), used as it is. Its parameters were fitted to these
-    same residuals, so what energy they still hold is not the parameters' error; scaling it up by
-    that energy (as was done) made sigma_m cautious by 1.2-1.9x on 10-30 s field walks (rows within
-    2.8 sigma_m pooled over 20 / 20 / 14 seeds: 99.9 / 100 / 100 %, now 95.2 / 95.6 / 99.8 %).
-
-    ``frames`` are the pipeline's CameraFrames (camera, t, detections, frame_interval).
-    """
-    s = settings or UncertaintySettings()
-    pc = parameter_covariance(exp, params)
-    readout_sigma = (
-        exp.priors.readout_sigma_s
-    )  # shared by the cameras unless the record has its own
-    room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
-    n = len(t_out)
-    omega, vel = trajectory_twist(t_out, pos, R)
-    views = _views_at(frames, exp, t_out, pos, R, omega, vel)
-    var = np.full((n, 4), np.nan)
-    q = np.full((n, 4), np.nan)
-    e = np.full(n, np.nan)
-    dof = np.full(n, np.nan)
-    smear = np.full(n, np.nan)
-    exposure = _exposures(frames, exp, s)
-    cache: dict[int, _ViewBlock | None] = {}
-    for k in range(n):
-        if not views[k]:
-            continue
-        jac = frame_jacobians(views[k], room, pc, readout_sigma, s, cache)
-        if jac is None:
-            continue
-        out = propagate(jac)
-        if out is None:
-            continue
-        var[k], q[k], e[k], dof[k] = out
-        smear[k] = float(np.median(jac.image_speed)) * max(exposure[v.camera] for v in views[k])
-    scales = _scales(var, q, e, dof, s) if params is None else {b: 1.0 for b in BLOCKS}
-    var = var * np.array([scales[b] ** 2 for b in BLOCKS])[None, :]
-    if log.isEnabledFor(logging.DEBUG) and np.isfinite(var).any():
-        med = np.sqrt(np.nanmedian(var, axis=0))
-        log.debug(
-            "median per-axis sigma by block (mm): %s",
-            ", ".join(f"{b} {1e3 * v:.2f}" for b, v in zip(BLOCKS, med, strict=True)),
-        )
-    var = _kernel_average(t_out, var, s.param_window_s)
-    speed = np.linalg.norm(vel, axis=1)
-    exp_row = max(exposure.values()) if exposure else 0.0
-    # Uniform over the exposure (sqrt(12)), along the motion only (a third of it per axis).
-    blur = speed * exp_row / math.sqrt(12.0 * 3.0)
-    valid = np.isfinite(pos).all(1)
-    # A posed row whose own frames gave no Jacobian (e.g. bridged gap) takes its neighbours' values.
-    var[valid & ~np.isfinite(var).all(1)] = np.nan
-    var = _fill_nearest(t_out, var, valid)
-    var[~valid] = np.nan
-    blur[~valid] = np.nan
-    return RowUncertainty(var, blur, smear, scales)
-
-
-def _kernel_average(t: np.ndarray, x: np.ndarray, h: float) -> np.ndarray:
-    """Gaussian-weighted average over +-3h of the finite rows of x (N, k)."""
-    ok = np.isfinite(x).all(1)
-    out = np.full_like(x, np.nan)
-    if not ok.any() or h <= 0:
-        return x.copy()
-    tv, xv = t[ok], x[ok]
-    lo = np.searchsorted(tv, t - 3 * h)
-    hi = np.searchsorted(tv, t + 3 * h, side="right")
-    for i in range(len(t)):
-        if hi[i] <= lo[i]:
-            continue
-        dt = tv[lo[i] : hi[i]] - t[i]
-        wk = np.exp(-0.5 * (dt / h) ** 2)
-        out[i] = wk @ xv[lo[i] : hi[i]] / wk.sum()
-    return out
-
-
-def _fill_nearest(t: np.ndarray, x: np.ndarray, want: np.ndarray) -> np.ndarray:
-    ok = np.isfinite(x).all(1)
-    if not ok.any():
-        return x
-    tv = t[ok]
-    need = want & ~ok
-    j = np.clip(np.searchsorted(tv, t[need]), 1, max(len(tv) - 1, 1))
-    j0 = np.clip(j - 1, 0, len(tv) - 1)
-    j1 = np.clip(j, 0, len(tv) - 1)
-    pick = np.where(np.abs(tv[j0] - t[need]) <= np.abs(tv[j1] - t[need]), j0, j1)
-    out = x.copy()
-    out[need] = x[ok][pick]
-    return out
-
-
-def row_smear(
-    frames: Sequence[VideoFrames],
-    exp: Experiment,
-    t_out: np.ndarray,
-    pos: np.ndarray,
-    R: np.ndarray,
-    settings: UncertaintySettings | None = None,
-) -> np.ndarray:
-    """Predicted corner smear (px) of every row's frames: median image speed of the detected
-    corners under the trajectory's motion, times the exposure (worst camera of the row)."""
-    s = settings or UncertaintySettings()
-    room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
-    omega, vel = trajectory_twist(t_out, pos, R)
-    views = _views_at(frames, exp, t_out, pos, R, omega, vel)
-    exposure = _exposures(frames, exp, s)
-    out = np.full(len(t_out), np.nan)
-    for k, vs in enumerate(views):
-        worst = np.nan
-        for v in vs:
-            speed = image_speed(v, room)
-            if not len(speed):
-                continue
-            sm = float(np.median(speed)) * exposure[v.camera]
-            worst = sm if not np.isfinite(worst) else max(worst, sm)
-        out[k] = worst
-    return out
-
-
-def image_speed(view: FrameView, room: MarkerRoom) -> np.ndarray:
-    """Image speed (px/s) of each detected map corner of one frame under the view's motion."""
-    idx = room.index(view.ids)
-    if not (idx >= 0).any():
-        return np.zeros(0)
-    J, _ = _pose_jacobian(view, room.corners_world[idx[idx >= 0]].reshape(-1, 3))
-    return np.zeros(0) if J is None else np.linalg.norm(J @ view.twist, axis=1)
-
-
-def _exposures(
-    frames: Sequence[VideoFrames], exp: Experiment, s: UncertaintySettings
-) -> dict[str, float]:
-    out = {}
-    for cf in frames:
-        cal = exp.rig.cameras[cf.camera].calibration
-        given = getattr(cal, "exposure_s", None)
-        out[cf.camera] = (
-            float(given)
-            if given is not None
-            else s.default_exposure_frac * float(cf.frame_interval)
-        )
-    return out
-
-
-def _pose_jacobian(v: FrameView, Xw: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
-    """(m, 2, 6) pixel Jacobian of world points w.r.t. the bundle pose, and their projections."""
-    K = v.cal.camera_matrix
-    focal = float(np.sqrt(K[0, 0] * K[1, 1]))
-    d = Xw - v.t_wb
-    Xc = (d @ v.R_wb - v.t_bc) @ v.R_bc
-    z = Xc[:, 2]
-    if np.any(z <= 1e-6):
-        return None, np.zeros((0, 2))
-    proj = Xc[:, :2] / z[:, None]
-    dp = np.zeros((len(z), 2, 3))
-    dp[:, 0, 0] = 1 / z
-    dp[:, 1, 1] = 1 / z
-    dp[:, :, 2] = -proj / z[:, None]
-    a = focal * dp @ (v.R_bc.T @ v.R_wb.T)
-    return np.concatenate([a @ _skew(d), -a], axis=2), proj
-
-
-def smear_weights(smear_px: np.ndarray, max_smear_px: float) -> np.ndarray:
-    """Measurement covariance multiplier per frame: 1 up to max_smear_px, (smear/max)^2 beyond,
-    inf (dropped) beyond three times max_smear_px; NaN smear -> 1."""
-    sm = np.nan_to_num(np.asarray(smear_px, float), nan=0.0)
-    f = np.maximum(1.0, (sm / max_smear_px) ** 2)
-    return np.where(sm > 3 * max_smear_px, np.inf, f)
-
-
-def total_sigma(
-    smoother_m: np.ndarray, u: RowUncertainty, settings: UncertaintySettings | None = None
-) -> dict[str, np.ndarray]:
-    """The trajectory's sigma columns: sigma_m (all parts in quadrature) and each part."""
-    s = settings or UncertaintySettings()
-    sm = np.asarray(smoother_m, float)
-    params = u.params_m
-    blur = np.nan_to_num(u.blur_m, nan=0.0)
-    floor = np.full(len(sm), s.unmodelled_m)
-    total = np.sqrt(sm**2 + np.nan_to_num(params, nan=0.0) ** 2 + blur**2 + floor**2)
-    total[~np.isfinite(sm)] = np.nan
-    out = {
-        "sigma_m": total,
-        "sigma_smoother_m": sm,
-        "sigma_params_m": params,
-        "sigma_blur_m": u.blur_m,
-        "sigma_unmodelled_m": np.where(np.isfinite(sm), floor, np.nan),
-        "smear_px": u.smear_px,
-    }
-    return out
-
-
-# sigma_m's parts (total_sigma's columns) in the words a user reads them in.
-SIGMA_PARTS = {
-    "sigma_params_m": "map, rig and lenses",
-    "sigma_smoother_m": "frame noise",
-    "sigma_blur_m": "motion blur",
-    "sigma_unmodelled_m": "unmodelled",
-}
-
-
-@dataclass(frozen=True, slots=True)
-class SigmaBudget:
-    """What sigma_m says of a trajectory: its median and p95 over the posed rows, and the median
-    of each part (per-axis 1-sigma, m)."""
-
-    median_m: float
-    p95_m: float
-    parts_m: dict[str, float]  # SIGMA_PARTS' columns present in the trajectory
-
-    @property
-    def largest(self) -> str:
-        """The column of the part that weighs most."""
-        return max(self.parts_m, key=lambda k: self.parts_m[k])
-
-    def as_dict(self) -> dict[str, object]:
-        return {"median": self.median_m, "p95": self.p95_m, "parts_median": dict(self.parts_m)}
-
-
-def sigma_budget(quality: Mapping[str, np.ndarray]) -> SigmaBudget | None:
-    """sigma_m's median, p95 and parts over the rows where it is finite; None without any."""
-    if "sigma_m" not in quality:
-        return None
-    total = np.asarray(quality["sigma_m"], float)
-    ok = np.isfinite(total)
-    if not ok.any():
-        return None
-    parts = {
-        col: float(np.nanmedian(np.asarray(quality[col], float)[ok]))
-        for col in SIGMA_PARTS
-        if col in quality and np.isfinite(np.asarray(quality[col], float)[ok]).any()
-    }
-    return SigmaBudget(float(np.median(total[ok])), float(np.percentile(total[ok], 95)), parts)
-
-
-def sync_time_sigma(clocks: Mapping[str, VideoClock], t_rssi: np.ndarray) -> np.ndarray:
-    """1-sigma uncertainty (s) of each RSSI time against the video clock: the worst camera's clock
-    map at that time (``annotator.core.sync.ClockMap.sigma_at``); 0 where no camera states one (manual
-    sync states none)."""
-    t = np.asarray(t_rssi, dtype=float)
-    out = np.zeros(t.shape)
-    for cm in clocks.values():
-        sig = np.asarray(cm.sigma_at(cm.to_video(t)), dtype=float)
-        out = np.fmax(out, np.broadcast_to(sig, t.shape))
-    return out
