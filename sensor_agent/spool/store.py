@@ -1,184 +1,41 @@
-"""The agent's on-disk spool: every encoded batch is appended here before it is published and kept
-until the collector acknowledges it, so an outage, a collector restart or an agent crash loses nothing.
-
-Layout of the spool directory (``docs/reliability.md`` describes it in prose)::
-
-    0000000000000001.seg   segments, append-only, numbered in write order
-    acks.json              per stream: the highest seq the collector has handled (temp + rename)
-    lock                   flock'ed while a Spool owns the directory
-
-A segment is a 20-byte header (``b"BGTSPOOL"``, version, reserved, segment number) followed by
-records; a record is ``b"BGTR"``, body length, CRC32 (of length + body), then the body
-``seq, t_ns, stream length, stream, payload``. The spool never interprets payloads.
-"""
+"""The spool itself: appending records durably, acknowledgements, dropping the oldest when full,
+replaying what is pending, and recovery when the directory is opened again."""
 
 from __future__ import annotations
 
-import errno
 import fcntl
 import json
 import logging
 import os
-import struct
 import threading
 import time
-import zlib
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from bgt_core.atomic import FileOps, fsync_dir, temp_path, write_all, write_atomic
-from sensor_agent.errors import AgentError
+from sensor_agent.spool.format import (
+    ACK_FILE,
+    DEFAULT_ACK_INTERVAL_S,
+    DEFAULT_FSYNC_INTERVAL_S,
+    DEFAULT_RETRY_INTERVAL_S,
+    DEFAULT_SEGMENT_BYTES,
+    DROP_WARNING_INTERVAL_S,
+    FULL_ERRNOS,
+    LOCK_FILE,
+    MAX_STREAM_BYTES,
+    SEG_HEAD,
+    SEGMENT_MAGIC,
+    SEGMENT_SUFFIX,
+    SEGMENT_VERSION,
+    Segment,
+    SpoolError,
+    SpoolStats,
+    encode_record,
+    scan_records,
+    segment_name,
+)
 
 log = logging.getLogger(__name__)
-
-SEGMENT_MAGIC = b"BGTSPOOL"
-SEGMENT_VERSION = 1
-RECORD_MAGIC = b"BGTR"
-# A batch is at most 4 MiB on the wire; anything claiming to be much larger is garbage.
-MAX_RECORD_BODY = 8 * 1024 * 1024
-MAX_STREAM_BYTES = 255
-
-DEFAULT_SEGMENT_BYTES = 8 * 1024 * 1024
-DEFAULT_FSYNC_INTERVAL_S = 0.2
-DEFAULT_ACK_INTERVAL_S = 1.0
-DEFAULT_RETRY_INTERVAL_S = 5.0
-DROP_WARNING_INTERVAL_S = 60.0
-
-ACK_FILE = "acks.json"
-LOCK_FILE = "lock"
-SEGMENT_SUFFIX = ".seg"
-
-_SEG_HEAD = struct.Struct("<8sHHQ")  # magic, version, reserved, segment number
-_REC_HEAD = struct.Struct("<4sII")  # magic, body length, crc32(length + body)
-_REC_BODY = struct.Struct("<qqB")  # seq, wall-clock ns at append, stream length
-_U32 = struct.Struct("<I")
-
-# Errors that mean "no room"; anything else (EIO, EROFS, ...) also pauses writing but is not "full".
-_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
-
-
-class SpoolError(AgentError):
-    """The spool directory cannot be used (not creatable, not writable, owned by another process)."""
-
-
-@dataclass(frozen=True, slots=True)
-class SpoolStats:
-    directory: str
-    bytes: int  # on disk, all segments
-    segments: int
-    records: int  # on disk and not yet acknowledged
-    streams: int  # streams with unacknowledged records
-    dropped_oldest: int  # unacknowledged records deleted to stay under max_bytes
-    unspooled: int  # batches that could not be written (disk full, write error, too large)
-    disk_full: bool  # the last write failed with ENOSPC/EDQUOT and writing is paused
-    writing: bool  # False while writing is paused after an error
-    last_error: str | None
-    recovered_bytes: int  # garbage skipped or truncated when the spool was opened
-    max_bytes: int
-
-
-# ---------------------------------------------------------------------------------------------
-# Records
-
-
-def encode_record(stream: str, seq: int, t_ns: int, payload: bytes) -> bytes:
-    """One record as written to a segment (header + body)."""
-    sb = stream.encode()
-    body = b"".join((_REC_BODY.pack(seq, t_ns, len(sb)), sb, payload))
-    n = _U32.pack(len(body))
-    return b"".join((RECORD_MAGIC, n, _U32.pack(zlib.crc32(body, zlib.crc32(n))), body))
-
-
-@dataclass(frozen=True, slots=True)
-class _Rec:
-    start: int
-    end: int
-    seq: int
-    t_ns: int
-    stream: str
-    payload_start: int
-
-
-def _parse_at(data: bytes, off: int) -> _Rec | None:
-    """The valid record starting exactly at ``off``, or None."""
-    if len(data) - off < _REC_HEAD.size + _REC_BODY.size:
-        return None
-    magic, n, crc = _REC_HEAD.unpack_from(data, off)
-    if magic != RECORD_MAGIC or n < _REC_BODY.size or n > MAX_RECORD_BODY:
-        return None
-    b0 = off + _REC_HEAD.size
-    end = b0 + n
-    if end > len(data):
-        return None
-    body = memoryview(data)[b0:end]
-    if zlib.crc32(body, zlib.crc32(data[off + 4 : off + 8])) != crc:
-        return None
-    seq, t_ns, slen = _REC_BODY.unpack_from(body, 0)
-    p0 = b0 + _REC_BODY.size + slen
-    if p0 > end:
-        return None
-    try:
-        stream = bytes(body[_REC_BODY.size : _REC_BODY.size + slen]).decode()
-    except UnicodeDecodeError:
-        return None
-    return _Rec(off, end, seq, t_ns, stream, p0)
-
-
-def _scan(data: bytes, start: int) -> Iterator[_Rec]:
-    """Every valid record from ``start``; a damaged stretch is skipped by searching for the next
-    record magic whose CRC checks out (a false match needs a CRC32 collision)."""
-    off = start
-    while off < len(data):
-        rec = _parse_at(data, off)
-        if rec is not None:
-            yield rec
-            off = rec.end
-            continue
-        nxt = data.find(RECORD_MAGIC, off + 1)
-        while nxt != -1 and _parse_at(data, nxt) is None:
-            nxt = data.find(RECORD_MAGIC, nxt + 1)
-        if nxt == -1:
-            return
-        off = nxt
-
-
-# ---------------------------------------------------------------------------------------------
-# Segments (in memory: what each one holds, never the payloads)
-
-
-@dataclass(slots=True)
-class _Segment:
-    number: int
-    path: Path
-    size: int
-    records: int = 0
-    # stream -> contiguous seq runs [[first, last], ...]; gaps (batches not spooled) are rare.
-    runs: dict[str, list[list[int]]] = field(default_factory=dict)
-    fd: int | None = None  # open only for the segment being appended to
-
-    def add(self, stream: str, seq: int) -> None:
-        self.records += 1
-        rs = self.runs.setdefault(stream, [])
-        if rs and rs[-1][1] + 1 == seq:
-            rs[-1][1] = seq
-        else:
-            rs.append([seq, seq])
-
-    def unacked(self, acked: dict[str, int]) -> int:
-        n = 0
-        for stream, rs in self.runs.items():
-            a = acked.get(stream, -1)
-            n += sum(max(0, last - max(first - 1, a)) for first, last in rs)
-        return n
-
-    def unacked_streams(self, acked: dict[str, int]) -> set[str]:
-        return {s for s, rs in self.runs.items() if max(r[1] for r in rs) > acked.get(s, -1)}
-
-
-def _segment_name(number: int) -> str:
-    return f"{number:016d}{SEGMENT_SUFFIX}"
-
 
 # ---------------------------------------------------------------------------------------------
 # The spool
@@ -226,8 +83,8 @@ class Spool:
         self._files = files or FileOps()
         self._lock = threading.RLock()
 
-        self._segments: list[_Segment] = []  # oldest first; the last may be the active one
-        self._active: _Segment | None = None
+        self._segments: list[Segment] = []  # oldest first; the last may be the active one
+        self._active: Segment | None = None
         self._acked: dict[str, int] = {}
         self._acks_dirty = False
         self._bytes = 0
@@ -320,18 +177,18 @@ class Spool:
                 self._recovered,
             )
 
-    def _recover_segment(self, number: int, path: Path) -> _Segment | None:
+    def _recover_segment(self, number: int, path: Path) -> Segment | None:
         """Index one segment; cut a torn tail back to the last whole record."""
         try:
             data = path.read_bytes()
         except OSError as e:
             raise SpoolError(f"spool segment {path} is not readable: {e.strerror}") from e
-        if len(data) < _SEG_HEAD.size:
+        if len(data) < SEG_HEAD.size:
             # Created but the header never made it to disk: it holds nothing.
             self._recovered += len(data)
             path.unlink()
             return None
-        magic, version, _, _ = _SEG_HEAD.unpack_from(data, 0)
+        magic, version, _, _ = SEG_HEAD.unpack_from(data, 0)
         if magic != SEGMENT_MAGIC or version != SEGMENT_VERSION:
             # Not ours to delete; set aside so it neither blocks nor counts against the budget.
             bad = path.with_name(path.name + ".bad")
@@ -344,9 +201,9 @@ class Spool:
                 bad.name,
             )
             return None
-        seg = _Segment(number, path, _SEG_HEAD.size)
-        expect = _SEG_HEAD.size
-        for rec in _scan(data, _SEG_HEAD.size):
+        seg = Segment(number, path, SEG_HEAD.size)
+        expect = SEG_HEAD.size
+        for rec in scan_records(data, SEG_HEAD.size):
             self._recovered += rec.start - expect
             seg.add(rec.stream, rec.seq)
             expect = seg.size = rec.end
@@ -382,7 +239,7 @@ class Spool:
                 self._not_spooled()
                 return False
             rec = encode_record(stream, seq, self._wall_ns(), bytes(payload))
-            if len(rec) + _SEG_HEAD.size > self.max_bytes:
+            if len(rec) + SEG_HEAD.size > self.max_bytes:
                 log.warning(
                     "spool %s: a %d-byte batch is larger than the whole spool; not spooled",
                     self.directory,
@@ -411,21 +268,21 @@ class Spool:
         self._unspooled += 1
         self._unspooled_in_pause += 1
 
-    def _roll(self) -> _Segment:
+    def _roll(self) -> Segment:
         """Close the active segment (fsynced) and start the next one."""
         if self._active is not None:
             self._close_active(sync=True)
         number = self._segments[-1].number + 1 if self._segments else 1
-        path = self.directory / _segment_name(number)
+        path = self.directory / segment_name(number)
         fd = self._files.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND)
-        head = _SEG_HEAD.pack(SEGMENT_MAGIC, SEGMENT_VERSION, 0, number)
+        head = SEG_HEAD.pack(SEGMENT_MAGIC, SEGMENT_VERSION, 0, number)
         try:
             self._write_all(fd, head)
         except OSError:
             self._files.close(fd)
             path.unlink(missing_ok=True)
             raise
-        seg = _Segment(number, path, len(head), fd=fd)
+        seg = Segment(number, path, len(head), fd=fd)
         self._segments.append(seg)
         self._active = seg
         self._bytes += seg.size
@@ -435,7 +292,7 @@ class Spool:
     def _write_all(self, fd: int, data: bytes) -> None:
         write_all(self._files, fd, data)
 
-    def _write_record(self, seg: _Segment, rec: bytes) -> None:
+    def _write_record(self, seg: Segment, rec: bytes) -> None:
         assert seg.fd is not None
         start = seg.size
         try:
@@ -457,7 +314,7 @@ class Spool:
         self._bytes += len(rec)
 
     def _write_failed(self, e: OSError, now: int) -> None:
-        full = e.errno in _FULL_ERRNOS
+        full = e.errno in FULL_ERRNOS
         self._last_error = f"{os.strerror(e.errno) if e.errno else e}"
         if self._paused_until is None:
             if full:
@@ -491,7 +348,7 @@ class Spool:
     def _make_room(self, need: int, now: int) -> None:
         """Drop the oldest segments until ``need`` more bytes (maybe in a new segment) fit."""
         dropped = 0
-        while self._segments and self._bytes + need + _SEG_HEAD.size > self.max_bytes:
+        while self._segments and self._bytes + need + SEG_HEAD.size > self.max_bytes:
             seg = self._segments[0]
             if seg is self._active:
                 self._close_active(sync=False)
@@ -524,7 +381,7 @@ class Spool:
             seg.fd = None
             self._active = None
 
-    def _delete_segment(self, seg: _Segment) -> None:
+    def _delete_segment(self, seg: Segment) -> None:
         if seg is self._active:
             self._close_active(sync=False)
         seg.path.unlink(missing_ok=True)
@@ -626,7 +483,7 @@ class Spool:
                 continue
             with self._lock:
                 acked = dict(self._acked)
-            for rec in _scan(data, _SEG_HEAD.size):
+            for rec in scan_records(data, SEG_HEAD.size):
                 if rec.seq > acked.get(rec.stream, -1):
                     yield rec.stream, rec.seq, data[rec.payload_start : rec.end]
 
