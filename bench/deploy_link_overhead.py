@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import socket
+import sys
 import tempfile
 import threading
 import time
@@ -25,13 +25,10 @@ from bgt_core.zenoh_config import SessionSpec, TlsFiles, build_config
 from deploy import pki
 from deploy.acl import build_acl
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "support"))
+from loopback import free_port  # noqa: E402 - the tests' port helper, on the path above
+
 SITE = "default"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def make_payload(seq: int, n: int) -> bytes:

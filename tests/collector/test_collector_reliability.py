@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import base64
 import json
-import os
 import re
 import socket
 import subprocess
@@ -33,6 +32,7 @@ from collector_helpers import (
     wait_for,
     with_floor,
 )
+from full_disk import SwitchableDisk
 
 A, B = "b827eb4521b4", "000000000101"
 S = ("pi-01", "0123456789abcdef", A)
@@ -269,20 +269,6 @@ def test_restart_resumes_the_same_run_without_loss_or_duplicates(tmp_path, endpo
     doc = run_yaml(run["run_dir"])
     assert (doc["restarts"], doc["readings"], doc["missing_batches"]) == (1, 150, 0)
     assert json.loads((Path(run["run_dir"]) / STATE_FILE).read_text())["active"] is False
-
-
-class SwitchableDisk:
-    """os.write that, while `full`, writes a few bytes and then fails with ENOSPC (like a disk)."""
-
-    def __init__(self) -> None:
-        self.full = False
-
-    def __call__(self, fd: int, data: bytes) -> int:
-        if self.full:
-            if len(data) > 3:
-                return os.write(fd, data[:3])
-            raise OSError(28, "No space left on device")
-        return os.write(fd, data)
 
 
 def test_disk_full_holds_acks_and_resumes_without_loss(make_collector, agent) -> None:

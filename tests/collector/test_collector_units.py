@@ -3,7 +3,6 @@ run directories and config files."""
 
 from __future__ import annotations
 
-import os
 import struct
 
 import pytest
@@ -17,6 +16,7 @@ from collector.errors import CollectorError, ConfigError
 from collector.ingest import RejectCounter, StreamTracker, decode, format_rows, reject_reason
 from collector.store import RunWriter, clean_name, list_runs, make_run_id
 from collector_helpers import make_batch
+from full_disk import SwitchableDisk
 
 # -- decode ------------------------------------------------------------------------------------
 
@@ -285,22 +285,8 @@ def test_config_insecure_allows_lan_listen(tmp_path) -> None:
     assert cfg.listen == ("tcp/0.0.0.0:7447",)
 
 
-class _Disk:
-    """os.write with a switch: when full, a write gets some bytes in, then fails like ENOSPC."""
-
-    def __init__(self) -> None:
-        self.full = False
-
-    def __call__(self, fd: int, data: bytes) -> int:
-        if self.full:
-            if len(data) > 7:
-                return os.write(fd, data[:7])  # a partial write first, as a real disk may do
-            raise OSError(28, "No space left on device")
-        return os.write(fd, data)
-
-
 def test_failed_write_keeps_rows_for_the_retry(tmp_path) -> None:
-    disk = _Disk()
+    disk = SwitchableDisk(partial=7)
     w = RunWriter(tmp_path, "r", "r", 1_795_318_500 * 10**9, {}, write=disk)
     b = make_batch(0, n=3)
     rows = decode(wire.to_wire(b)).rows

@@ -9,7 +9,7 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import pytest
 
@@ -25,6 +25,7 @@ dbus = pytest.importorskip("dbus")
 dbusmock = pytest.importorskip("dbusmock")
 
 from bgt_core.wire import IBeacon, Reading  # noqa: E402
+from polling import wait_for_async as wait_for  # noqa: E402
 from sensor_agent.errors import BackendError  # noqa: E402
 from sensor_agent.scanning.bleak_backend import BleakBackend, list_adapters  # noqa: E402
 
@@ -82,14 +83,6 @@ def ibeacon_md(major: int, minor: int, tx: int = -59) -> dbus.Dictionary:
 
 def device(path: str):
     return dbusmock.DBusTestCase.get_dbus(True).get_object("org.bluez", path)
-
-
-async def wait_for(cond: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.01)
 
 
 def test_two_adapters_listed_with_their_dbus_addresses(bluez) -> None:

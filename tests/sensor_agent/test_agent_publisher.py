@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
-
 import zenoh
 
 from bgt_core import wire
 from bgt_core.wire import Reading
 from bgt_core.zenoh_config import SessionSpec, build_config
+from polling import wait_for
 from sensor_agent.publisher import Publisher
 
 SENSOR = "b827eb4521b4"
@@ -18,13 +16,6 @@ T = 1_700_000_000 * 10**9
 
 def make_reading(i: int) -> Reading:
     return Reading(T + i * 1000, "e78f135624ce", -60 - i, i + 1)
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.01)
 
 
 def test_batches_seqs_and_acks(endpoint: str) -> None:

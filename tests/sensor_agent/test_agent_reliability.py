@@ -5,8 +5,6 @@ come again, unacknowledged batches are re-sent after an outage, and the clock qu
 from __future__ import annotations
 
 import asyncio
-import errno
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -17,9 +15,10 @@ import zenoh
 
 from agent_testing import FakeCollector
 from bgt_core import wire
-from bgt_core.atomic import FileOps
 from bgt_core.wire import Reading
 from bgt_core.zenoh_config import SessionSpec, build_config
+from full_disk import QuotaFiles
+from polling import wait_for
 from sensor_agent.app import Agent
 from sensor_agent.clockhealth import parse_chronyc_tracking
 from sensor_agent.config import AgentConfig, SpoolConfig
@@ -34,19 +33,6 @@ T = 1_700_000_000 * 10**9
 
 def make_reading(i: int) -> Reading:
     return Reading(T + i * 1000, "e78f135624ce", -40 - i % 60, i + 1)
-
-
-def wait_for(
-    cond: Callable[[], bool], timeout_s: float = 15.0, poll: Callable[[], None] | None = None
-) -> None:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if poll is not None:
-            poll()
-        if cond():
-            return
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.01)
 
 
 def router(endpoint: str) -> zenoh.Session:
@@ -390,24 +376,6 @@ def test_chronyc_tracking_partial_or_garbage() -> None:
     )
 
 
-class FullDisk(FileOps):
-    """Writes fail with ENOSPC once ``free`` bytes are used (the spool's fault-injection seam)."""
-
-    def __init__(self, free: int) -> None:
-        self.free = free
-
-    def write(self, fd: int, data: bytes | memoryview) -> int:
-        if self.free <= 0:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        n = min(len(data), self.free)
-        self.free -= n
-        return os.write(fd, data[:n])
-
-    def ftruncate(self, fd: int, length: int) -> None:
-        self.free += os.fstat(fd).st_size - length
-        os.ftruncate(fd, length)
-
-
 def test_full_disk_under_the_spool_still_publishes_and_can_resend(
     endpoint: str, tmp_path: Path
 ) -> None:
@@ -416,7 +384,7 @@ def test_full_disk_under_the_spool_still_publishes_and_can_resend(
     r = router(endpoint)
     sub = r.declare_subscriber(wire.data_selector("lab"))
     c = client(endpoint)
-    spool = Spool(tmp_path / "spool", 1 << 20, files=FullDisk(2000), fsync_interval_s=None)
+    spool = Spool(tmp_path / "spool", 1 << 20, files=QuotaFiles(2000), fsync_interval_s=None)
     t = [0]
     pub = Publisher(
         c,

@@ -9,13 +9,13 @@ import signal
 import socket
 import subprocess
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 from agent_testing import AGENT, FakeCollector, agent_env
 from bgt_core import wire
+from polling import wait_for
 from sensor_agent.spool import Spool
 
 pytestmark = pytest.mark.slow
@@ -40,19 +40,6 @@ def write_config(tmp_path: Path, endpoint: str) -> Path:
         )
     )
     return cfg
-
-
-def wait_for(
-    cond: Callable[[], bool], timeout_s: float, poll: Callable[[], None] | None = None
-) -> None:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if poll is not None:
-            poll()
-        if cond():
-            return
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.02)
 
 
 def spooled(spool_dir: Path) -> dict[tuple[str, str, int], bytes]:

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from bgt_core import wire
-from bgt_core.atomic import FileOps
+from full_disk import QuotaFiles
 from sensor_agent.spool import (
     ACK_FILE,
     SEGMENT_SUFFIX,
@@ -410,26 +410,6 @@ def test_batch_larger_than_the_budget_is_refused(tmp_path: Path) -> None:
 
 # ---------------------------------------------------------------------------------------------
 # Full disk
-
-
-class QuotaFiles(FileOps):
-    """A filesystem with ``free`` bytes left: short writes, then ENOSPC (like the kernel)."""
-
-    def __init__(self, free: int) -> None:
-        self.free = free
-        self.writes = 0
-
-    def write(self, fd: int, data: bytes | memoryview) -> int:
-        self.writes += 1
-        if self.free <= 0:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        n = min(len(data), self.free)
-        self.free -= n
-        return os.write(fd, data[:n])
-
-    def ftruncate(self, fd: int, length: int) -> None:
-        self.free += os.fstat(fd).st_size - length
-        os.ftruncate(fd, length)
 
 
 def test_full_disk_stops_cleanly_and_resumes(

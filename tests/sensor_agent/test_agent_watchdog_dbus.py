@@ -7,8 +7,7 @@ from __future__ import annotations
 import asyncio
 import os
 import shutil
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -25,6 +24,7 @@ dbus = pytest.importorskip("dbus")
 dbusmock = pytest.importorskip("dbusmock")
 
 from bgt_core.wire import Reading  # noqa: E402
+from polling import wait_for_async as wait_for  # noqa: E402
 from sensor_agent.scanning.bleak_backend import BleakBackend  # noqa: E402
 
 DEVICE_IFACE = "org.bluez.Device1"
@@ -84,13 +84,6 @@ async def advert(path: str, rssi: int) -> None:
         {"RSSI": dbus.Int16(rssi)},
         dbus_interface=dbusmock.MOCK_IFACE,
     )
-
-
-async def wait_for(cond: Callable[[], bool], timeout_s: float = 15.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, "condition not met in time"
-        await asyncio.sleep(0.02)
 
 
 def test_silent_adapter_is_restarted_and_resumes(bluez) -> None:

@@ -12,6 +12,7 @@ import time
 import pytest
 
 from bgt_core.wire import IBeacon, Reading
+from polling import wait_for_async as wait_for
 from sensor_agent.errors import BackendError
 from sensor_agent.scanning import mgmt_protocol as mp
 from sensor_agent.scanning.mgmt_backend import MgmtBackend, MgmtUnavailable, open_mgmt_socket
@@ -25,14 +26,6 @@ from tests.sensor_agent.fake_kernel import (
 HCI0, HCI1 = "b827eb4521b4", "dca632000001"
 BEACON = "e78f135624ce"
 UUID = bytes(range(16)).hex()
-
-
-async def wait_for(cond, timeout_s: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.005)
 
 
 def run_with_kernel(kernel: FakeKernel, body, adapters=()) -> tuple[MgmtBackend, list]:

@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections.abc import Callable
 
 import zenoh
 
 from bgt_core import wire
 from bgt_core.zenoh_config import SessionSpec, TlsFiles, build_config
+from polling import wait_for  # noqa: F401 - the collector tests import it from here
 
 T0 = 1_700_000_000_123_456_789
 
@@ -59,17 +59,6 @@ def run_yaml_doc(run_dir) -> dict:
     import yaml
 
     return yaml.safe_load((Path(run_dir) / "run.yaml").read_text(encoding="utf-8"))
-
-
-def wait_for(cond: Callable[[], object], timeout: float = 20.0, what: str = "condition") -> object:
-    """Poll until cond() is truthy; generous deadline because the test machine is shared."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = cond()
-        if v:
-            return v
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 class FakeAgent:

@@ -32,6 +32,7 @@ from bgt_core import wire
 from bgt_core.formats.mbd import format_row, parse_line
 from collector.errors import CollectorError
 from loopback import free_port  # noqa: F401 - also the bench's port helper
+from polling import wait_for
 
 log = logging.getLogger(__name__)
 
@@ -49,14 +50,7 @@ def _command(script: str, module: str) -> list[str]:
 
 def wait_until(cond: Callable[[], Any], timeout: float, what: str, interval: float = 0.1) -> Any:
     """Poll cond() until it returns something truthy; AssertionError naming `what` at the deadline."""
-    end = time.monotonic() + timeout
-    while True:
-        v = cond()
-        if v:
-            return v
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
-        time.sleep(interval)
+    return wait_for(cond, timeout, what, step=interval)
 
 
 def _tail(path: Path, n: int = 40) -> str:

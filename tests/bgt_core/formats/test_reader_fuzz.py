@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -176,10 +177,34 @@ def test_only_the_documented_error_escapes(tmp_path_factory, sample, name, reade
     ("sample", "name", "reader", "error"), READERS, ids=[r[1] for r in READERS]
 )
 def test_the_unmangled_samples_are_read(tmp_path: Path, sample, name, reader, error):
-    """The fuzz starts from files the readers accept (else it would test nothing but errors)."""
+    """The fuzz starts from files the readers accept (else it would test nothing but errors), and
+    each is read whole: the content checked against what the sample holds."""
     path = tmp_path / name
     path.write_bytes(SAMPLES[sample])
-    assert reader(path) is not None
+    assert READ_WHOLE[name](reader(path)), name
+
+
+def _lines(sample: str) -> int:
+    return sum(1 for line in SAMPLES[sample].splitlines() if line.strip())
+
+
+# What reading each unmangled sample must give (a row per line, the keys it names).
+READ_WHOLE: dict[str, Callable[[Any], bool]] = {
+    "a.mbd": lambda df: len(df) == _lines("mbd") and {"x", "y", "z"} <= set(df.columns),
+    "b.mbd": lambda rows: len(rows) == _lines("fpt") and rows[0].sensor == "b827eb4521b4",
+    "a.hst": lambda h: (
+        list(h.fingerprints) == [(1.0, 2.0, 1.0)] and list(h.devices.dongles) == ["000000000101"]
+    ),
+    "a.grd": lambda g: g.sensor == "000000000101" and list(g.cells) == [(0.0, 0.0)],
+    "a.occ": lambda o: o.cell == 1.0 and len(o.cells) > 0,
+    "a.dev": lambda d: (len(d.dongles), len(d.beacons)) == (12, 1),
+    "a.par": lambda p: p.origin == (22.0, 9.0) and p.parity > 0,
+    "a.dat": lambda m: len(m) == _lines("dat"),
+    "m.yaml": lambda m: list(m) == [3],
+    "cal.yaml": lambda c: (c.width, c.height, c.camera_matrix[0, 0]) == (960, 540, 620.0),
+    "any.yaml": lambda d: d["image_width"] == 960 and len(d) == 5,
+    "trajectory.csv": lambda t: len(t) == 2 and int(t.valid.sum()) == 1,
+}
 
 
 GRD_HEAD = f"000000000101::[[0.0, 0.0], [2.0, 2.0]]::1.0::{BINS}\n"
