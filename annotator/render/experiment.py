@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from annotator.core.rolling_shutter import row_delay
 from annotator.render.camera import (
     RIG_EXTRINSICS,
     CameraModel,
@@ -279,7 +280,7 @@ def render_experiment(
             raise ValueError(f"time span {t1 - t0:.3f} s leaves no frames for the {name} camera")
         band_rows = rolling_bands(cam.height, readout)
         # Global shutter: the frame is seen at its stamp; rolling: at its middle row's time.
-        mid = readout * (cam.height - 1) / (2 * cam.height)
+        mid = float(row_delay((cam.height - 1) / 2, cam.height, readout))
         r, c = _camera_poses(pose_at, times, name)
         ro, co = _camera_poses(pose_at, times + mid - exposure / 2, name)
         rc, cc = _camera_poses(pose_at, times + mid + exposure / 2, name)
@@ -290,7 +291,7 @@ def render_experiment(
             rb, cb = rb.reshape(len(times), len(offs), 3, 3), cb.reshape(len(times), len(offs), 3)
         gains = None
         if flicker > 0:
-            row_t = times[:, None] + readout * np.arange(cam.height)[None, :] / cam.height
+            row_t = times[:, None] + row_delay(np.arange(cam.height), cam.height, readout)[None, :]
             gains = flicker_gain(row_t, flicker, flicker_hz, flicker_phase).astype(np.float32)
         job_list.append(
             CameraJob(

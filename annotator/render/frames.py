@@ -10,6 +10,7 @@ from queue import Queue
 import cv2
 import numpy as np
 
+from annotator.core.rolling_shutter import row_delay
 from annotator.render.camera import CameraModel, build_distortion_map
 from annotator.render.effects import (
     CameraImaging,
@@ -277,4 +278,4 @@ def rolling_bands(height: int, readout: float) -> tuple[int, ...]:
 def row_time_offsets(band_rows: Sequence[int], height: int, readout: float) -> np.ndarray:
     """Time after the frame stamp at which each band's middle row is seen: row v at readout*v/height."""
     rows = np.asarray(band_rows, float)
-    return readout * ((rows[:-1] + rows[1:] - 1) / 2) / height
+    return row_delay((rows[:-1] + rows[1:] - 1) / 2, height, readout)

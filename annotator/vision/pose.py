@@ -15,6 +15,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from annotator.core.experiment import CameraCalibration
+from annotator.core.rolling_shutter import moved_points
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom, camera_to_bundle, ippe_square, pnp_to_camera
 from annotator.vision.lens import undistort_points
@@ -100,16 +101,9 @@ def rolling_shutter_points(
     omega: np.ndarray,
     vel: np.ndarray,
 ) -> np.ndarray:
-    """World points (..., 3) moved by the bundle's motion over each pixel's readout delay.
-
-    Bundle at t + tau: R(tau) = exp(omega tau) R_wb, p(tau) = p_wb + vel tau. A point X seen at
-    t + tau lands where X' = p + exp(-omega tau) (X - p - vel tau) lands at t.
-    """
-    tau = cal.readout_s * pixels[..., 1].reshape(-1) / cal.height
-    X = world.reshape(-1, 3)
-    back = Rotation.from_rotvec(-tau[:, None] * np.asarray(omega)[None, :])
-    moved = p_wb + back.apply(X - p_wb - tau[:, None] * np.asarray(vel)[None, :])
-    return moved.reshape(world.shape)
+    """World points (..., 3) moved by the bundle's motion over each pixel's readout delay
+    (annotator.core.rolling_shutter.moved_points with this camera's height and readout)."""
+    return moved_points(world, pixels, cal.height, cal.readout_s, R_wb, p_wb, omega, vel)
 
 
 def _subset(obs: CameraObservation, keep: np.ndarray) -> CameraObservation:

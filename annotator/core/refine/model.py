@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from annotator.core.priors import ParameterCovariance, Priors
+from annotator.core.rolling_shutter import row_delay
 from annotator.vision.geometry import marker_corners_local
 
 if TYPE_CHECKING:
@@ -279,7 +280,8 @@ class _Model:
         quad = o.uv.reshape(-1, 4, 2)
         d = quad - quad.mean(axis=1, keepdims=True)
         self.diag = (d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-9)).reshape(-1, 2)
-        self.row = o.uv[:, 1] / np.array([c.height for c in cams])[o.camera]
+        # Each corner's delay after its frame stamp per second of readout (its row's share).
+        self.row = row_delay(o.uv[:, 1], np.array([c.height for c in cams])[o.camera], 1.0)
         self.models = sorted({c.model for c in cams})
         self.cam_model = np.array([c.model for c in cams])
         self._cache: dict[str, tuple[bytes, Any]] = {}
@@ -346,7 +348,7 @@ class _Model:
         )  # R_k^T (X - p_k)
 
         def motion() -> tuple[np.ndarray, np.ndarray]:
-            tau = v["readout"][o.camera] * self.row
+            tau = v["readout"][o.camera] * self.row  # row_delay(row, height, readout)
             return _rot(o.omega * tau[:, None]) @ o.R_D, o.t_D + o.vel * tau[:, None]
 
         R_D, t_D = self._stage("motion", v["readout"], motion)

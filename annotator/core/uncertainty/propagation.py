@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from annotator.core.experiment import CameraCalibration, Experiment
 from annotator.core.priors import ParameterCovariance
+from annotator.core.rolling_shutter import row_delay
 from annotator.core.uncertainty.records import BLOCKS, UncertaintySettings, VideoFrames
 from annotator.vision.geometry import MarkerRoom, marker_corners_local
 from annotator.vision.lens import undistort_points
@@ -200,7 +201,7 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
             Bi[:, 4 + j] = -focal * ((xp - xm).reshape(-1, 2) / (2 * steps[j])).ravel()
     # Readout: row v is seen readout * v / H later; dr/dreadout = -J twist * v / H.
     img_vel = J @ v.twist  # (m, 2) pixels per second
-    rows_frac = pix.reshape(-1, 2)[:, 1] / v.cal.height
+    rows_frac = row_delay(pix.reshape(-1, 2)[:, 1], v.cal.height, 1.0)
     Bro = -(img_vel * rows_frac[:, None]).reshape(-1)
     # Corner bias: a larger bias moves every corrected corner further towards its square's centre.
     # Only a refinement's joint record correlates the bias with the rest (see _row_joint).
