@@ -18,6 +18,31 @@ if TYPE_CHECKING:
     import zenoh
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+# A Zenoh locator: PROTOCOL/ADDRESS, optionally ?config and #metadata. Every protocol but the
+# Unix-socket ones needs HOST:PORT (an IPv6 host in brackets).
+_ENDPOINT_RE = re.compile(r"^(?P<proto>[a-z][a-z0-9+-]*)/(?P<addr>[^\s?#]+)(\?[^\s#]*)?(#\S*)?$")
+_HOST_PORT_RE = re.compile(r"^(?P<host>\[[0-9A-Fa-f:.]+\]|[^\s:\[\]/]+):(?P<port>[0-9]{1,5})$")
+
+
+def endpoint_problem(value: object) -> str | None:
+    """Why ``value`` is not a Zenoh endpoint the suite accepts (agent ``connect``, collector
+    ``listen``, every ``--connect``/``--listen``), or None: the one endpoint rule."""
+    if not isinstance(value, str):
+        return f"must be a string like tcp/192.168.1.10:7447, got {type(value).__name__}"
+    m = _ENDPOINT_RE.match(value)
+    if m is None:
+        return f"must look like tcp/HOST:PORT (e.g. tcp/192.168.1.10:7447), got {value[:80]!r}"
+    if m["proto"].startswith("unixsock"):
+        return None
+    hp = _HOST_PORT_RE.match(m["addr"])
+    if hp is None:
+        return f"needs HOST:PORT after {m['proto']}/, got {value[:80]!r}"
+    if not 0 < int(hp["port"]) <= 65535:
+        return f"port {hp['port']} is outside 1..65535 in {value[:80]!r}"
+    return None
+
+
 # Largest message a session accepts: a maximum batch (wire.MAX_PAYLOAD_BYTES, 4 MiB) plus room
 # for its key and Zenoh's headers. Larger messages are refused while they arrive, before Zenoh
 # reassembles them (its default would let 1 GiB through).

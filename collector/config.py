@@ -15,6 +15,7 @@ from bgt_core.zenoh_config import (
     DEFAULT_ENDPOINT,
     SessionSpec,
     TlsFiles,
+    endpoint_problem,
     insecure_endpoints,
 )
 from collector.errors import ConfigError
@@ -136,8 +137,9 @@ class CollectorConfig:
 
 
 def _check_endpoint(ep: Any, where: str, field: str) -> None:
-    if not isinstance(ep, str) or "/" not in ep or ":" not in ep.partition("/")[2]:
-        raise ConfigError(f"{where}: {field} entries must look like tcp/HOST:PORT, got {ep!r}")
+    problem = endpoint_problem(ep)
+    if problem is not None:
+        raise ConfigError(f"{where}: {field} entry {problem}")
 
 
 def load_config(path: str | Path) -> CollectorConfig:

@@ -15,12 +15,11 @@ from typing import Any
 from bgt_core.keys import unknown_key
 from bgt_core.motion import COVER_KEYS, PATH_KEYS, CoverEvent, MotionError, PathModel
 from bgt_core.wire import WireError, check_id, normalize_mac
-from bgt_core.zenoh_config import DEFAULT_ENDPOINT, TlsFiles
+from bgt_core.zenoh_config import DEFAULT_ENDPOINT, TlsFiles, endpoint_problem
 from sensor_agent.errors import ConfigError
 
 BACKENDS = ("auto", "mgmt", "bleak", "replay", "simulated")
 SCAN_MODES = ("active", "passive")
-_ENDPOINT_RE = re.compile(r"^[a-z0-9+-]+/\S+$")
 _UUID_RE = re.compile(r"^[0-9a-f]{32}$")
 _ADAPTER_NAME_RE = re.compile(r"^hci[0-9]+$")
 
@@ -250,10 +249,9 @@ class _Fields:
 
 
 def check_endpoint(value: str, name: str = "connect", source: str = "command line") -> str:
-    if not isinstance(value, str) or not _ENDPOINT_RE.match(value):
-        raise ConfigError(
-            f"{source}: {name} must be a Zenoh endpoint like 'tcp/192.168.1.10:7447', got {value!r}"
-        )
+    problem = endpoint_problem(value)
+    if problem is not None:
+        raise ConfigError(f"{source}: {name} {problem}")
     return value
 
 

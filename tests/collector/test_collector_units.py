@@ -261,7 +261,10 @@ def test_config_overrides() -> None:
         ("colour: red\n", "collector.yaml: unknown key 'colour'"),
         ("fsync_interval_s: soon\n", "collector.yaml: fsync_interval_s must be a number"),
         ("insecure: 1\n", "collector.yaml: insecure must be true or false"),
-        ("listen: [7447]\n", "collector.yaml: listen entries must look like tcp/HOST:PORT"),
+        (
+            "listen: [7447]\n",
+            "collector.yaml: listen entry must be a string like tcp/192.168.1.10:7447",
+        ),
         (
             "listen: [tcp/192.168.1.10:7447]\n",
             "tcp/192.168.1.10:7447 is unencrypted beyond this machine",

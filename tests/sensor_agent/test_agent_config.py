@@ -85,7 +85,7 @@ def test_empty_file_gives_defaults(tmp_path: Path) -> None:
         ),
         ("scan_mode: loud", "agent.yaml: scan_mode must be active | passive"),
         ("connect: tcp/1.2.3.4:7447", "agent.yaml: connect must be a list of strings"),
-        ("connect: [localhost]", "agent.yaml: connect[0] must be a Zenoh endpoint"),
+        ("connect: [localhost]", "agent.yaml: connect[0] must look like tcp/HOST:PORT"),
         ("adapters: [hci0, nonsense]", "agent.yaml: adapters[1] must be a MAC address"),
         ("allow: {macs: [zz]}", "agent.yaml: allow.macs[0] must be a MAC address"),
         (
@@ -151,7 +151,7 @@ def test_flags_override_the_file(tmp_path: Path) -> None:
 
 def test_bad_flags_are_one_line() -> None:
     cfg = parse_config({})
-    with pytest.raises(ConfigError, match="command line: --connect must be a Zenoh endpoint"):
+    with pytest.raises(ConfigError, match="command line: --connect must look like tcp/HOST:PORT"):
         with_overrides(cfg, connect=["7447"])
     with pytest.raises(ConfigError, match="replay backend needs files"):
         with_overrides(cfg, backend="replay")
