@@ -10,7 +10,7 @@ import signal
 import threading
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
@@ -23,6 +23,10 @@ from bgt_core.display import shown
 from bgt_core.wire import WireError
 from collector.errors import CollectorError, ConfigError
 from collector.fleet import app as fleet_app
+
+if TYPE_CHECKING:
+    from collector.client import CollectorClient
+    from collector.config import CollectorConfig
 
 app = typer.Typer(
     name="collector",
@@ -82,7 +86,7 @@ def _load(
     listen: list[str] | None,
     site: str | None,
     insecure: bool,
-):
+) -> CollectorConfig:
     from collector.config import CollectorConfig, load_config
 
     cfg = load_config(config) if config is not None else CollectorConfig()
@@ -194,7 +198,9 @@ def record(
         collector.close()
 
 
-def _client(connect: str, site: str, root_ca: Path | None, cert: Path | None, key: Path | None):
+def _client(
+    connect: str, site: str, root_ca: Path | None, cert: Path | None, key: Path | None
+) -> CollectorClient:
     from bgt_core.zenoh_config import TlsFiles
     from collector.client import CollectorClient
     from collector.errors import ConfigError

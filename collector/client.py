@@ -104,4 +104,5 @@ class CollectorClient:
         return self.call("status")
 
     def runs(self) -> list[dict[str, Any]]:
-        return self.call("runs")["runs"]
+        runs: list[dict[str, Any]] = self.call("runs")["runs"]
+        return runs

@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
@@ -22,6 +22,9 @@ from bgt_core import wire
 from bgt_core.messages import AdapterStatus, AgentStatus, ClockReply, ClockRequest, ClockSample
 from bgt_core.zenoh_config import SessionSpec, TlsFiles, build_config, zenoh_reason
 from deploy.inventory import InventoryError, load_inventory
+
+if TYPE_CHECKING:
+    import zenoh
 
 app = typer.Typer(
     name="fleet", no_args_is_help=True, help="The deployed fleet (reads deploy/'s inventory)."
@@ -55,7 +58,7 @@ class AgentState:
 
 
 def _clock_of(
-    session, site: str, agent_id: str, clock: Callable[[], int], timeout: float
+    session: zenoh.Session, site: str, agent_id: str, clock: Callable[[], int], timeout: float
 ) -> ClockSample | None:
     """The four-timestamp clock exchange with one agent (as the collector does it); None if it
     did not answer."""
@@ -71,7 +74,7 @@ def _clock_of(
 
 
 def _status_of(
-    session, site: str, agent_id: str, clock: Callable[[], int], timeout: float
+    session: zenoh.Session, site: str, agent_id: str, clock: Callable[[], int], timeout: float
 ) -> dict[str, Any]:
     """One status query and one clock exchange; returns the fields of AgentState it learnt."""
     replies = list(session.get(wire.agent_status_key(site, agent_id), timeout=timeout))
@@ -103,7 +106,7 @@ def _status_of(
 
 
 def query_fleet(
-    session,
+    session: zenoh.Session,
     site: str,
     agent_ids: Sequence[str],
     clock: Callable[[], int] = time.time_ns,

@@ -25,7 +25,7 @@ from rich.console import Console
 from bgt_core.cli_help import flow_command_help
 from deploy import pki
 from deploy.acl import build_acl
-from deploy.inventory import ADMIN_CNS, InventoryError, load_inventory
+from deploy.inventory import ADMIN_CNS, Fleet, InventoryError, load_inventory
 
 app = typer.Typer(
     help="Fleet deployment helpers (site PKI, Zenoh ACL, project wheel, wheelhouse).",
@@ -47,7 +47,7 @@ def _fail(e: Exception) -> typer.Exit:
     return typer.Exit(1)
 
 
-def _check_present(d: Path, fleet) -> None:
+def _check_present(d: Path, fleet: Fleet) -> None:
     """Every file the playbook will copy exists; else PkiError naming the file and its host."""
     need = [("ca.crt", "every host"), ("collector.crt", fleet.collector_host)]
     need += [("collector.key", fleet.collector_host), ("operator.crt", fleet.collector_host)]

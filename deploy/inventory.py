@@ -66,7 +66,10 @@ def _mapping(value: Any, where: str) -> dict[str, Any]:
 
 
 def _groups(
-    node: dict[str, Any], where: str, found: dict[str, tuple[dict, dict]], inherited: dict
+    node: dict[str, Any],
+    where: str,
+    found: dict[str, tuple[dict[str, Any], dict[str, Any]]],
+    inherited: dict[str, Any],
 ) -> None:
     """Walk ``children`` recursively, collecting each group's hosts and merged group vars."""
     for name, group in _mapping(node.get("children"), f"{where}.children").items():
@@ -91,7 +94,7 @@ def load_inventory(path: str | Path) -> Fleet:
         raise InventoryError(f"{p}: expected a YAML inventory with a top-level 'all:' group")
     try:
         top = _mapping(root.get("vars"), "all.vars")
-        groups: dict[str, tuple[dict, dict]] = {}
+        groups: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {}
         _groups(root, "all", groups, top)
     except InventoryError as e:
         raise InventoryError(f"{p}: {e}") from None

@@ -15,6 +15,7 @@ import secrets
 import signal
 import socket
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -359,7 +360,7 @@ class Agent:
                 return
             delay = min(CONNECT_RETRY_MAX_S, delay * 2)
 
-    async def _every(self, period_s: float, work) -> None:
+    async def _every(self, period_s: float, work: Callable[[], object]) -> None:
         """Run ``work()`` (blocking: in a worker thread), then sleep ``period_s``, forever."""
         while True:
             try:

@@ -229,7 +229,7 @@ class _Fields:
     def choice(self, v: Any, name: str, choices: Sequence[str]) -> str:
         if v not in choices:
             raise self.fail(name, " | ".join(choices), v)
-        return v
+        return str(v)
 
     def ident(self, v: Any, name: str) -> str:
         try:

@@ -37,6 +37,7 @@ import time
 import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 log = logging.getLogger("bgt-testbed")
 
@@ -102,7 +103,7 @@ def run(
     check: bool = True,
     capture: bool = False,
     timeout: float | None = None,
-    **kw,
+    **kw: Any,
 ) -> subprocess.CompletedProcess[str]:
     log.debug("$ %s", " ".join(argv))
     res = subprocess.run(

@@ -14,6 +14,7 @@ import functools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from bleak import BleakScanner
 from bleak.args.bluez import BlueZScannerArgs, OrPattern
@@ -70,7 +71,7 @@ class BluezAdapter:
     passive_capable: bool  # exposes AdvertisementMonitorManager1
 
 
-async def _managed_objects() -> dict:
+async def _managed_objects() -> dict[str, Any]:
     try:
         bus = await MessageBus(bus_type=BusType.SYSTEM).connect()
     except (OSError, ValueError, DBusError) as e:
@@ -94,7 +95,8 @@ async def _managed_objects() -> dict:
             raise BackendError(NO_BLUEZ)
         detail = reply.body[0] if reply.body else ""
         raise BackendError(f"BlueZ refused GetManagedObjects: {reply.error_name} {detail}".strip())
-    return reply.body[0]
+    objects: dict[str, Any] = reply.body[0]
+    return objects
 
 
 async def list_adapters() -> list[BluezAdapter]:
@@ -146,7 +148,7 @@ def select_adapters(found: Sequence[BluezAdapter], wanted: Sequence[str]) -> lis
 class _AdapterScanner:
     """One adapter's BleakScanner plus what the watchdog needs to know about it."""
 
-    def __init__(self, adapter: BluezAdapter, mode: str, callback) -> None:
+    def __init__(self, adapter: BluezAdapter, mode: str, callback: Any) -> None:
         self.adapter = adapter
         self.mode = mode
         self.callback = callback

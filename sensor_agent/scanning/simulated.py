@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from bgt_core.formats.devices import Devices, SiteConfigError, read_dev
@@ -109,7 +109,7 @@ class SimulatedBackend(ScannerBackend):
 
     def __init__(
         self,
-        simulation_factory,
+        simulation_factory: Callable[[int], Simulation],
         sensors: Sequence[Sensor],
         clocks: Clocks | None = None,
         t0_ns: int | None = None,
