@@ -1,5 +1,5 @@
-"""The collector's control side: the queryables operators call (start, stop, status, runs), what
-the collector knows about agents (liveliness, their status replies) and agent clock checks.
+"""The collector's control side: the queryables operators call (start, stop, status, runs),
+fetching agents' status replies (kept in collector.agents.AgentBook) and agent clock checks.
 
 One control thread answers queries and asks agents for their status and clock (blocking calls),
 so neither Zenoh's callbacks nor the writer ever wait on the network.
@@ -25,6 +25,7 @@ from bgt_core.control_messages import (
     StopReply,
 )
 from bgt_core.messages import AgentStatus, ClockReply, ClockRequest, ClockSample
+from collector.agents import AgentBook
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
 from collector.store import iso_utc, list_runs
@@ -38,49 +39,6 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 COMMANDS = ("start", "stop", "status", "runs")
-
-
-class AgentBook:
-    """Agents as the collector sees them: liveliness (alive or left) and their last status reply.
-    Thread-safe."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._alive: dict[str, bool] = {}
-        self._info: dict[str, AgentStatus] = {}
-        self._pending: set[str] = set()
-
-    def set_alive(self, agent: str, alive: bool) -> None:
-        with self._lock:
-            self._alive[agent] = alive
-
-    def alive_map(self) -> dict[str, bool]:
-        with self._lock:
-            return dict(self._alive)
-
-    def alive_agents(self) -> set[str]:
-        with self._lock:
-            return {a for a, alive in self._alive.items() if alive}
-
-    def set_info(self, agent: str, info: AgentStatus) -> None:
-        with self._lock:
-            self._info[agent] = info
-
-    def infos(self) -> dict[str, AgentStatus]:
-        with self._lock:
-            return dict(self._info)
-
-    def claim_fetch(self, agent: str) -> bool:
-        """True if nobody has asked for this agent's status yet (and it is now pending)."""
-        with self._lock:
-            if agent in self._info or agent in self._pending:
-                return False
-            self._pending.add(agent)
-            return True
-
-    def fetched(self, agent: str) -> None:
-        with self._lock:
-            self._pending.discard(agent)
 
 
 class Control:

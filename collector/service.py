@@ -23,8 +23,9 @@ from bgt_core.control_messages import StartRequest
 from bgt_core.messages import ClockSample
 from bgt_core.sdnotify import Notifier
 from bgt_core.zenoh_config import AclFileError, build_config, load_acl, zenoh_reason
+from collector.agents import AgentBook
 from collector.config import CollectorConfig
-from collector.control import COMMANDS, AgentBook, Control
+from collector.control import COMMANDS, Control
 from collector.errors import CollectorError
 from collector.inbox import Inbox
 from collector.ingest import StreamTracker

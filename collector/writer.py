@@ -23,9 +23,9 @@ from bgt_core.control_messages import StartReply, StopReply
 from bgt_core.messages import Ack, ClockSample
 from bgt_core.sdnotify import Notifier
 from collector.admission import MAX_AGENT_ENTRIES, StreamGate
+from collector.agents import AgentBook
 from collector.beacon_rates import count_beacons, report_drop
 from collector.config import CollectorConfig
-from collector.control import AgentBook
 from collector.errors import CollectorError
 from collector.inbox import Inbox
 from collector.ingest import (
