@@ -42,11 +42,30 @@ def check_run_name(name: object) -> None:
         )
 
 
+# Free-text notes of a run (the operator console's start form), stored in run.yaml.
+RUN_NOTES_MAX = 2000
+
+
+def check_run_notes(notes: object) -> None:
+    """InvalidField unless ``notes`` is None or at most RUN_NOTES_MAX characters of text, where
+    line breaks and tabs are the only control characters."""
+    if notes is None:
+        return
+    if not isinstance(notes, str):
+        raise InvalidField("start: notes must be a string or null")
+    plain = notes.replace("\n", "").replace("\t", "")
+    if len(notes) > RUN_NOTES_MAX or not plain.isprintable():
+        raise InvalidField(
+            f"start: notes must be at most {RUN_NOTES_MAX} characters of text (line breaks allowed)"
+        )
+
+
 @dataclass(frozen=True, slots=True)
 class StartRequest:
     name: str | None = None
     max_offset_ms: float | None = None  # warn about agents whose clock is off by more
     strict: bool = False  # ... and refuse to start instead
+    notes: str | None = None  # free text, stored in run.yaml
 
     @classmethod
     def from_dict(cls, d: object) -> StartRequest:
@@ -63,7 +82,9 @@ class StartRequest:
         strict = m.get("strict", False)
         if not isinstance(strict, bool):
             raise InvalidField("start: strict must be true or false")
-        return cls(name, None if max_off is None else float(max_off), strict)
+        notes = m.get("notes")
+        check_run_notes(notes)
+        return cls(name, None if max_off is None else float(max_off), strict, notes)
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"name": self.name}
@@ -71,6 +92,8 @@ class StartRequest:
             out["max_offset_ms"] = self.max_offset_ms
         if self.strict:
             out["strict"] = True
+        if self.notes:
+            out["notes"] = self.notes
         return out
 
 

@@ -18,7 +18,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from bgt_core.cli_help import flow_command_help
-from bgt_core.control_messages import check_run_name
+from bgt_core.control_messages import check_run_name, check_run_notes
 from bgt_core.display import shown
 from bgt_core.wire import WireError
 from collector.errors import CollectorError, ConfigError
@@ -237,6 +237,12 @@ def start(
             help="Refuse to start (exit 1) if an agent's clock is off by more than --max-offset-ms.",
         ),
     ] = False,
+    notes: Annotated[
+        str | None,
+        typer.Option(
+            "--notes", help="Free text about the run (who walked, what changed), in run.yaml."
+        ),
+    ] = None,
     connect: ConnectOpt = DEFAULT_ENDPOINT,
     site: SiteOpt = "default",
     root_ca: RootCaOpt = None,
@@ -256,8 +262,12 @@ def start(
     except WireError as e:
         raise _fail(ConfigError(f"--name: {e}")) from None
     try:
+        check_run_notes(notes)
+    except WireError as e:
+        raise _fail(ConfigError(f"--notes: {e}")) from None
+    try:
         with _client(connect, site, root_ca, cert, key) as c:
-            reply = c.start_typed(name, max_offset_ms=max_offset_ms, strict=strict)
+            reply = c.start_typed(name, max_offset_ms=max_offset_ms, strict=strict, notes=notes)
     except (CollectorError, WireError) as e:
         raise _fail(e) from None
     for w in reply.clock_warnings:
@@ -363,6 +373,89 @@ def live(
             run_live(c.status, interval_s=interval, duration_s=duration)
     except (CollectorError, WireError) as e:
         raise _fail(e) from None
+
+
+@app.command(short_help="The operator's console in a browser: fleet, live RSSI, start and stop.")
+def web(
+    listen: Annotated[
+        str,
+        typer.Option(
+            "--listen",
+            help="HOST:PORT to serve the page on. Beyond 127.0.0.1 it needs --tls-cert/--tls-key "
+            "and the access token printed at start.",
+        ),
+    ] = "127.0.0.1:8080",
+    tls_cert: Annotated[
+        Path | None,
+        typer.Option(
+            "--tls-cert", help="HTTPS certificate (PEM), for --listen beyond this machine."
+        ),
+    ] = None,
+    tls_key: Annotated[
+        Path | None, typer.Option("--tls-key", help="Its private key (PEM).")
+    ] = None,
+    silent_s: Annotated[
+        float, typer.Option("--silent-s", help="A sensor unheard this long turns red.", min=1.0)
+    ] = 10.0,
+    connect: ConnectOpt = DEFAULT_ENDPOINT,
+    site: SiteOpt = "default",
+    root_ca: RootCaOpt = None,
+    cert: CertOpt = None,
+    key: KeyOpt = None,
+) -> None:
+    """Serve one page that shows every agent and sensor (readings/s, last RSSI, seconds since the
+    last reading; silent ones in red), a sensor x beacon matrix of readings/s, the RSSI of the last
+    five minutes, the runs, and takes start (name, notes) and stop. Updated once a second by
+    server-sent events; the collector is asked, never the agents."""
+    import secrets
+
+    try:
+        import uvicorn
+
+        from collector.web.server import Console as WebConsole
+        from collector.web.server import build_app, is_loopback
+    except ModuleNotFoundError as e:
+        raise _fail(
+            ConfigError(
+                f"collector web needs the web extra ({e.name} is missing): pip install '.[web]'"
+            )
+        ) from None
+    host, sep, port_text = listen.rpartition(":")
+    if not sep or not port_text.isdigit() or not 0 < int(port_text) < 65536 or not host:
+        raise _fail(ConfigError(f"--listen {listen!r}: expected HOST:PORT, e.g. 127.0.0.1:8080"))
+    local = is_loopback(host)
+    if not local and (tls_cert is None or tls_key is None):
+        raise _fail(
+            ConfigError(
+                f"--listen {listen}: beyond this machine the console needs HTTPS: "
+                "give --tls-cert and --tls-key"
+            )
+        )
+    for flag, path in (("--tls-cert", tls_cert), ("--tls-key", tls_key)):
+        if path is not None and not path.is_file():
+            raise _fail(ConfigError(f"{flag}: no such file {path}"))
+    try:
+        client = _client(connect, site, root_ca, cert, key).__enter__()
+    except CollectorError as e:
+        raise _fail(e) from None
+    access = None if local else secrets.token_urlsafe(24)
+    console_ = WebConsole(client, silent_s=silent_s, access_token=access)
+    scheme = "https" if tls_cert is not None else "http"
+    url = f"{scheme}://{host}:{port_text}/" + (f"?token={access}" if access else "")
+    console.print(
+        f"console on {url}  (Ctrl-C stops it)", highlight=False, markup=False, soft_wrap=True
+    )
+    try:
+        uvicorn.run(
+            build_app(console_),
+            host=host.strip("[]"),
+            port=int(port_text),
+            ssl_certfile=None if tls_cert is None else str(tls_cert),
+            ssl_keyfile=None if tls_key is None else str(tls_key),
+            log_level="warning",
+        )
+    finally:
+        client.__exit__(None, None, None)
 
 
 @app.command(short_help="Write a run in the published layout: one <sensor_mac>.mbd per sensor.")

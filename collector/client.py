@@ -83,18 +83,30 @@ class CollectorClient:
         raise Unreachable(self._no_reply(command))
 
     def start(
-        self, name: str | None = None, *, max_offset_ms: float | None = None, strict: bool = False
+        self,
+        name: str | None = None,
+        *,
+        max_offset_ms: float | None = None,
+        strict: bool = False,
+        notes: str | None = None,
     ) -> dict[str, Any]:
-        return self.call("start", StartRequest(name, max_offset_ms, strict).to_dict())
+        return self.call("start", StartRequest(name, max_offset_ms, strict, notes).to_dict())
 
     def stop(self) -> dict[str, Any]:
         return self.call("stop")
 
     def start_typed(
-        self, name: str | None = None, *, max_offset_ms: float | None = None, strict: bool = False
+        self,
+        name: str | None = None,
+        *,
+        max_offset_ms: float | None = None,
+        strict: bool = False,
+        notes: str | None = None,
     ) -> StartReply:
         """``start``, its reply checked and typed."""
-        return StartReply.from_dict(self.start(name, max_offset_ms=max_offset_ms, strict=strict))
+        return StartReply.from_dict(
+            self.start(name, max_offset_ms=max_offset_ms, strict=strict, notes=notes)
+        )
 
     def stop_typed(self) -> StopReply:
         """``stop``, its reply checked and typed."""

@@ -173,7 +173,9 @@ class Control:
     def _start_by(self, req: StartRequest, deadline: float) -> StartReply:
         w = self.writer
         if w.run_active:  # answer at once, without asking the agents anything first
-            return w.call(lambda: w.start(req.name, {}, deadline), deadline - self._mono())
+            return w.call(
+                lambda: w.start(req.name, {}, deadline, notes=req.notes), deadline - self._mono()
+            )
         self.refresh_agents()
         samples = self.measure_clocks()
         warnings = []
@@ -196,7 +198,7 @@ class Control:
                 "measuring the agents' clocks took longer than the start may wait; nothing was "
                 "started (try again)"
             )
-        started = w.call(lambda: w.start(req.name, samples, deadline), remaining)
+        started = w.call(lambda: w.start(req.name, samples, deadline, notes=req.notes), remaining)
         clock = {a: AgentClock(v.offset_ms, v.rtt_ms) for a, v in samples.items()}
         return dataclasses.replace(started, clock=clock, clock_warnings=tuple(warnings))
 

@@ -450,6 +450,8 @@ class Writer:
         name: str | None,
         clock_samples: dict[str, ClockSample],
         deadline: float | None = None,
+        *,
+        notes: str | None = None,
     ) -> StartReply:
         """Start a run, unless ``deadline`` (monotonic s) has passed: the operator's command has
         given up by then and must not find a run started after it reported a failure."""
@@ -467,7 +469,9 @@ class Writer:
             if not (self.cfg.data_dir / run_id).exists():
                 break
             run_id = f"{base}-{i}"
-        meta = {"site": self.cfg.site, "software_version": software_version()}
+        meta: dict[str, Any] = {"site": self.cfg.site, "software_version": software_version()}
+        if notes:
+            meta["notes"] = notes
         run = RunWriter(
             self.cfg.data_dir,
             run_id,

@@ -7,10 +7,11 @@ cd "$(dirname "$0")/.."
 
 # Debian packages: dbus-daemon + headers to build dbus-python (BlueZ is mocked on a private bus),
 # systemd for `systemd-analyze verify` of our units; debootstrap, systemd-container, iproute2 and
-# openssh-client for the fleet test bed (tests/deploy/test_testbed.py boots Debian hosts).
+# openssh-client for the fleet test bed (tests/deploy/test_testbed.py boots Debian hosts); chromium
+# to load the operator console's page in a real headless browser (tests/collector/test_console_web.py).
 need_apt=()
 for pkg in libdbus-1-dev libglib2.0-dev pkg-config dbus systemd \
-           debootstrap systemd-container iproute2 openssh-client; do
+           debootstrap systemd-container iproute2 openssh-client chromium; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if ((${#need_apt[@]})); then

@@ -1,0 +1,176 @@
+"""`collector web`, the operator's console (issue 33): the snapshot the page shows, the HTTP API
+against a real collector on loopback, and the page itself in a real headless browser (Debian's
+chromium): the fleet appears, a hostile run name is shown as text, a cross-site start is refused."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import threading
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("starlette")
+uvicorn = pytest.importorskip("uvicorn")
+
+from bgt_core.control_messages import CollectorStatus  # noqa: E402
+from collector.client import CollectorClient  # noqa: E402
+from collector.config import CollectorConfig  # noqa: E402
+from collector.service import Collector  # noqa: E402
+from collector.web.server import Console, build_app  # noqa: E402
+from collector.web.snapshot import ConsoleHistory, build_snapshot  # noqa: E402
+from collector_helpers import FakeAgent, make_batch, run_yaml_doc, with_floor  # noqa: E402
+from loopback import free_port  # noqa: E402
+from polling import wait_for  # noqa: E402
+
+A, B = "b827eb4521b4", "000000000101"
+HOSTILE = '<img src=x onerror="document.title=1">'
+
+
+def status(age_b: float | None) -> CollectorStatus:
+    sensor = {"rate_hz": 9.5, "last_seen_age_s": 0.2, "last_rssi": -61, "readings": 95}
+    return CollectorStatus.from_dict(
+        {
+            "run": None,
+            "agents": {
+                "pi-1": {
+                    "alive": True,
+                    "sensors": {
+                        A: {**sensor, "beacons": {"e78f135624ce": 9.5}},
+                        B: {**sensor, "last_seen_age_s": age_b, "beacons": {}},
+                    },
+                }
+            },
+            "shared_sensors": {A: ["pi-1", "pi-2"]},
+        }
+    )
+
+
+def test_the_snapshot_flags_silent_sensors_and_keeps_their_quiet_time() -> None:
+    history = ConsoleHistory()
+    snap = build_snapshot(status(0.5), history, now=1000.0, silent_s=10)
+    sensors = {s["mac"]: s for s in snap["agents"][0]["sensors"]}
+    assert not sensors[B]["silent"]
+    assert snap["beacons"] == ["e78f135624ce"]
+    assert snap["points"] == {f"pi-1/{A}": -61, f"pi-1/{B}": -61}
+    assert any("published by several agents" in a for a in snap["alerts"])
+    snap = build_snapshot(status(25.0), history, now=1020.0, silent_s=10)
+    quiet = {s["mac"]: s for s in snap["agents"][0]["sensors"]}[B]
+    assert quiet["silent"]
+    assert quiet["quiet_since"] == pytest.approx(995.0)
+    assert snap["points"][f"pi-1/{B}"] is None
+    # the time it went quiet stays as it was first seen, however long it stays quiet
+    snap = build_snapshot(status(45.0), history, now=1040.0, silent_s=10)
+    assert {s["mac"]: s for s in snap["agents"][0]["sensors"]}[B]["quiet_since"] == 995.0
+    assert [p[1] for p in history.points[f"pi-1/{B}"]] == [-61, None, None]
+
+
+@pytest.fixture
+def fleet(tmp_path: Path, endpoint: str) -> Iterator[tuple[Collector, str]]:
+    """A collector on loopback, an agent sending two sensors' batches, and the console on HTTP."""
+    c = Collector(
+        CollectorConfig(data_dir=tmp_path / "data", listen=(endpoint,), fsync_interval_s=0.1),
+        drain_timeout_s=2.0,
+    ).open()
+    agent = FakeAgent(endpoint, agent="pi-1")
+    agent.declare_token()
+    stop = threading.Event()
+
+    def publish() -> None:
+        seq = 0
+        while not stop.is_set():
+            for sensor in (A, B):
+                agent.put(with_floor(make_batch(seq, agent="pi-1", sensor=sensor), 0))
+            seq += 1
+            time.sleep(0.1)
+
+    pub = threading.Thread(target=publish, daemon=True)
+    pub.start()
+    client = CollectorClient(endpoint, "default").__enter__()
+    console = Console(client, poll_s=0.3, token="t0k3n")
+    port = free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(build_app(console), host="127.0.0.1", port=port, log_level="warning")
+    )
+    serve = threading.Thread(target=server.run, daemon=True)
+    serve.start()
+    base = f"http://127.0.0.1:{port}/"
+    wait_for(lambda: server.started, 20, "the console to listen")
+    wait_for(lambda: console.latest is not None and console.latest.get("agents"), 20, "a snapshot")
+    try:
+        yield c, base
+    finally:
+        server.should_exit = True
+        serve.join(10)
+        stop.set()
+        pub.join(5)
+        client.__exit__(None, None, None)
+        agent.close()
+        c.close()
+
+
+def post(url: str, body: dict, headers: dict[str, str]) -> tuple[int, dict]:
+    req = urllib.request.Request(
+        url, json.dumps(body).encode(), {"Content-Type": "application/json", **headers}
+    )
+    try:
+        with urllib.request.urlopen(req, timeout=20) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read())
+
+
+def test_start_and_stop_need_the_pages_token_and_origin(fleet) -> None:
+    c, base = fleet
+    assert post(base + "api/start", {"name": "x"}, {})[0] == 403  # no token
+    code, reply = post(
+        base + "api/start", {"name": "x"}, {"X-BGT-Token": "t0k3n", "Origin": "http://evil.example"}
+    )
+    assert code == 403
+    assert "cross-origin" in reply["error"]
+    code, reply = post(base + "api/start", {"name": "bad\x1bname"}, {"X-BGT-Token": "t0k3n"})
+    assert code == 400
+    assert "printable" in reply["error"]
+    code, reply = post(
+        base + "api/start", {"name": HOSTILE, "notes": "walk 3\nby Ana"}, {"X-BGT-Token": "t0k3n"}
+    )
+    assert code == 200, reply
+    code, stopped = post(base + "api/stop", {}, {"X-BGT-Token": "t0k3n"})
+    assert code == 200, stopped
+    doc = run_yaml_doc(stopped["run_dir"])
+    assert doc["name"] == HOSTILE
+    assert doc["notes"] == "walk 3\nby Ana"
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")
+def test_the_page_in_a_real_browser(fleet) -> None:
+    c, base = fleet
+    code, _ = post(base + "api/start", {"name": HOSTILE}, {"X-BGT-Token": "t0k3n"})
+    assert code == 200
+    time.sleep(1.0)  # a snapshot with the run in it
+    dom = subprocess.run(
+        [
+            CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
+            "--timeout=6000", "--dump-dom", base,
+        ],
+        capture_output=True, text=True, timeout=120,
+    ).stdout  # fmt: skip
+    post(base + "api/stop", {}, {"X-BGT-Token": "t0k3n"})
+    # the fleet table was filled from the server-sent events: both sensors, with rates
+    fleet_table = dom[dom.index('<table id="fleet">') : dom.index('<table id="matrix">')]
+    assert A in fleet_table
+    assert B in fleet_table
+    assert "pi-1" in fleet_table
+    # the hostile run name is text in the page, never markup
+    assert "&lt;img src=x onerror=" in dom
+    assert "<img src" not in dom
+    assert "<title>ble-groundtruth console</title>" in dom  # its onerror never ran
