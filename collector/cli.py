@@ -397,6 +397,14 @@ def web(
     silent_s: Annotated[
         float, typer.Option("--silent-s", help="A sensor unheard this long turns red.", min=1.0)
     ] = 10.0,
+    plan: Annotated[
+        str | None,
+        typer.Option(
+            "--plan",
+            help="Floor plan to draw the sensors on: a built-in site (tetam, the demo's) or a "
+            "folder with the site's .dev, .par and map .png.",
+        ),
+    ] = None,
     connect: ConnectOpt = DEFAULT_ENDPOINT,
     site: SiteOpt = "default",
     root_ca: RootCaOpt = None,
@@ -434,12 +442,18 @@ def web(
     for flag, path in (("--tls-cert", tls_cert), ("--tls-key", tls_key)):
         if path is not None and not path.is_file():
             raise _fail(ConfigError(f"{flag}: no such file {path}"))
+    from collector.web.plan import PlanError, load_plan
+
+    try:
+        floor = None if plan is None else load_plan(plan)
+    except (PlanError, ValueError, OSError) as e:
+        raise _fail(ConfigError(str(e).splitlines()[0])) from None
     try:
         client = _client(connect, site, root_ca, cert, key).__enter__()
     except CollectorError as e:
         raise _fail(e) from None
     access = None if local else secrets.token_urlsafe(24)
-    console_ = WebConsole(client, silent_s=silent_s, access_token=access)
+    console_ = WebConsole(client, silent_s=silent_s, access_token=access, plan=floor)
     scheme = "https" if tls_cert is not None else "http"
     url = f"{scheme}://{host}:{port_text}/" + (f"?token={access}" if access else "")
     console.print(

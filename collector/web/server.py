@@ -25,12 +25,19 @@ from typing import Any
 
 from starlette.applications import Starlette
 from starlette.requests import Request
-from starlette.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
+from starlette.responses import (
+    FileResponse,
+    HTMLResponse,
+    JSONResponse,
+    Response,
+    StreamingResponse,
+)
 from starlette.routing import Route
 
 from bgt_core.control_messages import CollectorStatus
 from collector.client import CollectorClient
 from collector.errors import CollectorError
+from collector.web.plan import FloorPlan
 from collector.web.snapshot import SILENT_S, ConsoleHistory, build_snapshot
 
 log = logging.getLogger(__name__)
@@ -61,12 +68,14 @@ class Console:
         poll_s: float = POLL_S,
         token: str | None = None,
         access_token: str | None = None,
+        plan: FloorPlan | None = None,
     ) -> None:
         self.client = client
         self.silent_s = silent_s
         self.poll_s = poll_s
         self.token = token or secrets.token_hex(16)  # the page's token for start/stop
         self.access_token = access_token  # set when listening beyond this machine
+        self.plan = plan  # the floor plan to draw the sensors on, if any
         self.history = ConsoleHistory()
         self.latest: dict[str, Any] | None = None
         self.runs: list[dict[str, Any]] = []
@@ -91,6 +100,8 @@ class Console:
                 self.error = str(e)
                 snap = {"error": self.error}
             snap["runs"] = self.runs[-50:]
+            if self.plan is not None:
+                snap["plan"] = self.plan.to_dict()
             self.latest = snap
             self._push(json.dumps(snap))
             n += 1
@@ -207,6 +218,11 @@ def build_app(console: Console) -> Starlette:
         text = f"window.BGT_INITIAL = {json.dumps(console.latest)};\n"
         return Response(text, media_type="text/javascript", headers={"Cache-Control": "no-store"})
 
+    async def plan_image(request: Request) -> Response:
+        if not _authorised(request, console) or console.plan is None:
+            return _error("no floor plan", 404)
+        return FileResponse(console.plan.image, media_type="image/png")
+
     async def runs(request: Request) -> Response:
         if not _authorised(request, console):
             return _error("not authorised", 403)
@@ -220,6 +236,7 @@ def build_app(console: Console) -> Starlette:
             Route("/", page),
             Route("/events", events),
             Route("/snapshot.js", initial),
+            Route("/plan.png", plan_image),
             Route("/api/runs", runs),
             Route("/api/start", change, methods=["POST"]),
             Route("/api/stop", change, methods=["POST"]),

@@ -23,6 +23,7 @@ from bgt_core.control_messages import CollectorStatus  # noqa: E402
 from collector.client import CollectorClient  # noqa: E402
 from collector.config import CollectorConfig  # noqa: E402
 from collector.service import Collector  # noqa: E402
+from collector.web.plan import PlanError, load_plan  # noqa: E402
 from collector.web.server import Console, build_app  # noqa: E402
 from collector.web.snapshot import ConsoleHistory, build_snapshot  # noqa: E402
 from collector_helpers import FakeAgent, make_batch, run_yaml_doc, with_floor  # noqa: E402
@@ -93,7 +94,7 @@ def fleet(tmp_path: Path, endpoint: str) -> Iterator[tuple[Collector, str]]:
     pub = threading.Thread(target=publish, daemon=True)
     pub.start()
     client = CollectorClient(endpoint, "default").__enter__()
-    console = Console(client, poll_s=0.3, token="t0k3n")
+    console = Console(client, poll_s=0.3, token="t0k3n", plan=load_plan("tetam"))
     port = free_port()
     server = uvicorn.Server(
         uvicorn.Config(build_app(console), host="127.0.0.1", port=port, log_level="warning")
@@ -144,6 +145,8 @@ def test_start_and_stop_need_the_pages_token_and_origin(fleet) -> None:
     code, stopped = post(base + "api/stop", {}, {"X-BGT-Token": "t0k3n"})
     assert code == 200, stopped
     doc = run_yaml_doc(stopped["run_dir"])
+    with urllib.request.urlopen(base + "plan.png", timeout=20) as r:
+        assert r.read(8) == b"\x89PNG\r\n\x1a\n"
     assert doc["name"] == HOSTILE
     assert doc["notes"] == "walk 3\nby Ana"
 
@@ -174,3 +177,18 @@ def test_the_page_in_a_real_browser(fleet) -> None:
     assert "&lt;img src=x onerror=" in dom
     assert "<img src" not in dom
     assert "<title>ble-groundtruth console</title>" in dom  # its onerror never ran
+    # the floor plan is shown (its box unhidden) once the snapshot carries it
+    assert '<div id="plan-box">' in dom
+
+
+def test_floor_plans(tmp_path: Path) -> None:
+    plan = load_plan("tetam")
+    assert (plan.width, plan.height) == (640, 718)
+    assert plan.sensors[A][2] == "sensor10"
+    assert 0 < plan.sensors[A][0] < plan.width
+    assert 0 < plan.sensors[A][1] < plan.height
+    with pytest.raises(PlanError, match="neither a folder nor a built-in site"):
+        load_plan("atlantis")
+    (tmp_path / "x.dev").write_text("")
+    with pytest.raises(PlanError, match="needs exactly one .dev, .par and .png"):
+        load_plan(str(tmp_path))
