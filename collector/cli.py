@@ -467,6 +467,7 @@ def web(
             ssl_certfile=None if tls_cert is None else str(tls_cert),
             ssl_keyfile=None if tls_key is None else str(tls_key),
             log_level="warning",
+            timeout_graceful_shutdown=2,  # open pages hold event streams: do not wait for them
         )
     finally:
         client.__exit__(None, None, None)
