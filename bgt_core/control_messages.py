@@ -221,6 +221,7 @@ class SensorRate:
     readings: int = 0
     recent_rssi: tuple[int, ...] = ()  # the last readings' RSSI, oldest first (sparkline)
     beacons: dict[str, float] = field(default_factory=dict)  # readings/s of the most heard beacons
+    beacon_rssi: dict[str, int] = field(default_factory=dict)  # last RSSI of each beacon heard lately
 
     @classmethod
     def from_dict(cls, d: object, what: str = "sensor") -> SensorRate:
@@ -238,6 +239,13 @@ class SensorRate:
             )
         ):
             raise InvalidField(f"{what}: beacons must map at most 64 MACs to rates")
+        rssi = m.get("beacon_rssi") or {}
+        if not (
+            isinstance(rssi, dict)
+            and len(rssi) <= 64
+            and all(isinstance(k, str) and is_int(v) for k, v in rssi.items())
+        ):
+            raise InvalidField(f"{what}: beacon_rssi must map at most 64 MACs to integer dBm")
         return cls(
             num_field(m, "rate_hz", what, 0.0),
             num_field(m, "last_seen_age_s", what, None),
@@ -245,6 +253,7 @@ class SensorRate:
             int_field(m, "readings", what, 0),
             tuple(recent),
             {str(k): float(v) for k, v in beacons.items()},
+            {str(k): int(v) for k, v in rssi.items()},
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -255,6 +264,7 @@ class SensorRate:
             "readings": self.readings,
             "recent_rssi": list(self.recent_rssi),
             "beacons": dict(self.beacons),
+            "beacon_rssi": dict(self.beacon_rssi),
         }
 
 

@@ -85,12 +85,15 @@ class BeaconTrend:
     rssi_means: deque[float] = field(default_factory=lambda: deque(maxlen=MAX_BINS))
     window: deque[tuple[float, int]] = field(default_factory=deque)
     dropped: bool = False
+    last_rssi: float = 0.0  # mean RSSI of its readings in the last batch, and when
+    last_at: float = float("-inf")
 
     def add(self, now: float, n: int, rssi_sum: int) -> Drop | None:
         drop = self.roll(now)
         self.count += n
         self.rssi_sum += rssi_sum
         self.window.append((now, n))
+        self.last_rssi, self.last_at = rssi_sum / n, now
         return drop
 
     def rate(self, now: float) -> float:

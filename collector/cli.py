@@ -405,6 +405,15 @@ def web(
             "folder with the site's .dev, .par and map .png.",
         ),
     ] = None,
+    radiomap: Annotated[
+        Path | None,
+        typer.Option(
+            "--radiomap",
+            help="A radio map folder (.grd files, `annotator radiomap`): the live position of each "
+            "beacon by the grid-HMM baseline is drawn on the plan with its spread. Needs the "
+            "annotator extra.",
+        ),
+    ] = None,
     connect: ConnectOpt = DEFAULT_ENDPOINT,
     site: SiteOpt = "default",
     root_ca: RootCaOpt = None,
@@ -448,12 +457,27 @@ def web(
         floor = None if plan is None else load_plan(plan)
     except (PlanError, ValueError, OSError) as e:
         raise _fail(ConfigError(str(e).splitlines()[0])) from None
+    live = None
+    if radiomap is not None:
+        try:
+            from annotator.errors import AnnotatorError
+            from collector.web.position import LivePositions
+        except ModuleNotFoundError as e:
+            raise _fail(
+                ConfigError(f"--radiomap needs the annotator extra ({e.name} is missing)")
+            ) from None
+        try:
+            live = LivePositions(radiomap)
+        except (AnnotatorError, ValueError, OSError) as e:
+            raise _fail(ConfigError(f"--radiomap: {str(e).splitlines()[0]}")) from None
     try:
         client = _client(connect, site, root_ca, cert, key).__enter__()
     except CollectorError as e:
         raise _fail(e) from None
     access = None if local else secrets.token_urlsafe(24)
-    console_ = WebConsole(client, silent_s=silent_s, access_token=access, plan=floor)
+    console_ = WebConsole(
+        client, silent_s=silent_s, access_token=access, plan=floor, positions=live
+    )
     scheme = "https" if tls_cert is not None else "http"
     url = f"{scheme}://{host}:{port_text}/" + (f"?token={access}" if access else "")
     console.print(

@@ -55,6 +55,13 @@ class SensorLive:
         """Close finished bins of beacons not heard lately (a beacon gone silent drops too)."""
         return [(mac, d) for mac, t in self.beacons.items() if (d := t.roll(now)) is not None]
 
+    def beacon_rssi(self, now: float, max_age_s: float = 2.0, top: int = 64) -> dict[str, int]:
+        """The last RSSI of each beacon heard in the last ``max_age_s`` (a live localizer's
+        input: one reading per sensor and beacon)."""
+        fresh = [(mac, t) for mac, t in self.beacons.items() if now - t.last_at <= max_age_s]
+        fresh.sort(key=lambda kv: -kv[1].last_at)
+        return {mac.hex(): round(t.last_rssi) for mac, t in fresh[:top]}
+
     def beacon_rates(self, now: float, top: int = 8) -> dict[str, float]:
         """Readings/s of the ``top`` most heard beacons over the last seconds."""
         rates = {mac.hex(): round(t.rate(now), 2) for mac, t in self.beacons.items()}

@@ -136,6 +136,7 @@ def build_status(w: Writer, now: float) -> CollectorStatus:
             readings=sl.readings,
             recent_rssi=tuple(sl.rssi),
             beacons=sl.beacon_rates(now),
+            beacon_rssi=sl.beacon_rssi(now),
         )
     agents = {a: AgentLive(alive.get(a, False), s) for a, s in sensors.items()}
     run = None

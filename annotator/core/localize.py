@@ -110,6 +110,48 @@ def reading_likelihoods(m: RadioMapArrays, floor: float = 0.05) -> np.ndarray:
     return (1.0 - floor) * h + floor / k
 
 
+class GridHmmFilter:
+    """The grid-HMM's forward filter, one step at a time (``grid_hmm`` runs it over a recording;
+    the operator console runs it live): ``step`` predicts by the motion model, then weighs the
+    step's readings (sensor indices, RSSI) by the map."""
+
+    def __init__(
+        self, m: RadioMapArrays, *, step_s: float = 0.5, speed_mps: float = 1.0, floor: float = 0.05
+    ) -> None:
+        self.m = m
+        self.trans = transition_matrix(m.centres, max(speed_mps * step_s, m.cell / 2))
+        self.loglik = np.log(reading_likelihoods(m, floor))  # (C, S, K)
+        self.belief = np.full(len(m.centres), 1.0 / len(m.centres))
+        self.seen = False  # nothing to say before the first reading
+
+    def bins(self, rssi: np.ndarray) -> np.ndarray:
+        """Histogram bin of each RSSI (-1 outside the map's range)."""
+        k, edges = self.loglik.shape[2], self.m.edges
+        v = np.asarray(rssi, dtype=float)
+        b = np.searchsorted(edges, v, side="right") - 1
+        b = np.where(v == edges[-1], k - 1, b)
+        return np.where((b >= 0) & (b < k), b, -1)
+
+    def step(self, sensors: np.ndarray, bins: np.ndarray) -> None:
+        self.belief = self.belief @ self.trans
+        ok = (np.asarray(sensors) >= 0) & (np.asarray(bins) >= 0)
+        if ok.any():
+            ll = self.loglik[:, np.asarray(sensors)[ok], np.asarray(bins)[ok]].sum(axis=1)
+            post = np.log(np.maximum(self.belief, 1e-300)) + ll
+            post = np.exp(post - post.max())
+            self.belief = post / post.sum()
+            self.seen = True
+
+    def estimate(self) -> tuple[np.ndarray, float]:
+        """Posterior mean (x, y) and its spread (rms distance of the belief from it), metres;
+        NaN before the first reading."""
+        if not self.seen:
+            return np.full(2, np.nan), float("nan")
+        mean = self.belief @ self.m.centres
+        d2 = ((self.m.centres - mean) ** 2).sum(axis=1)
+        return mean, float(np.sqrt(self.belief @ d2))
+
+
 def grid_hmm(
     m: RadioMapArrays,
     r: Readings,
@@ -120,30 +162,17 @@ def grid_hmm(
 ) -> Estimates2D:
     """Forward filter on the radio-map grid; see the module docstring."""
     ends = _steps(r.t, step_s)
-    c = len(m.centres)
-    sigma = max(speed_mps * step_s, m.cell / 2)
-    trans = transition_matrix(m.centres, sigma)
-    loglik = np.log(reading_likelihoods(m, floor))  # (C, S, K)
-    k = loglik.shape[2]
+    f = GridHmmFilter(m, step_s=step_s, speed_mps=speed_mps, floor=floor)
     keep = r.sensor >= 0
-    t, s, v = r.t[keep], r.sensor[keep], r.rssi[keep].astype(float)
-    b = np.searchsorted(m.edges, v, side="right") - 1
-    b = np.where(v == m.edges[-1], k - 1, b)
-    inb = (b >= 0) & (b < k)
+    t, s = r.t[keep], r.sensor[keep]
+    b = f.bins(r.rssi[keep])
+    inb = b >= 0
     t, s, b = t[inb], s[inb], b[inb]
     starts = np.searchsorted(t, ends - step_s, side="left")
     stops = np.searchsorted(t, ends, side="left")
-    belief = np.full(c, 1.0 / c)
     xy = np.full((len(ends), 2), np.nan)
-    seen = False
     for i, (a, z) in enumerate(zip(starts, stops, strict=True)):
-        belief = belief @ trans
-        if z > a:
-            ll = loglik[:, s[a:z], b[a:z]].sum(axis=1)
-            post = np.log(np.maximum(belief, 1e-300)) + ll
-            post = np.exp(post - post.max())
-            belief = post / post.sum()
-            seen = True
-        if seen:  # nothing to say before the first reading
-            xy[i] = belief @ m.centres
+        f.step(s[a:z], b[a:z])
+        if f.seen:
+            xy[i] = f.estimate()[0]
     return Estimates2D(ends, xy)

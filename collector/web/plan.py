@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from bgt_core.formats.devices import read_dev, read_par
+from bgt_core.formats.devices import MapParams, read_dev, read_par
 from bgt_core.sites import site_dir
 
 
@@ -21,6 +21,12 @@ class FloorPlan:
     width: int
     height: int
     sensors: dict[str, tuple[float, float, str]]  # MAC -> map pixel x, y and alias
+    params: MapParams
+
+    def pixels(self, x: float, y: float, r_m: float = 0.0) -> tuple[float, float, float]:
+        """Site metres -> map pixels, and a length in metres -> pixels."""
+        px, py = self.params.world_to_pixel(x, y)
+        return round(float(px), 1), round(float(py), 1), round(r_m / self.params.parity, 1)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -58,4 +64,4 @@ def load_plan(where: str) -> FloorPlan:
         if len(d.position) >= 2:
             x, y = params.world_to_pixel(float(d.position[0]), float(d.position[1]))
             sensors[mac] = (float(x), float(y), d.alias)
-    return FloorPlan(found["png"][0], width, height, sensors)
+    return FloorPlan(found["png"][0], width, height, sensors, params)

@@ -38,6 +38,7 @@ from bgt_core.control_messages import CollectorStatus
 from collector.client import CollectorClient
 from collector.errors import CollectorError
 from collector.web.plan import FloorPlan
+from collector.web.position import LivePositions
 from collector.web.snapshot import SILENT_S, ConsoleHistory, build_snapshot
 
 log = logging.getLogger(__name__)
@@ -69,6 +70,7 @@ class Console:
         token: str | None = None,
         access_token: str | None = None,
         plan: FloorPlan | None = None,
+        positions: LivePositions | None = None,
     ) -> None:
         self.client = client
         self.silent_s = silent_s
@@ -76,6 +78,7 @@ class Console:
         self.token = token or secrets.token_hex(16)  # the page's token for start/stop
         self.access_token = access_token  # set when listening beyond this machine
         self.plan = plan  # the floor plan to draw the sensors on, if any
+        self.positions = positions  # live position estimates from a radio map, if any
         self.history = ConsoleHistory()
         self.latest: dict[str, Any] | None = None
         self.runs: list[dict[str, Any]] = []
@@ -93,6 +96,8 @@ class Console:
             try:
                 status = CollectorStatus.from_dict(await self._call(self.client.status))
                 snap = build_snapshot(status, self.history, silent_s=self.silent_s)
+                if self.positions is not None:
+                    snap["positions"] = self._positions(status)
                 if n % RUNS_EVERY == 0:
                     self.runs = await self._call(self.client.runs)
                 self.error = None
@@ -106,6 +111,14 @@ class Console:
             self._push(json.dumps(snap))
             n += 1
             await asyncio.sleep(self.poll_s)
+
+    def _positions(self, status: CollectorStatus) -> dict[str, dict[str, Any]]:
+        assert self.positions is not None
+        out = self.positions.update(status)
+        if self.plan is not None:
+            for p in out.values():
+                p["px"], p["py"], p["r_px"] = self.plan.pixels(p["x"], p["y"], p["sigma_m"])
+        return out
 
     def _push(self, text: str) -> None:
         for q in list(self._pages):

@@ -192,3 +192,56 @@ def test_floor_plans(tmp_path: Path) -> None:
     (tmp_path / "x.dev").write_text("")
     with pytest.raises(PlanError, match="needs exactly one .dev, .par and .png"):
         load_plan(str(tmp_path))
+
+
+def test_live_positions_follow_the_beacon_on_a_radio_map(tmp_path: Path) -> None:
+    """--radiomap: the grid-HMM baseline, stepped once a second with the beacon's last RSSI at
+    each sensor, puts it where the map says those RSSI values are heard."""
+    pytest.importorskip("annotator.core.localize")
+    import numpy as np
+
+    from bgt_core.formats.grd import RadioMapGrid, write_grd
+    from collector.web.position import LivePositions
+
+    beacon = "e78f135624ce"
+    where = {"000000000001": (0.0, 0.0), "000000000002": (9.0, 0.0), "000000000003": (0.0, 9.0)}
+    edges = tuple(float(v) for v in range(-100, -29))
+    centres = np.arange(-99.5, -30)
+
+    def hist(d: float) -> tuple[float, ...]:
+        mean = -45 - 20 * np.log10(max(d, 0.5))
+        h = np.exp(-0.5 * ((centres - mean) / 3.0) ** 2)
+        return tuple(float(v) for v in h / h.sum())
+
+    for mac, (sx, sy) in where.items():
+        cells = {
+            (float(x), float(y)): {beacon: hist(np.hypot(x + 0.5 - sx, y + 0.5 - sy))}
+            for x in range(10)
+            for y in range(10)
+        }
+        write_grd(
+            RadioMapGrid(mac, ((0.0, 0.0), (9.0, 9.0)), 1.0, edges, cells), tmp_path / f"{mac}.grd"
+        )
+    live = LivePositions(tmp_path)
+    truth = (7.5, 1.5)  # near the second sensor
+
+    def observed(t: float) -> CollectorStatus:
+        sensors = {
+            mac: {
+                "rate_hz": 10.0,
+                "last_seen_age_s": 0.1,
+                "beacon_rssi": {
+                    beacon: round(-45 - 20 * np.log10(np.hypot(truth[0] - sx, truth[1] - sy)))
+                },
+            }
+            for mac, (sx, sy) in where.items()
+        }
+        return CollectorStatus.from_dict({"agents": {"pi-1": {"alive": True, "sensors": sensors}}})
+
+    for t in range(5):
+        est = live.update(observed(t))[beacon]
+    assert np.hypot(est["x"] - truth[0], est["y"] - truth[1]) < 1.0
+    assert est["sensors"] == 3
+    assert 0 < est["sigma_m"] < 2.0
+    with pytest.raises(ValueError, match="no cell for beacon"):
+        LivePositions(tmp_path, ["aaaaaaaaaaaa"])
