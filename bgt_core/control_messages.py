@@ -221,7 +221,9 @@ class SensorRate:
     readings: int = 0
     recent_rssi: tuple[int, ...] = ()  # the last readings' RSSI, oldest first (sparkline)
     beacons: dict[str, float] = field(default_factory=dict)  # readings/s of the most heard beacons
-    beacon_rssi: dict[str, int] = field(default_factory=dict)  # last RSSI of each beacon heard lately
+    beacon_rssi: dict[str, int] = field(
+        default_factory=dict
+    )  # last RSSI of each beacon heard lately
 
     @classmethod
     def from_dict(cls, d: object, what: str = "sensor") -> SensorRate:
@@ -272,6 +274,12 @@ class SensorRate:
 class AgentLive:
     alive: bool = False  # its liveliness token is present
     sensors: dict[str, SensorRate] = field(default_factory=dict)
+    # From the agent's status reply (when it answered one) and the last clock check.
+    version: str | None = None
+    backend: str | None = None
+    hostname: str | None = None
+    adapters: tuple[str, ...] = ()  # "hci0 b827eb4521b4 passive"
+    clock_offset_ms: float | None = None
 
     @classmethod
     def from_dict(cls, d: object, what: str = "agent") -> AgentLive:
@@ -280,13 +288,33 @@ class AgentLive:
         if not isinstance(alive, bool):
             raise InvalidField(f"{what}: alive must be true or false")
         sensors = obj_field(m, "sensors", what, {})
+        adapters = m.get("adapters") or []
+        if not (isinstance(adapters, list) and all(isinstance(a, str) for a in adapters)):
+            raise InvalidField(f"{what}: adapters must be a list of text")
+        text = {k: m.get(k) for k in ("version", "backend", "hostname")}
+        for k, v in text.items():
+            if v is not None and not isinstance(v, str):
+                raise InvalidField(f"{what}: {k} must be text")
         return cls(
             alive,
             {mac: SensorRate.from_dict(s, f"{what}: sensors.{mac}") for mac, s in sensors.items()},
+            text["version"],
+            text["backend"],
+            text["hostname"],
+            tuple(adapters),
+            num_field(m, "clock_offset_ms", what, None),
         )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"alive": self.alive, "sensors": {k: s.to_dict() for k, s in self.sensors.items()}}
+        return {
+            "alive": self.alive,
+            "sensors": {k: s.to_dict() for k, s in self.sensors.items()},
+            "version": self.version,
+            "backend": self.backend,
+            "hostname": self.hostname,
+            "adapters": list(self.adapters),
+            "clock_offset_ms": self.clock_offset_ms,
+        }
 
 
 @dataclass(frozen=True, slots=True)

@@ -138,7 +138,24 @@ def build_status(w: Writer, now: float) -> CollectorStatus:
             beacons=sl.beacon_rates(now),
             beacon_rssi=sl.beacon_rssi(now),
         )
-    agents = {a: AgentLive(alive.get(a, False), s) for a, s in sensors.items()}
+    infos = w.agents.infos()
+
+    def live(a: str, s: dict[str, SensorRate]) -> AgentLive:
+        info = infos.get(a)
+        clock = w.clock_log.get(a)
+        return AgentLive(
+            alive.get(a, False),
+            s,
+            None if info is None else info.version,
+            None if info is None else info.backend,
+            None if info is None else info.hostname,
+            ()
+            if info is None
+            else tuple(f"{x.name or '?'} {x.mac} {x.mode or ''}".strip() for x in info.adapters),
+            clock[-1].offset_ms if clock else None,
+        )
+
+    agents = {a: live(a, s) for a, s in sensors.items()}
     run = None
     r = w.run
     if r is not None:

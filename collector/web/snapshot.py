@@ -73,7 +73,18 @@ def build_snapshot(
                     "beacons": dict(s.beacons),
                 }
             )
-        agents.append({"id": agent_id, "alive": a.alive, "sensors": sensors})
+        agents.append(
+            {
+                "id": agent_id,
+                "alive": a.alive,
+                "version": a.version,
+                "backend": a.backend,
+                "hostname": a.hostname,
+                "adapters": list(a.adapters),
+                "clock_offset_ms": a.clock_offset_ms,
+                "sensors": sensors,
+            }
+        )
     return {
         "t": now,
         "run": None

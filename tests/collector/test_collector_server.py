@@ -226,9 +226,16 @@ def test_agent_status_goes_into_run_yaml(agent, client) -> None:
         run = client.start("meta")
         agent.put(make_batch(0, sensor=A))
         wait_for(lambda: agent.acked(A) == 0, what="ack")
+        # the status reply carries what the agent said of itself (the operator console shows it)
+        live = wait_for(
+            lambda: (a := client.status()["agents"].get("pi-01")) and a.get("version") and a,
+            what="the agent's version in the status",
+        )
         client.stop()
     finally:
         q.undeclare()
+    assert (live["version"], live["backend"], live["hostname"]) == ("9.9", "replay", "pi-kitchen")
+    assert live["adapters"] == ["hci0 B8:27:EB:45:21:B4 passive"]
     doc = run_yaml(run["run_dir"])
     a = doc["agents"]["pi-01"]
     assert (a["hostname"], a["version"], a["backend"], a["boot_ids"]) == (
