@@ -541,16 +541,7 @@ def run_demo(
     from annotator.io.experiment import load_experiment
     from annotator.pipeline import RunSettings, TrackSettings, run_experiment
 
-    out = settings.out
-    for sub in ("capture", "experiment", "results"):
-        if (out / sub).exists() and (not (out / sub).is_dir() or any((out / sub).iterdir())):
-            raise DemoError(f"{out / sub} already holds files; give a new --out or remove it")
-    if settings.duration_s < 8.0:
-        raise DemoError(
-            f"--duration must be at least 8 s (a cover event and tracking on both "
-            f"sides of it), got {settings.duration_s:g}"
-        )
-    out.mkdir(parents=True, exist_ok=True)
+    out = prepare_out(settings)
     path = demo_path(settings.speed_mps)
     started = time.monotonic()
 
@@ -587,6 +578,25 @@ def run_demo(
             "wall_time_s": time.monotonic() - started,
         }
     )
-    summary_path = out / "demo_summary.json"
-    summary_path.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-    return DemoResult(cap, exp_path, results, summary, summary_path)
+    return DemoResult(cap, exp_path, results, summary, write_summary(out, summary))
+
+
+def prepare_out(settings: DemoSettings) -> Path:
+    """The demo's folder, made; DemoError if it holds an earlier demo or the duration is short."""
+    out = settings.out
+    for sub in ("capture", "experiment", "results"):
+        if (out / sub).exists() and (not (out / sub).is_dir() or any((out / sub).iterdir())):
+            raise DemoError(f"{out / sub} already holds files; give a new --out or remove it")
+    if settings.duration_s < 8.0:
+        raise DemoError(
+            f"--duration must be at least 8 s (a cover event and tracking on both "
+            f"sides of it), got {settings.duration_s:g}"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def write_summary(out: Path, summary: dict[str, Any]) -> Path:
+    path = out / "demo_summary.json"
+    path.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    return path

@@ -10,7 +10,6 @@ antenna's true path.
 
 from __future__ import annotations
 
-import json
 import time
 from typing import Any
 
@@ -18,15 +17,16 @@ import numpy as np
 
 from annotator.demo import (
     Capture,
-    DemoError,
     DemoResult,
     DemoSettings,
     Progress,
     bundle_pose_at,
     demo_path,
+    prepare_out,
     render,
     score,
     summarize_run,
+    write_summary,
 )
 
 # Any fixed time works: nothing here runs live.
@@ -48,13 +48,7 @@ def run_receiver_demo(settings: DemoSettings, progress: Progress | None = None) 
         write_simulated_run,
     )
 
-    out = settings.out
-    for sub in ("capture", "experiment", "results"):
-        if (out / sub).exists() and (not (out / sub).is_dir() or any((out / sub).iterdir())):
-            raise DemoError(f"{out / sub} already holds files; give a new --out or remove it")
-    if settings.duration_s < 8.0:
-        raise DemoError(f"--duration must be at least 8 s, got {settings.duration_s:g}")
-    out.mkdir(parents=True, exist_ok=True)
+    out = prepare_out(settings)
     started = time.monotonic()
     path = demo_path(settings.speed_mps)
     run_dir = out / "capture" / "receiver-run"
@@ -91,7 +85,5 @@ def run_receiver_demo(settings: DemoSettings, progress: Progress | None = None) 
             "wall_time_s": time.monotonic() - started,
         }
     )
-    summary_path = out / "demo_summary.json"
-    summary_path.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     capture = Capture(run_dir, T0, summarize_run(run_dir))
-    return DemoResult(capture, exp_path, results, summary, summary_path)
+    return DemoResult(capture, exp_path, results, summary, write_summary(out, summary))
