@@ -11,3 +11,7 @@ class ConfigError(AnnotatorError):
 
 class NoDataError(AnnotatorError):
     """Nothing to work with: no markers detected, no RSSI rows, no sync event found."""
+
+
+class DemoError(AnnotatorError):
+    """A step of the demo failed; the message says which and why."""
