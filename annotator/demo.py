@@ -233,6 +233,10 @@ def capture(
             [*collector, "serve", "--data-dir", str(cap_dir), "--listen", endpoint, "--site", SITE],
         )
         note(f"collector serving on {endpoint}, data in {cap_dir}")
+        note(
+            f"watch it live in a browser (the web extra): collector web --connect {endpoint} "
+            "--plan tetam, then open http://127.0.0.1:8080/"
+        )
         # `start` fails with "no collector answered" until the router is up: retry to a deadline.
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while True:

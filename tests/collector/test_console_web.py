@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import tempfile
 import threading
 import time
 import urllib.error
@@ -30,7 +31,7 @@ from collector_helpers import FakeAgent, make_batch, run_yaml_doc, with_floor  #
 from loopback import free_port  # noqa: E402
 from polling import wait_for  # noqa: E402
 
-A, B = "b827eb4521b4", "000000000101"
+A, B, QUIET = "b827eb4521b4", "000000000101", "000000000201"  # QUIET stops after 0.5 s
 HOSTILE = '<img src=x onerror="document.title=1">'
 
 
@@ -86,7 +87,7 @@ def fleet(tmp_path: Path, endpoint: str) -> Iterator[tuple[Collector, str]]:
     def publish() -> None:
         seq = 0
         while not stop.is_set():
-            for sensor in (A, B):
+            for sensor in (A, B, QUIET) if seq < 5 else (A, B):
                 agent.put(with_floor(make_batch(seq, agent="pi-1", sensor=sensor), 0))
             seq += 1
             time.sleep(0.1)
@@ -94,7 +95,7 @@ def fleet(tmp_path: Path, endpoint: str) -> Iterator[tuple[Collector, str]]:
     pub = threading.Thread(target=publish, daemon=True)
     pub.start()
     client = CollectorClient(endpoint, "default").__enter__()
-    console = Console(client, poll_s=0.3, token="t0k3n", plan=load_plan("tetam"))
+    console = Console(client, poll_s=0.3, token="t0k3n", plan=load_plan("tetam"), silent_s=2.0)
     port = free_port()
     server = uvicorn.Server(
         uvicorn.Config(build_app(console), host="127.0.0.1", port=port, log_level="warning")
@@ -105,7 +106,7 @@ def fleet(tmp_path: Path, endpoint: str) -> Iterator[tuple[Collector, str]]:
     wait_for(lambda: server.started, 20, "the console to listen")
     wait_for(lambda: console.latest is not None and console.latest.get("agents"), 20, "a snapshot")
     try:
-        yield c, base
+        yield c, base, console
     finally:
         server.should_exit = True
         serve.join(10)
@@ -128,7 +129,7 @@ def post(url: str, body: dict, headers: dict[str, str]) -> tuple[int, dict]:
 
 
 def test_start_and_stop_need_the_pages_token_and_origin(fleet) -> None:
-    c, base = fleet
+    c, base, _ = fleet
     assert post(base + "api/start", {"name": "x"}, {})[0] == 403  # no token
     code, reply = post(
         base + "api/start", {"name": "x"}, {"X-BGT-Token": "t0k3n", "Origin": "http://evil.example"}
@@ -156,10 +157,16 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 @pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")
 def test_the_page_in_a_real_browser(fleet) -> None:
-    c, base = fleet
+    c, base, console = fleet
     code, _ = post(base + "api/start", {"name": HOSTILE}, {"X-BGT-Token": "t0k3n"})
     assert code == 200
-    time.sleep(1.0)  # a snapshot with the run in it
+
+    def quiet_in_snapshot() -> bool:
+        snap = console.latest or {}
+        rows = [s for a in snap.get("agents", []) for s in a["sensors"] if s["mac"] == QUIET]
+        return bool(rows and rows[0]["silent"] and snap.get("run"))
+
+    wait_for(quiet_in_snapshot, 20, "the quiet sensor silent, the run on")
     dom = subprocess.run(
         [
             CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
@@ -167,12 +174,27 @@ def test_the_page_in_a_real_browser(fleet) -> None:
         ],
         capture_output=True, text=True, timeout=120,
     ).stdout  # fmt: skip
+    # a screenshot beside the test's files, for a failure to be looked at
+    shot = Path(tempfile.mkdtemp(prefix="console-")) / "console.png"
+    subprocess.run(
+        [
+            CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
+            "--window-size=1100,1900", "--timeout=3000", f"--screenshot={shot}", base,
+        ],
+        capture_output=True, timeout=120,
+    )  # fmt: skip
+    print(f"console screenshot: {shot}")
     post(base + "api/stop", {}, {"X-BGT-Token": "t0k3n"})
+    assert shot.stat().st_size > 20_000
     # the fleet table was filled from the server-sent events: both sensors, with rates
     fleet_table = dom[dom.index('<table id="fleet">') : dom.index('<table id="matrix">')]
     assert A in fleet_table
     assert B in fleet_table
     assert "pi-1" in fleet_table
+    # the sensor that went quiet is red, with the time it went quiet
+    quiet_row = fleet_table[fleet_table.index(QUIET) - 200 : fleet_table.index(QUIET) + 400]
+    assert 'class="silent"' in quiet_row
+    assert "quiet since" in quiet_row
     # the hostile run name is text in the page, never markup
     assert "&lt;img src=x onerror=" in dom
     assert "<img src" not in dom
