@@ -26,6 +26,7 @@ from pathlib import Path
 
 import pytest
 
+import polling
 from bgt_core import wire
 from bgt_core.formats.mbd import format_row
 from testbed_loader import load_testbed
@@ -101,14 +102,8 @@ def operator_args(fleet: Fleet) -> list[str]:
 
 
 def wait_for(pred, timeout: float, what: str, step: float = 1.0):
-    end = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v:
-            return v
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(step)
+    """tests/support/polling.wait_for, one poll a second by default (each poll may be an ssh)."""
+    return polling.wait_for(pred, timeout, what, step=step)
 
 
 def start_unit(h, unit: str, timeout: float = 90) -> None:
