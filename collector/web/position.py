@@ -9,8 +9,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from bgt_core.control_messages import CollectorStatus
 
 
@@ -26,12 +24,21 @@ class LivePositions:
         speed_mps: float = 1.0,
         top: int = 8,
     ) -> None:
-        from annotator.core.localize import GridHmmFilter
-        from annotator.io.localize import (
-            radiomap_arrays,
-            radiomap_beacons,
-            read_radiomap_grids,
-        )
+        try:  # the annotator extra: an optional part of the console
+            import numpy
+
+            from annotator.core.localize import GridHmmFilter
+            from annotator.io.localize import (
+                radiomap_arrays,
+                radiomap_beacons,
+                read_radiomap_grids,
+            )
+        except ImportError as e:
+            raise ModuleNotFoundError(
+                f"--radiomap needs the annotator extra ({e.name} is missing)", name=e.name
+            ) from None
+
+        self._np = numpy
 
         grids = read_radiomap_grids(radiomap)
         mapped = radiomap_beacons(grids)
@@ -57,6 +64,7 @@ class LivePositions:
                     if value is not None and mac in index:
                         sensors.append(index[mac])
                         rssi.append(value)
+            np = self._np
             f.step(np.asarray(sensors, dtype=int), f.bins(np.asarray(rssi, dtype=float)))
             xy, spread = f.estimate()
             if math.isfinite(spread):

@@ -85,13 +85,16 @@ def _imports(path: Path, module: str) -> Iterator[str]:
             yield from (f"{source}.{a.name}" for a in node.names if a.name != "*")
 
 
-def third_party_imports(root: Path, package: str) -> dict[str, str]:
+def third_party_imports(root: Path, package: str, exclude: tuple[str, ...] = ()) -> dict[str, str]:
     """Top-level third-party name -> the first project module found importing it, over every
-    module of ``package`` under ``root`` and the project modules they import."""
+    module of ``package`` under ``root`` and the project modules they import, but none under
+    ``exclude`` (a sub-package that is a role of its own, with its own extra)."""
+    top_dir = root / package.replace(".", "/")
     todo = [
         ".".join(f.relative_to(root).with_suffix("").parts).removesuffix(".__init__")
-        for f in sorted((root / package).rglob("*.py"))
+        for f in sorted(top_dir.rglob("*.py"))
     ]
+    todo = [m for m in todo if not any(m == x or m.startswith(x + ".") for x in exclude)]
     seen: set[str] = set()
     found: dict[str, str] = {}
     while todo:
@@ -105,21 +108,23 @@ def third_party_imports(root: Path, package: str) -> dict[str, str]:
         for name in _imports(path, module):
             top = name.partition(".")[0]
             if top in PROJECT:
-                todo.append(name)
+                if not any(name == x or name.startswith(x + ".") for x in exclude):
+                    todo.append(name)
             elif top and top not in sys.stdlib_module_names:
                 found.setdefault(top, module)
     return found
 
 
-def missing_imports(package: str) -> tuple[Path, dict[str, str]]:
+def missing_imports(package: str, exclude: tuple[str, ...] = ()) -> tuple[Path, dict[str, str]]:
     """The installed ``package``'s folder, and each third-party name its code imports that does
     not import here: name -> 'importing module: error'."""
     spec = importlib.util.find_spec(package)
     if spec is None or not spec.submodule_search_locations:
         raise SystemExit(f"{package} is not installed here")
     folder = Path(next(iter(spec.submodule_search_locations)))
+    root = folder.parents[package.count(".")]
     missing = {}
-    for name, importer in sorted(third_party_imports(folder.parent, package).items()):
+    for name, importer in sorted(third_party_imports(root, package, exclude).items()):
         try:
             importlib.import_module(name)
         except Exception as e:  # noqa: BLE001 - any failure to import is the finding
@@ -128,7 +133,8 @@ def missing_imports(package: str) -> tuple[Path, dict[str, str]]:
 
 
 def main() -> int:
-    folder, missing = missing_imports(sys.argv[1])
+    # PACKAGE [-EXCLUDED ...]: e.g. "collector -collector.web" (the console is the web role)
+    folder, missing = missing_imports(sys.argv[1], tuple(a.removeprefix("-") for a in sys.argv[2:]))
     print(json.dumps({"package_dir": str(folder), "missing": missing}))
     return 1 if missing else 0
 

@@ -31,11 +31,13 @@ from deploy import pki
 from deploy.acl import build_acl
 
 REPO = Path(__file__).resolve().parents[2]
+# extra -> the package (and sub-packages left to another role) its venv must import whole
 EXTRAS = {
     "agent": "sensor_agent",
-    "collector": "collector",
+    "collector": "collector -collector.web",
     "annotator": "annotator",
     "deploy": "deploy",
+    "web": "collector.web",
 }
 PIP = ("-m", "pip", "--disable-pip-version-check")
 
@@ -138,7 +140,9 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.mark.parametrize("extra", EXTRAS)
 def test_the_extra_installs_every_module_its_role_imports(venvs, extra, tmp_path) -> None:
     bin_dir = bin_of(venvs, extra)
-    res = run([str(bin_dir / "python"), import_closure.__file__, EXTRAS[extra]], cwd=tmp_path)
+    res = run(
+        [str(bin_dir / "python"), import_closure.__file__, *EXTRAS[extra].split()], cwd=tmp_path
+    )
     assert res.returncode == 0, (
         f"[{extra}] misses modules its code imports:\n{res.stdout}{res.stderr}"
     )
@@ -178,6 +182,10 @@ def test_collector_extra_help_and_tls_config_check(venvs, site) -> None:
     (site / "collector_bad.yaml").write_text(yaml.safe_dump(conf))
     res = run([collector, "serve", "--config", "collector_bad.yaml", "--check"], cwd=site)
     one_line_error(res, "tls.key", "not a usable PEM file")
+
+    # The console is the web extra's: without it, one line saying what to install.
+    res = run([collector, "web"], cwd=site)
+    one_line_error(res, "collector web needs the web extra", "pip install")
 
 
 @pytest.mark.slow
