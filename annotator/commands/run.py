@@ -53,15 +53,15 @@ def write_run_outputs(
     # The labelled antenna's own path, when it is not the bundle's origin: the truth that
     # `annotator score` takes for position estimates of that antenna.
     point = np.asarray(report.get("labelled_point_bundle_m", [0.0, 0.0, 0.0]), dtype=float)
-    antenna_csv = out / POINT_TRAJECTORY["receiver" if receiver_mode else "beacon"]
-    stale = [out / name for name in POINT_TRAJECTORY.values() if out / name != antenna_csv]
-    if receiver_mode or point.any():
-        write_trajectory(antenna_csv, traj.at_point(point))
-        report["antenna_trajectory"] = antenna_csv.name
-    else:
-        stale.append(antenna_csv)
-    for old in stale:  # an earlier run's into the same folder would be taken for this one's
-        old.unlink(missing_ok=True)
+    wanted = POINT_TRAJECTORY["receiver" if receiver_mode else "beacon"]
+    if not (receiver_mode or point.any()):
+        wanted = ""
+    for name in POINT_TRAJECTORY.values():
+        if name == wanted:
+            write_trajectory(out / name, traj.at_point(point))
+            report["antenna_trajectory"] = name
+        else:  # an earlier run's into the same folder would be taken for this one's
+            (out / name).unlink(missing_ok=True)
     write_annotated_mbd(out / "annotated", table, labels, by=by)
     write_parquet(out / "annotated.parquet", table, labels)
     if plots:

@@ -37,7 +37,6 @@ import time
 import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
 log = logging.getLogger("bgt-testbed")
 
@@ -103,7 +102,7 @@ def run(
     check: bool = True,
     capture: bool = False,
     timeout: float | None = None,
-    **kw: Any,
+    **kw,
 ) -> subprocess.CompletedProcess[str]:
     log.debug("$ %s", " ".join(argv))
     res = subprocess.run(

@@ -165,17 +165,19 @@ def test_limits_in_the_config_file(tmp_path) -> None:
 # -- in-process collector, loopback Zenoh ------------------------------------------------------
 
 
-@pytest.fixture
-def collector(tmp_path, endpoint):
-    c = Collector(
+def limited_collector(tmp_path, endpoint, limits: Limits) -> Collector:
+    """An in-process collector on loopback with these limits (fsync every 0.1 s)."""
+    return Collector(
         CollectorConfig(
-            data_dir=tmp_path / "data",
-            listen=(endpoint,),
-            fsync_interval_s=0.1,
-            limits=Limits(streams_per_agent=4, streams_total=5),
+            data_dir=tmp_path / "data", listen=(endpoint,), fsync_interval_s=0.1, limits=limits
         ),
         drain_timeout_s=2.0,
     ).open()
+
+
+@pytest.fixture
+def collector(tmp_path, endpoint):
+    c = limited_collector(tmp_path, endpoint, Limits(streams_per_agent=4, streams_total=5))
     yield c
     c.close()
 
@@ -420,15 +422,7 @@ def test_a_refused_batch_leaves_the_agents_spool_by_policy(
     from sensor_agent.publisher import Publisher, stream_id
     from sensor_agent.spool import Spool
 
-    c = Collector(
-        CollectorConfig(
-            data_dir=tmp_path / "data",
-            listen=(endpoint,),
-            fsync_interval_s=0.1,
-            limits=Limits(streams_per_agent=1),
-        ),
-        drain_timeout_s=2.0,
-    ).open()
+    c = limited_collector(tmp_path, endpoint, Limits(streams_per_agent=1))
     session = zenoh.open(build_config(SessionSpec(mode="client", connect=[endpoint])))
     spool = Spool(tmp_path / "spool", 1 << 20)
     boot = "00112233aabbccdd"
@@ -486,15 +480,8 @@ def spool_is_empty_for(sensor: str, boot: str, tmp_path) -> bool:
 def test_an_agent_over_its_rate_quota_is_refused_and_told(tmp_path, endpoint) -> None:
     """limits.agent_readings_per_s: one agent cannot write faster than its share (issue 35);
     what it sends beyond is refused, counted and told, and another agent is not held back."""
-    c = Collector(
-        CollectorConfig(
-            data_dir=tmp_path / "data",
-            listen=(endpoint,),
-            fsync_interval_s=0.1,
-            limits=Limits(agent_readings_per_s=10),  # 100 readings of burst, then 10/s
-        ),
-        drain_timeout_s=2.0,
-    ).open()
+    # 100 readings of burst, then 10/s
+    c = limited_collector(tmp_path, endpoint, Limits(agent_readings_per_s=10))
     fast = FakeAgent(endpoint, agent="pi-fast")
     calm = FakeAgent(endpoint, agent="pi-01")
     try:
