@@ -399,8 +399,8 @@ def track_experiment(
 
 
 # --- `annotator run`: track -> sync -> label --------------------------------------------------
-# Stage order of a full run. Sync needs the per-frame marker counts, so in `sync.mode: auto` each
-# video is first processed on its own PTS clock, then its frame times are mapped onto the RSSI
+# Stage order of a full run. Sync needs the per-frame marker counts (and the slate's frames), so
+# in `sync.mode: auto` and `slate` each video is first processed on its own PTS clock, then its frame times are mapped onto the RSSI
 # clock before the cameras are combined (the joint solve pairs frames by wall time).
 
 
@@ -466,17 +466,10 @@ def run_experiment(
     from dataclasses import replace
 
     from annotator.core.labeling import label_readings
-    from annotator.core.sync import (
-        VideoSeries,
-        cover_intervals,
-        detect_rssi_events,
-        manual_sync,
-        synchronise,
-    )
+    from annotator.core.sync import cover_intervals, manual_sync
     from annotator.errors import ConfigError
     from annotator.io.outputs import build_report
     from annotator.io.rssi import bundle_beacon, load_rssi, receiver_readings
-    from annotator.io.sync import brightness_series
 
     settings = settings or RunSettings()
     track = settings.track
@@ -501,48 +494,14 @@ def run_experiment(
         table = everything.select(everything.beacon == beacon)
         subject, pooled_by, antenna = f"beacon {beacon}", table.sensor, "beacon"
 
-    if exp.sync_mode == "auto":
-        sc = exp.sync
-        cover_s = (sc.min_cover_s, sc.max_cover_s)
-        # The RSSI event first: cheap, and a missing one should fail before the long video pass.
-        rssi_events = detect_rssi_events(
-            table.t_seconds(),
-            table.rssi,
-            pooled_by,
-            name=f"RSSI of {subject}",
-            min_duration=cover_s[0],
-            max_duration=cover_s[1],
-        )
+    if exp.sync_mode in ("auto", "slate"):
+        from annotator.sync_stage import sync_frames
+
         with _worker_pool(track) as pool:
             frames = _all_videos(
                 replace(exp, video_start={n: 0.0 for n in exp.videos}), track, progress, pool
             )
-        series = {}
-        for cf in frames:
-            n = len(cf.t)
-            cb = (
-                None
-                if progress is None
-                else (lambda k, name=cf.camera, n=n: progress(f"{name} sync", min(k, n), n))
-            )
-            pts, level = brightness_series(exp.videos[cf.camera], cb)
-            if len(pts) < n:
-                raise NoDataError(
-                    f"{exp.videos[cf.camera]}: decoded {len(pts)} frames, expected {n}"
-                )
-            if progress is not None:
-                progress(f"{cf.camera} sync", n, n)
-            counts = np.array([len(d.ids) for d in cf.detections], dtype=float)
-            series[cf.camera] = VideoSeries(cf.t, level[:n], counts)
-        sync = synchronise(
-            series,
-            rssi_events,
-            approx_start=exp.video_start,
-            max_start_error=sc.max_start_error,
-            min_duration=cover_s[0],
-            max_duration=cover_s[1],
-        )
-        frames = [replace(cf, t=sync.clocks[cf.camera].to_rssi(cf.t)) for cf in frames]
+        frames, sync = sync_frames(exp, frames, table, pooled_by, subject, progress)
     else:
         sync = manual_sync(exp.video_start or {})
         with _worker_pool(track) as pool:
@@ -550,6 +509,16 @@ def run_experiment(
     with _worker_pool(track) as pool:
         result = frames_to_result(frames, exp, track, pool)
     traj = result.trajectory
+    if sync.slates and result.refinement is not None:
+        from annotator.sync_stage import readout_shift
+
+        refined = result.refinement.experiment.rig.cameras
+        sync, traj = readout_shift(
+            sync,
+            {n: c.calibration.readout_s for n, c in exp.rig.cameras.items()},
+            {n: c.calibration.readout_s for n, c in refined.items()},
+            traj,
+        )
 
     # Readings while hands covered the bundle carry the hands' attenuation: never labelled. Each
     # reading gets the pose of the antenna that took part in it (the beacon's or the receiver's).

@@ -375,6 +375,14 @@ def live(
         raise _fail(e) from None
 
 
+def _listen_address(listen: str) -> tuple[str, str]:
+    """--listen HOST:PORT split, or the one-line error."""
+    host, sep, port_text = listen.rpartition(":")
+    if not sep or not port_text.isdigit() or not 0 < int(port_text) < 65536 or not host:
+        raise _fail(ConfigError(f"--listen {listen!r}: expected HOST:PORT, e.g. 127.0.0.1:8080"))
+    return host, port_text
+
+
 @app.command(short_help="The operator's console in a browser: fleet, live RSSI, start and stop.")
 def web(
     listen: Annotated[
@@ -437,9 +445,7 @@ def web(
                 f"collector web needs the web extra ({e.name} is missing): pip install '.[web]'"
             )
         ) from None
-    host, sep, port_text = listen.rpartition(":")
-    if not sep or not port_text.isdigit() or not 0 < int(port_text) < 65536 or not host:
-        raise _fail(ConfigError(f"--listen {listen!r}: expected HOST:PORT, e.g. 127.0.0.1:8080"))
+    host, port_text = _listen_address(listen)
     local = is_loopback(host)
     if not local and (tls_cert is None or tls_key is None):
         raise _fail(
@@ -495,6 +501,42 @@ def web(
         )
     finally:
         client.__exit__(None, None, None)
+
+
+@app.command(short_help="A full-screen clock slate for the cameras to film (sync.mode: slate).")
+def slate(
+    listen: Annotated[
+        str,
+        typer.Option(
+            "--listen",
+            help="HOST:PORT to serve the slate on; 0.0.0.0:PORT lets a tablet or phone on the "
+            "network be the screen (the page shows only the time and takes no input).",
+        ),
+    ] = "127.0.0.1:8090",
+) -> None:
+    """Serve a page that shows this host's clock as a time code, refreshed every frame: open it
+    full screen (click it), film it with every camera of the bundle for a second before the walk
+    and again after it, and set `sync: {mode: slate}` in experiment.yaml. Keep this host's clock
+    and the agents' on the same NTP source (sensor-agent doctor shows an agent's offset)."""
+    try:
+        import uvicorn
+
+        from collector.web.slate import build_slate_app
+    except ModuleNotFoundError as e:
+        raise _fail(
+            ConfigError(
+                f"collector slate needs the web extra ({e.name} is missing): pip install '.[web]'"
+            )
+        ) from None
+    host, port_text = _listen_address(listen)
+    shown = "127.0.0.1" if host in ("0.0.0.0", "::", "[::]") else host
+    console.print(
+        f"clock slate on http://{shown}:{port_text}/  (Ctrl-C stops it)",
+        highlight=False,
+        markup=False,
+        soft_wrap=True,
+    )
+    uvicorn.run(build_slate_app(), host=host.strip("[]"), port=int(port_text), log_level="warning")
 
 
 @app.command(short_help="Write a run in the published layout: one <sensor_mac>.mbd per sensor.")

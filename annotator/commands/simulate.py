@@ -312,6 +312,17 @@ def simulate(
             rich_help_panel="Imaging and printing",
         ),
     ] = 0.0,
+    slate: Annotated[
+        float,
+        typer.Option(
+            help="Seconds each camera films the clock slate (`collector slate`, a 60 Hz screen) "
+            "before the walk and after it; experiment.yaml then says `sync: {mode: slate}`. "
+            "0: no slate.",
+            rich_help_panel="Radio",
+            min=0.0,
+            max=10.0,
+        ),
+    ] = 0.0,
     rssi: Annotated[
         bool,
         typer.Option(
@@ -471,6 +482,12 @@ def simulate(
                 imaging=camera_imaging,
                 print_scale=print_scale,
                 print_scatter=print_scatter,
+                slate=slate,
+            )
+        if slate > 0:
+            text = result.experiment.read_text(encoding="utf-8")
+            result.experiment.write_text(
+                text.replace("  mode: manual\n", "  mode: slate\n", 1), encoding="utf-8"
             )
         if jig > 0:
             write_jig(result.experiment, trajectory, t0, t0 + jig, seed, file_errors.perturbs)

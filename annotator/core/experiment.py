@@ -81,12 +81,18 @@ class MarkerSetup:
 class SyncSettings:
     """experiment.yaml's ``sync:`` section, checked once at load (see ``parse_sync``)."""
 
-    mode: str = "manual"  # manual | auto
+    mode: str = "manual"  # manual | auto (hands cover) | slate (clock slate, cover as fallback)
     video_start: dict[str, float] | None = None  # as written: wall time of each video's first frame
     beacon: str | None = None  # the bundle's beacon, 12 lower-case hex digits
     min_cover_s: float = 0.3  # auto: shortest and longest "hands over the bundle" event, s
     max_cover_s: float = 10.0
     max_start_error: float = 60.0  # auto: how far (s) a stated video start may be off
+    # slate: the screen's refresh rate (Hz), its display delay and that delay's 1-sigma (s), and
+    # how far into each end of a video (s) to look for the slate.
+    slate_hz: float = 60.0
+    slate_latency: float = 0.0
+    slate_latency_sigma: float = 0.005
+    slate_window: float = 15.0
 
 
 @dataclass(frozen=True, eq=False)

@@ -329,8 +329,10 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> SyncSettings:
     sync = dict(_mapping(obj, source, "sync"))
     _known_keys(sync, SYNC_KEYS, source, "sync")
     mode = sync.get("mode", "manual")
-    if mode not in ("manual", "auto"):
-        raise ConfigError(f"{source}: sync.mode must be 'manual' or 'auto', not {mode!r:.40}")
+    if mode not in ("manual", "auto", "slate"):
+        raise ConfigError(
+            f"{source}: sync.mode must be 'manual', 'auto' or 'slate', not {mode!r:.40}"
+        )
     sync["mode"] = mode
     video_start: dict[str, float] | None = None
     if sync.get("video_start") is not None:
@@ -354,6 +356,14 @@ def parse_sync(obj: Any, source: str, cameras: list[str]) -> SyncSettings:
     for key in ("min_cover_s", "max_cover_s", "max_start_error"):
         if key in sync:
             sync[key] = _number(sync[key], f"{source}: sync.{key}", 1e-3, 86_400.0)
+    for key, low, high in (
+        ("slate_hz", 10.0, 500.0),
+        ("slate_latency", 0.0, 1.0),
+        ("slate_latency_sigma", 0.0, 1.0),
+        ("slate_window", 0.5, 3600.0),
+    ):
+        if key in sync:
+            sync[key] = _number(sync[key], f"{source}: sync.{key}", low, high)
     lo = sync.get("min_cover_s", SyncSettings.min_cover_s)
     hi = sync.get("max_cover_s", SyncSettings.max_cover_s)
     if not lo < hi:

@@ -209,6 +209,14 @@ def build_report(
             "method": cm.method,
             "events": [_event_dict(e, cm) for e in sync.video_events.get(name, [])],
         }
+        slate = sync.slates.get(name)
+        if slate is not None:  # which frames showed the clock slate, on the video's own clock
+            sync_part["cameras"][name]["slate"] = {
+                "filmings_pts_s": [[round(a, 4), round(b, 4)] for a, b in slate.segments],
+                "frames_used": slate.frames_used,
+                "frames_refused": slate.frames_refused,
+                "row_fraction": round(slate.row_fraction, 4),
+            }
     sync_part["rssi_events"] = [_event_dict(e) for e in sync.rssi_events]
     markers = labels.markers[lab]
     by = "beacon" if receiver is not None else "sensor"

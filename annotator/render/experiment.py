@@ -232,6 +232,8 @@ def render_experiment(
     imaging: Imaging | None = None,
     print_scale: float = 1.0,
     print_scatter: float = 0.0,
+    slate: float = 0.0,
+    slate_hz: float = 60.0,
 ) -> RenderResult:
     """Render the rig's two videos along `pose_at` over wall times `t_span` and write the experiment.
 
@@ -250,6 +252,10 @@ def render_experiment(
     markers as printed, each `print_scale` x (1 + N(0, `print_scatter`)) times `marker_length`
     (drawn by `seed`), while experiment.yaml says `marker_length`; true/experiment.yaml says
     `marker_length` x `print_scale` and perturbation.yaml lists every printed side.
+
+    `slate` > 0: each camera films the clock slate (`collector slate`, a `slate_hz` screen with a
+    seeded refresh phase) for `slate` seconds before t_span[0] and after t_span[1]; the videos
+    start and end that much earlier and later, and truth.csv covers t_span only.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -264,7 +270,17 @@ def render_experiment(
             f"readout {readout} s must be between 0 and the frame interval {1 / fps:.4f} s"
         )
     t0, t1 = float(t_span[0]), float(t_span[1])
-    starts = {"front": t0, "back": t0 + start_offset}
+    if not (0 <= slate <= 10 and 10 <= slate_hz <= 500):
+        raise ValueError(
+            f"slate {slate} s must be in [0, 10] and its refresh {slate_hz} Hz in [10, 500]"
+        )
+    starts = {"front": t0 - slate, "back": t0 + start_offset - slate}
+    shot = None
+    if slate > 0:
+        from annotator.render.slate import SlateShot
+
+        rng = np.random.default_rng(np.random.SeedSequence([seed & 0xFFFFFFFF, 18]))
+        shot = SlateShot(slate_hz, float(rng.uniform(0, 1 / slate_hz)), seed=seed)
     wall_covers = tuple((t0 + s, d) for s, d in covers)
     errors = errors or FileErrors(seed=seed)
     flicker_phase = float(
@@ -275,19 +291,20 @@ def render_experiment(
     job_list = []
     for idx, name in enumerate(("front", "back")):
         cam = cams[name]
-        times = frame_times(starts[name], t1, fps)
+        times = frame_times(starts[name], t1 + slate, fps)
         if not len(times):
             raise ValueError(f"time span {t1 - t0:.3f} s leaves no frames for the {name} camera")
         band_rows = rolling_bands(cam.height, readout)
         # Global shutter: the frame is seen at its stamp; rolling: at its middle row's time.
         mid = float(row_delay((cam.height - 1) / 2, cam.height, readout))
-        r, c = _camera_poses(pose_at, times, name)
-        ro, co = _camera_poses(pose_at, times + mid - exposure / 2, name)
-        rc, cc = _camera_poses(pose_at, times + mid + exposure / 2, name)
+        walk_t = np.clip(times, t0, t1)  # the slate's frames show no room: any pose will do
+        r, c = _camera_poses(pose_at, walk_t, name)
+        ro, co = _camera_poses(pose_at, walk_t + mid - exposure / 2, name)
+        rc, cc = _camera_poses(pose_at, walk_t + mid + exposure / 2, name)
         rb = cb = None
         if band_rows:
             offs = row_time_offsets(band_rows, cam.height, readout)
-            rb, cb = _camera_poses(pose_at, (times[:, None] + offs[None, :]).ravel(), name)
+            rb, cb = _camera_poses(pose_at, (walk_t[:, None] + offs[None, :]).ravel(), name)
             rb, cb = rb.reshape(len(times), len(offs), 3, 3), cb.reshape(len(times), len(offs), 3)
         gains = None
         if flicker > 0:
@@ -318,6 +335,10 @@ def render_experiment(
                 gains,
                 imaging or Imaging(),
                 scales,
+                shot,
+                (t0, t1) if shot is not None else (-np.inf, np.inf),
+                readout,
+                exposure,
             )
         )
 
@@ -330,6 +351,11 @@ def render_experiment(
         "flicker_phase_rad": flicker_phase,
         "render_seed": int(seed),
         **({"imaging": asdict(imaging)} if imaging is not None and imaging.active else {}),
+        **(
+            {"slate_s": float(slate), "slate_hz": float(slate_hz), "slate_phase_s": shot.phase}
+            if shot is not None
+            else {}
+        ),
     }
     if scales is not None:
         settings["print_scale"] = float(print_scale)
@@ -353,6 +379,7 @@ def render_experiment(
     )
 
     all_t = np.unique(np.concatenate([j.times for j in job_list]))
+    all_t = all_t[(all_t >= t0) & (all_t <= t1)]
     pos, rot = pose_at(all_t)
     (out / "truth.csv").write_text(
         format_truth(all_t, np.asarray(pos, float), rot), encoding="utf-8"

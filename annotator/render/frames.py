@@ -21,6 +21,7 @@ from annotator.render.effects import (
     motion_kernel,
 )
 from annotator.render.scene import MarkerScene
+from annotator.render.slate import SlateShot, slate_frame
 from annotator.render.textures import (
     MarkerTextures,
     aruco_dictionary,
@@ -63,6 +64,11 @@ class CameraJob:
     gains: np.ndarray | None = None  # (N, height) brightness factor of each row (flicker)
     imaging: Imaging = Imaging()  # what a real camera adds (defocus, light, compression)
     marker_scales: dict[int, float] | None = None  # printed side / nominal length, per marker
+    # The clock slate: frames stamped before slate_span[0] or after slate_span[1] film it.
+    slate: SlateShot | None = None
+    slate_span: tuple[float, float] = (-np.inf, np.inf)
+    readout: float = 0.0
+    exposure: float = 0.0
 
 
 class FrameRenderer:
@@ -211,6 +217,13 @@ class FrameRenderer:
         kernel = motion_kernel(np.asarray(motion))
         if kernel is not None:
             img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+        return self.finish(img, cover, gain, t)
+
+    def finish(
+        self, img: np.ndarray, cover: float = 0.0, gain: np.ndarray | None = None, t: float = 0.0
+    ) -> np.ndarray:
+        """What the camera adds to the gray picture (flicker, imaging, noise, a covering hand)
+        and its compression; a BGR frame."""
         if gain is not None:
             img = np.clip(img * np.asarray(gain, np.float32)[:, None] + 0.5, 0, 255).astype(
                 np.uint8
@@ -254,9 +267,15 @@ def render_camera(
             if job.r_wc_bands is not None and job.c_w_bands is not None:
                 bands = (job.band_rows, job.r_wc_bands[i], job.c_w_bands[i])
             gain = None if job.gains is None else job.gains[i]
-            writer.write(
-                fr.render(job.r_wc[i], job.c_w[i], motion, cover, bands, gain, float(job.times[i]))
-            )
+            t = float(job.times[i])
+            if job.slate is not None and not job.slate_span[0] <= t <= job.slate_span[1]:
+                cam = job.camera
+                picture = slate_frame(
+                    job.slate, t, cam.width, cam.height, job.readout, job.exposure
+                )
+                writer.write(fr.finish(picture, 0.0, gain, t))
+            else:
+                writer.write(fr.render(job.r_wc[i], job.c_w[i], motion, cover, bands, gain, t))
             if (i + 1) % 10 == 0 or i + 1 == n:
                 if progress is not None:
                     progress(job.name, i + 1, n)

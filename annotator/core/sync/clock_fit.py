@@ -81,7 +81,7 @@ def _match_events(
 DRIFT_PRIOR: tuple[tuple[float, float], ...] = ((0.5, 1e-4), (0.5, 3e-3))
 
 
-def _drift_mixture_posterior(
+def drift_mixture_posterior(
     aw: np.ndarray, bw: np.ndarray, k: int, prior: tuple[tuple[float, float], ...]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mean and covariance of the unknowns of the whitened system ``aw x = bw`` when unknown ``k``
@@ -201,7 +201,7 @@ def fit_clock_map(
     cov = np.linalg.inv(Aw.T @ Aw)
     n_par = float(A.shape[1])
     if drift and drift_prior:
-        coef, cov = _drift_mixture_posterior(Aw, yd * np.sqrt(wts), A.shape[1] - 1, drift_prior)
+        coef, cov = drift_mixture_posterior(Aw, yd * np.sqrt(wts), A.shape[1] - 1, drift_prior)
         n_par = float(np.trace(Aw.T @ Aw @ cov))  # a drift the prior holds is not a free unknown
     resid = yd - A @ coef
     dof = xa.size - n_par

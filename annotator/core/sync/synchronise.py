@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -35,6 +36,8 @@ class SyncResult:
     video_events: dict[str, list[CoverEvent]]  # per camera, PTS seconds
     rssi_events: list[CoverEvent]  # RSSI clock (Unix seconds)
     mode: str
+    # slate mode: the cameras synchronised by the clock slate (annotator.core.sync.slate.SlateFit)
+    slates: dict[str, Any] = field(default_factory=dict)
 
 
 def synchronise(
