@@ -4,6 +4,7 @@ camera adds to the picture and how the markers were printed, each with every fie
     python bench/field_matrix.py                                  # every cell, seeds 0-4, 30 s
     python bench/field_matrix.py --cells walk,print --seeds 0,1 --duration 20
     python bench/field_matrix.py --json matrix.json               # rows for later comparison
+    python bench/field_matrix.py --sync slate                     # the clock slate, not the hands
 
 Every cell renders its walk through the tetam room with `annotator.render.render_experiment`
 and the field errors of `annotator simulate --errors field` in the files (survey 1.5 cm / 1 deg,
@@ -25,6 +26,10 @@ the exact truth. Cells:
                 1.5 px, JPEG quality 60, 40 % vignetting, uneven and drifting light, exposure
                 steps, noise 5) and the 0.7 % print
     push-real   the cart pushes of `push` with the imaging and print of `real`, at 1920x1080
+
+With `--sync slate` every camera also films the clock slate (`collector slate`, a 60 Hz screen
+with a random refresh phase) for a second before and after the walk, and `annotator run` uses
+`sync.mode: slate` (the covers stay: readings under them are not labelled).
 
 Columns per row: posed share of the frames outside the covers; trajectory error median and p95
 (cm); rotation error median (deg); share of posed rows within 2.8 sigma_m (~95 % for an honest
@@ -61,6 +66,7 @@ from bgt_core import safe_yaml  # noqa: E402
 
 TRUE_READOUT_S = float(fa.FIELD["readout"])
 COVER_S = 1.5  # hands over the bundle at 2 s and 3 s before the end, this long
+SLATE = {"s": 0.0}  # seconds of clock slate at each end (--sync slate: 1)
 
 
 def covers(duration: float) -> list[tuple[float, float]]:
@@ -115,6 +121,8 @@ def cell_video(cache: Path, cell: Cell, duration: float, seed: int, jobs: int) -
     }
 
     args["covers"] = covers(duration)
+    if SLATE["s"]:
+        args["slate"] = SLATE["s"]
 
     def render(tmp: Path) -> None:
         render_experiment(
@@ -135,6 +143,7 @@ def cell_video(cache: Path, cell: Cell, duration: float, seed: int, jobs: int) -
             imaging=IMAGING_PRESETS[cell.imaging],
             print_scale=cell.print_scale,
             print_scatter=cell.print_scatter,
+            slate=SLATE["s"],
         )
 
     return fa.render_once(cache, args, render, f"{cell.name} {duration:g} s (seed {seed})")
@@ -160,7 +169,7 @@ def make_experiment(
     )
     doc = safe_yaml.load_file(exp)
     doc["rssi"] = "run"
-    doc["sync"] = {"mode": "auto"}
+    doc["sync"] = {"mode": "slate" if SLATE["s"] else "auto"}
     exp.write_text(safe_yaml.dump(doc, sort_keys=False), encoding="utf-8")
     return exp
 
@@ -216,7 +225,7 @@ def score(
     report = json.loads((results / "report.json").read_text(encoding="utf-8"))
     traj = read_trajectory(results / "trajectory.csv")
     truth = read_trajectory(render / "truth.csv")
-    starts = {"front": fa.T0, "back": fa.T0 + fa.START_OFFSET}
+    starts = {"front": fa.T0 - SLATE["s"], "back": fa.T0 + fa.START_OFFSET - SLATE["s"]}
     cams = report["sync"]["cameras"]
     found = {n: float(c["video_start"]) for n, c in cams.items()}
     sync = [abs(found[n] - starts[n]) * 1000 for n in found]
@@ -356,7 +365,15 @@ def main() -> None:
         help="adverts/s of the simulated beacon (2: about the published dataset's readings per "
         "sensor; the hands-cover sync's error shrinks as it grows)",
     )
+    ap.add_argument(
+        "--sync",
+        choices=("cover", "slate"),
+        default="cover",
+        help="how the videos are put on the RSSI clock: the hands cover (sync.mode: auto) or the "
+        "clock slate filmed for 1 s at each end (sync.mode: slate)",
+    )
     args = ap.parse_args()
+    SLATE["s"] = 1.0 if args.sync == "slate" else 0.0
     names = [c.strip() for c in args.cells.split(",") if c.strip()]
     unknown = [n for n in names if n not in CELLS]
     if unknown:
@@ -366,8 +383,8 @@ def main() -> None:
     work = args.keep or Path(tempfile.mkdtemp(prefix="field-matrix-"))
     rows: list[MatrixRow] = []
     print(
-        f"walks of {args.duration:g} s, every field error on, RSSI {args.rssi_rate:g} adverts/s; "
-        f"cells {', '.join(names)}"
+        f"walks of {args.duration:g} s, every field error on, RSSI {args.rssi_rate:g} adverts/s, "
+        f"sync by the {args.sync}; cells {', '.join(names)}"
     )
     print(HEADER, flush=True)
     try:

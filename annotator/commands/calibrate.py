@@ -13,7 +13,8 @@ from annotator.commands._common import console, one_line_errors
 from annotator.errors import ConfigError
 
 if TYPE_CHECKING:
-    from annotator.core.calibration import Calibration
+    from annotator.core.calibration import Calibration, CharucoSpec
+    from annotator.core.readout import BoardView, ReadoutEstimate
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 
@@ -52,8 +53,9 @@ def iter_frames(paths: list[Path], every: int, progress: Progress | None = None)
             progress.advance(task)
 
 
-def write_filestorage(path: Path, cal: Calibration) -> None:
-    """The YAML cv2.FileStorage writes: camera_matrix, distortion_coefficients, image size, RMS."""
+def write_filestorage(path: Path, cal: Calibration, readout: ReadoutEstimate | None = None) -> None:
+    """The YAML cv2.FileStorage writes: camera_matrix, distortion_coefficients, image size, RMS,
+    and the rolling-shutter readout (with its sigma) when it was measured."""
     import cv2
 
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -65,8 +67,14 @@ def write_filestorage(path: Path, cal: Calibration) -> None:
         fs.write("image_height", int(cal.image_size[1]))
         fs.write("camera_matrix", cal.camera_matrix)
         fs.write("distortion_coefficients", cal.dist_coeffs.reshape(1, -1))
-        fs.write("avg_reprojection_error", float(cal.rms))
-        fs.write("views_used", int(cal.views_used))
+        if cal.views_used:  # calibrated here, not read from --intrinsics
+            fs.write("avg_reprojection_error", float(cal.rms))
+            fs.write("views_used", int(cal.views_used))
+        if readout is not None:
+            from annotator.io.experiment import READOUT_KEY
+
+            fs.write(READOUT_KEY, float(readout.readout_s))
+            fs.write("rolling_shutter_readout_sigma_s", float(readout.sigma_s))
     finally:
         fs.release()
 
@@ -87,9 +95,28 @@ def calibrate(
         str, typer.Option(help="ArUco dictionary of the board's markers.")
     ] = "DICT_6X6_50",
     every: Annotated[int, typer.Option(help="Use every N-th frame of a video.")] = 10,
+    readout: Annotated[
+        bool,
+        typer.Option(
+            "--readout/--no-readout",
+            help="Also measure the rolling-shutter readout from every frame of the video(s): "
+            "wave the board (turns of 50-150 deg/s, the whole board in view, a short exposure). "
+            "Written as rolling_shutter_readout_s, which the tracking and the slate sync use.",
+        ),
+    ] = False,
+    intrinsics: Annotated[
+        Path | None,
+        typer.Option(
+            "--intrinsics",
+            help="With --readout: take the lens from this calibration (made from still views of "
+            "the board) and only measure the readout. Intrinsics fitted to a waved board are "
+            "bent by the very rolling shutter being measured.",
+        ),
+    ] = None,
 ) -> None:
     """Calibrate a camera from views of a ChArUco board; prints the RMS reprojection error and
-    writes camera_matrix, distortion_coefficients, image_width and image_height."""
+    writes camera_matrix, distortion_coefficients, image_width and image_height (and, with
+    --readout, the rolling-shutter readout measured from a video of the board waved)."""
     with one_line_errors():
         from annotator.core.calibration import CharucoSpec, calibrate_charuco, parse_squares
 
@@ -97,18 +124,107 @@ def calibrate(
             raise ConfigError("--every must be at least 1")
         spec = CharucoSpec(parse_squares(squares), square_length, marker_length, dictionary)
         spec.board()  # bad board settings fail before any decoding
-        with Progress(console=console, transient=True) as bar:
-            cal = calibrate_charuco(iter_frames(inputs, every, bar), spec)
-        write_filestorage(out, cal)
+        videos = [p for p in inputs if p.suffix.lower() not in IMAGE_SUFFIXES]
+        if readout and not videos:
+            raise ConfigError("--readout needs a video of the board being waved, not images")
+        if intrinsics is not None:
+            if not readout:
+                raise ConfigError("--intrinsics goes with --readout (it only adds the readout)")
+            cal = _known_intrinsics(intrinsics)
+        else:
+            with Progress(console=console, transient=True) as bar:
+                cal = calibrate_charuco(iter_frames(inputs, every, bar), spec)
+        measured = None
+        if readout:
+            from annotator.core.readout import estimate_readout
+
+            with Progress(console=console, transient=True) as bar:
+                views = board_views(videos, spec, bar)
+            measured = estimate_readout(
+                views, cal.camera_matrix, cal.dist_coeffs, int(cal.image_size[1])
+            )
+        write_filestorage(out, cal, measured)
         k = cal.camera_matrix
+        fitted = (
+            f"RMS reprojection error {cal.rms:.3f} px over {cal.views_used} of "
+            f"{cal.views_total} views"
+            if cal.views_used
+            else f"lens from {intrinsics}"
+        )
         console.print(
-            f"RMS reprojection error {cal.rms:.3f} px over {cal.views_used} of {cal.views_total} "
-            f"views; fx {k[0, 0]:.2f} fy {k[1, 1]:.2f} cx {k[0, 2]:.2f} cy {k[1, 2]:.2f}; "
+            f"{fitted}; fx {k[0, 0]:.2f} fy {k[1, 1]:.2f} cx {k[0, 2]:.2f} cy {k[1, 2]:.2f}; "
             f"wrote {out}",
             highlight=False,
             soft_wrap=True,
             markup=False,
         )
+        if measured is not None:
+            console.print(
+                f"rolling-shutter readout {1e3 * measured.readout_s:.2f} ms "
+                f"+- {1e3 * measured.sigma_s:.2f} ms from {measured.views_used} frames (board "
+                f"turning at {measured.rotation_deg_s:.0f} deg/s; RMS {measured.rms_px_global:.3f} "
+                f"px with a global shutter, {measured.rms_px:.3f} px with this readout)",
+                highlight=False,
+                soft_wrap=True,
+                markup=False,
+            )
+            if intrinsics is None:
+                console.print(
+                    "the lens was fitted to the waved board too: for the best readout calibrate "
+                    "it from still views first and pass --intrinsics",
+                    style="yellow",
+                )
+            if measured.rotation_deg_s < 20:
+                console.print(
+                    "the board hardly turned: wave it faster for a readout worth having",
+                    style="yellow",
+                )
+
+
+def _known_intrinsics(path: Path) -> Calibration:
+    """A calibration file's lens as a Calibration (no views: nothing was fitted here)."""
+    import math
+
+    import numpy as np
+
+    from annotator.core.calibration import Calibration
+    from annotator.io.experiment import load_calibration
+
+    if not path.is_file():
+        raise ConfigError(f"--intrinsics: no such file {path}")
+    known = load_calibration(path)
+    if known.model != "radtan":
+        raise ConfigError(f"--intrinsics {path}: only the radtan lens model is supported here")
+    return Calibration(
+        known.camera_matrix,
+        np.asarray(known.dist_coeffs, dtype=float),
+        math.nan,
+        (known.width, known.height),
+        0,
+        0,
+    )
+
+
+def board_views(videos: list[Path], spec: CharucoSpec, progress: Progress) -> list[BoardView]:
+    """The board's corners in every frame of each video, stamped by the frame's PTS; videos
+    follow each other with an hour between them, so no velocity spans two."""
+    import cv2
+
+    from annotator.core.calibration import detect_board
+    from annotator.core.readout import BoardView
+    from annotator.io.video import iter_frames as video_frames
+
+    board = spec.board()
+    detector = cv2.aruco.CharucoDetector(board)
+    views = []
+    task = progress.add_task("readout", total=len(videos))
+    for k, path in enumerate(videos):
+        for t, frame in video_frames(path, gray=True):
+            found = detect_board(frame, detector, board)
+            if found is not None:
+                views.append(BoardView(3600.0 * k + t, found[0], found[1]))
+        progress.advance(task)
+    return views
 
 
 def register(app: typer.Typer) -> None:

@@ -128,3 +128,65 @@ def test_unreadable_input_is_named(tmp_path: Path) -> None:
     )
     assert res.exit_code == 1
     assert "notes.txt" in res.output
+
+
+@pytest.fixture(scope="module")
+def waved_board_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """3 s at 30 fps of the board waved in front of a camera with a 15 ms rolling shutter."""
+    from annotator.render.charuco import render_charuco_video, waving_board
+
+    board = charuco_board((5, 7), 0.0598, 0.0299, "DICT_6X6_50")
+    path = tmp_path_factory.mktemp("readout") / "board.mp4"
+    render_charuco_video(
+        str(path), CAMERA, board, waving_board(board, seed=3), np.arange(90) / 30.0, 0.015, seed=3
+    )
+    return path
+
+
+def test_calibrate_measures_the_readout_from_a_waved_board(
+    views: list[np.ndarray], waved_board_video: Path, tmp_path: Path
+) -> None:
+    """The field procedure: the lens from still views, then the readout from a waved board."""
+    from annotator.io.experiment import load_calibration
+
+    paths = []
+    for i, img in enumerate(views):
+        paths.append(tmp_path / f"view{i:02d}.png")
+        cv2.imwrite(str(paths[-1]), img)
+    lens = tmp_path / "lens.yaml"
+    res = CliRunner().invoke(app, ["calibrate", *map(str, paths), *BOARD, "--out", str(lens)])
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "camera.yaml"
+    res = CliRunner().invoke(
+        app,
+        ["calibrate", str(waved_board_video), *BOARD, "--readout", "--intrinsics", str(lens),
+         "--out", str(out)],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "rolling-shutter readout" in res.output
+    cal = load_calibration(out)
+    assert np.allclose(cal.camera_matrix, load_calibration(lens).camera_matrix)
+    # the readout comes back within 1 ms of the truth, and its stated sigma is honest
+    assert abs(cal.readout_s - 0.015) < 0.001
+    fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
+    sigma = fs.getNode("rolling_shutter_readout_sigma_s").real()
+    fs.release()
+    assert 0 < sigma < 0.001
+    assert abs(cal.readout_s - 0.015) < 4 * sigma
+
+
+def test_readout_needs_a_video_and_enough_consecutive_frames(
+    views: list[np.ndarray], tmp_path: Path
+) -> None:
+    from annotator.core.readout import BoardView, estimate_readout
+    from annotator.errors import NoDataError
+
+    png = tmp_path / "one.png"
+    cv2.imwrite(str(png), views[0])
+    res = CliRunner().invoke(app, ["calibrate", str(png), *BOARD, "--readout", "--out", "x.yaml"])
+    assert res.exit_code != 0
+    assert "--readout needs a video" in res.output
+    # views scattered in time share no velocity: one line, not a readout of noise
+    scattered = [BoardView(10.0 * i, np.zeros((6, 3)), np.zeros((6, 2))) for i in range(12)]
+    with pytest.raises(NoDataError, match="consecutive frames"):
+        estimate_readout(scattered, CAMERA.K, CAMERA.dist, CAMERA.height, frame_interval=1 / 30)
