@@ -27,6 +27,8 @@ COMMAND_MODULES = (
     "markers",
     "fingerprints",
     "radiomap",
+    "occupancy",
+    "dataset",
     "score",
     "localize",
     "tum",

@@ -35,7 +35,8 @@ REPO = Path(__file__).resolve().parents[2]
 EXTRAS = {
     "agent": "sensor_agent",
     "collector": "collector -collector.web",
-    "annotator": "annotator",
+    "annotator": "annotator -annotator.dataset",
+    "dataset": "annotator.dataset",
     "deploy": "deploy",
     "web": "collector.web",
 }
@@ -262,6 +263,9 @@ def test_annotator_extra_help_and_experiment_check(venvs, tmp_path) -> None:
     (tmp_path / "exp" / "broken.yaml").write_text(yaml.safe_dump(exp))
     res = run([annotator, "track", "exp/broken.yaml", "--out", "tr2"], cwd=tmp_path)
     one_line_error(res, "markers")
+    # building a dataset on Dask is the dataset extra's: without it, one line
+    res = run([annotator, "dataset", "build", "c.yaml", "--out", "ds"], cwd=tmp_path)
+    one_line_error(res, "needs Dask", "pip install")
 
 
 @pytest.mark.slow

@@ -1,0 +1,144 @@
+"""`annotator dataset build` end to end on a real Dask LocalCluster: a campaign of two short
+simulated runs and the bundled stationary fingerprints becomes the published layout; a second
+build with nothing changed annotates nothing; 1 and 2 workers give identical files."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from annotator.cli import app
+from bgt_core.formats.grd import read_grd
+from bgt_core.formats.hst import read_hst
+from bgt_core.formats.mbd import iter_rows
+from bgt_core.formats.occ import read_occ
+from bgt_core.sites import site_dir
+
+pytest.importorskip("distributed")
+pytestmark = pytest.mark.slow
+
+DATA = Path(__file__).resolve().parents[2] / "data" / "dataset"
+SITE = site_dir("tetam")
+cli = CliRunner()
+
+
+def invoke(*args: str) -> str:
+    res = cli.invoke(app, list(args))
+    assert res.exit_code == 0, res.output
+    return res.output
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    base = tmp_path_factory.mktemp("campaign")
+    for name, seed, path in (("walk_a", "0", "loop"), ("walk_b", "1", "rectangle")):
+        invoke(
+            "simulate", "--out", str(base / "runs" / name), "--duration", "6", "--seed", seed,
+            "--path", path, "--rssi-rate", "4", "--jobs", "2",
+        )  # fmt: skip
+    # the published site files, as a user keeps them beside the campaign
+    for sub, name in (("cnf", "tetam.dev"), ("cnf", "tetam.par"), ("map", "tetam.png")):
+        (base / sub).mkdir(exist_ok=True)
+        src = SITE / name if name != "tetam.dev" else DATA / "cnf" / name
+        (base / sub / name).write_bytes(src.read_bytes())
+    (base / "occ").mkdir()
+    for cell in ("0.5", "1.0"):
+        (base / "occ" / f"tetam_{cell}.occ").write_bytes(
+            (DATA / "occ" / f"tetam_{cell}.occ").read_bytes()
+        )
+    path = base / "campaign.yaml"
+    path.write_text(
+        "name: tetam-test\n"
+        "description: Two short simulated walks through the tetam room.\n"
+        "site: {devices: cnf/tetam.dev, par: cnf/tetam.par, plan: map/tetam.png, "
+        f"markers: {SITE / 'marker_positions.dat'}}}\n"
+        "runs:\n"
+        "  - {name: walk_a, experiment: runs/walk_a/experiment.yaml}\n"
+        "  - {name: walk_b, experiment: runs/walk_b/experiment.yaml}\n"
+        f"fingerprints: {{recordings: {DATA / 'fpt'}}}\n"
+        "radiomap_cells: [1.0]\n"
+        "occupancy_cells: [0.5, 1.0]\n"
+        "hardware: {cameras: 'two simulated 960x540 30 fps', sensors: '12 simulated'}\n"
+    )
+    return path
+
+
+def digests(folder: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+def test_build_writes_the_published_layout_and_caches_runs(campaign: Path, tmp_path: Path) -> None:
+    out = tmp_path / "dataset"
+    cache = tmp_path / "cache"
+    text = invoke("dataset", "build", str(campaign), "--out", str(out), "--workers", "1",
+                  "--cache", str(cache))  # fmt: skip
+    assert "2 runs (2 annotated, 0 from the cache)" in text
+    # the layout
+    for rel in ("cnf/tetam.dev", "cnf/tetam.par", "map/tetam.png", "vid/marker_positions.dat",
+                "trk/walk_a_all_sensors.mbd", "trk/walk_b_all_sensors.mbd", "trk/walk_a.png",
+                "runs/walk_a/report.json", "hst/set_1/tetam_multi_rssi.hst",
+                "occ/tetam_0.5.occ", "occ/tetam_1.0.occ", "parquet/readings.parquet",
+                "parquet/trajectories.parquet", "parquet/fingerprints.parquet", "README.md",
+                "SHA256SUMS"):  # fmt: skip
+        assert (out / rel).is_file(), rel
+    # per-sensor track files named by alias at 0.00_0.00_0.00, rows as the published ones
+    sensors = sorted((out / "trk" / "walk_a").glob("*_0.00_0.00_0.00.mbd"))
+    assert len(sensors) >= 12
+    assert any(p.name == "sensor10_0.00_0.00_0.00.mbd" for p in sensors)
+    rows = list(iter_rows(sensors[0]))
+    assert rows
+    published = next(iter_rows(DATA / "trk" / "straight_01" / sensors[0].name))
+    assert len(rows[0].rest) == len(published.rest)  # x, y, z and the rotation matrix
+    # fingerprints, radio maps and occupancy parse with the project's readers
+    hst = read_hst(out / "hst" / "set_1" / "tetam_multi_rssi.hst")
+    assert len(hst.fingerprints) == 1  # the bundled recordings hold one position
+    grds = sorted((out / "grd").glob("tetam_*_1.0.grd"))
+    assert len(grds) == len(hst.devices.dongles)
+    assert read_grd(grds[0]).cell == 1.0
+    occ = read_occ(out / "occ" / "tetam_0.5.occ")
+    assert set(occ.cells.values()) == {0, 1}
+    # the parquet tables hold every labelled reading with its run and sigma
+    readings = pd.read_parquet(out / "parquet" / "readings.parquet")
+    assert set(readings["run"]) == {"walk_a", "walk_b"}
+    assert {"x", "y", "z", "pos_sigma"} <= set(readings.columns)
+    reports = {
+        r: json.loads((out / "runs" / r / "report.json").read_text()) for r in ("walk_a", "walk_b")
+    }
+    assert sum(r["counts"]["labelled"] for r in reports.values()) == len(readings)
+    assert reports["walk_a"]["experiment"] == "walk_a"  # no path of the building machine
+    assert str(tmp_path) not in (out / "README.md").read_text()
+    # the datasheet: the runs with their figures, the occupancy agreement, licence
+    sheet = (out / "README.md").read_text()
+    assert "| [walk_a](runs/walk_a/report.json)" in sheet
+    assert "cameras: two simulated" in sheet
+    assert "% of cells agree with the site's published grid" in sheet
+    assert "CC0-1.0" in sheet
+    # the manifest covers every file
+    listed = dict(line.split("  ")[::-1] for line in (out / "SHA256SUMS").read_text().splitlines())
+    assert listed == {k: v for k, v in digests(out).items() if k != "SHA256SUMS"}
+
+    # nothing changed: no annotation, the same files
+    before = digests(out)
+    text = invoke("dataset", "build", str(campaign), "--out", str(out), "--workers", "1",
+                  "--cache", str(cache))  # fmt: skip
+    assert "2 runs (0 annotated, 2 from the cache)" in text
+    assert digests(out) == before
+
+
+def test_one_and_two_workers_give_identical_files(campaign: Path, tmp_path: Path) -> None:
+    built = {}
+    for n in (1, 2):
+        out = tmp_path / f"dataset-{n}"
+        invoke("dataset", "build", str(campaign), "--out", str(out), "--workers", str(n),
+               "--cache", str(tmp_path / f"cache-{n}"))  # fmt: skip
+        built[n] = digests(out)
+    assert built[1] == built[2]
