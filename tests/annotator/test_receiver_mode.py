@@ -12,11 +12,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from typer.testing import CliRunner
 
-from annotator.cli import app
 from annotator.io.trajectory import read_trajectory
 from annotator.render.rssi import RECEIVER_ANTENNA, RECEIVER_MAC
+from annotator_cli import invoke
 from bgt_core.formats.grd import read_grd
 from bgt_core.formats.hst import read_hst
 from bgt_core.formats.mbd import iter_rows
@@ -26,13 +25,6 @@ pytestmark = pytest.mark.slow
 T0 = 1_700_000_000.0
 PHONE_OFFSET_S = 3.7  # the phone's clock runs this far ahead of the videos' stated starts
 RENDER = ["--duration", "16", "--cover", "1.0:1.5", "--cover", "12.5:1.5", "--rssi-rate", "10"]
-cli = CliRunner()
-
-
-def invoke(*args: str) -> str:
-    res = cli.invoke(app, list(args))
-    assert res.exit_code == 0, res.output
-    return res.output
 
 
 def auto_sync(experiment: Path, **changes: str) -> Path:

@@ -10,10 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
-from annotator.cli import app
 from annotator.io.trajectory import read_trajectory
+from annotator_cli import invoke
 
 pytestmark = pytest.mark.slow
 
@@ -24,13 +23,6 @@ RENDER = [
     "--duration", "10", "--slate", str(SLATE_S), "--cover", "1.0:1.5", "--rssi-rate", "10",
     "--readout", "0.015", "--write-readout", "--jobs", "2",
 ]  # fmt: skip
-cli = CliRunner()
-
-
-def invoke(*args: str) -> str:
-    res = cli.invoke(app, list(args))
-    assert res.exit_code == 0, res.output
-    return res.output
 
 
 @pytest.fixture(scope="module")

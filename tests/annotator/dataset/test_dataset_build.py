@@ -10,9 +10,8 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from typer.testing import CliRunner
 
-from annotator.cli import app
+from annotator_cli import invoke
 from bgt_core.formats.grd import read_grd
 from bgt_core.formats.hst import read_hst
 from bgt_core.formats.mbd import iter_rows
@@ -24,13 +23,6 @@ pytestmark = pytest.mark.slow
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "dataset"
 SITE = site_dir("tetam")
-cli = CliRunner()
-
-
-def invoke(*args: str) -> str:
-    res = cli.invoke(app, list(args))
-    assert res.exit_code == 0, res.output
-    return res.output
 
 
 @pytest.fixture(scope="module")
