@@ -6,7 +6,8 @@
 Each cell renders 3 s of a ChArUco board (5x7, 6 cm squares) waved 0.7 m in front of a 960x540
 camera (`annotator.render.charuco.waving_board`: peak turns of about 90 deg/s, a few cm of sway)
 with the given readout, finds its corners in every frame, and fits the readout with the lens
-calibrated from 14 still views of the board (the field procedure). Lenses: the renderer's mild
+calibrated from 14 still views of the board (the field procedure), its uncertainty
+propagated into the readout's sigma. Lenses: the renderer's mild
 and wide ones. Prints per cell the mean and worst |found - true| (ms), the mean stated sigma,
 and the share of seeds within 2.8 sigma; last, the mean over cells and the worst cell.
 """
@@ -51,7 +52,13 @@ def one(lens: str, readout: float, seed: int, work: Path) -> tuple[float, float]
         found = detect_board(frame, detector, board)
         if found is not None:
             views.append(BoardView(t, found[0], found[1]))
-    est = estimate_readout(views, lens_cal.camera_matrix, lens_cal.dist_coeffs, cam.height)
+    est = estimate_readout(
+        views,
+        lens_cal.camera_matrix,
+        lens_cal.dist_coeffs,
+        cam.height,
+        intrinsics_sigma=lens_cal.intrinsics_sigma,
+    )
     return est.readout_s - readout, est.sigma_s
 
 

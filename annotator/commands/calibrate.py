@@ -16,6 +16,9 @@ if TYPE_CHECKING:
     from annotator.core.calibration import Calibration, CharucoSpec
     from annotator.core.readout import BoardView, ReadoutEstimate
 
+# 1-sigma of fx, fy, cx, cy, k1, k2, p1, p2, k3 as the calibration found them: `--readout
+# --intrinsics` propagates them into the readout's sigma.
+SIGMA_KEY = "intrinsics_sigma"
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 
 
@@ -70,6 +73,10 @@ def write_filestorage(path: Path, cal: Calibration, readout: ReadoutEstimate | N
         if cal.views_used:  # calibrated here, not read from --intrinsics
             fs.write("avg_reprojection_error", float(cal.rms))
             fs.write("views_used", int(cal.views_used))
+        if cal.intrinsics_sigma is not None:
+            import numpy as np
+
+            fs.write(SIGMA_KEY, np.asarray(cal.intrinsics_sigma, dtype=float).reshape(1, -1))
         if readout is not None:
             from annotator.io.experiment import READOUT_KEY
 
@@ -141,7 +148,11 @@ def calibrate(
             with Progress(console=console, transient=True) as bar:
                 views = board_views(videos, spec, bar)
             measured = estimate_readout(
-                views, cal.camera_matrix, cal.dist_coeffs, int(cal.image_size[1])
+                views,
+                cal.camera_matrix,
+                cal.dist_coeffs,
+                int(cal.image_size[1]),
+                intrinsics_sigma=cal.intrinsics_sigma,
             )
         write_filestorage(out, cal, measured)
         k = cal.camera_matrix
@@ -161,7 +172,8 @@ def calibrate(
         if measured is not None:
             console.print(
                 f"rolling-shutter readout {1e3 * measured.readout_s:.2f} ms "
-                f"+- {1e3 * measured.sigma_s:.2f} ms from {measured.views_used} frames (board "
+                f"+- {1e3 * measured.sigma_s:.2f} ms (the fit {1e3 * measured.fit_sigma_s:.2f}, "
+                f"the lens {1e3 * measured.lens_sigma_s:.2f}) from {measured.views_used} frames (board "
                 f"turning at {measured.rotation_deg_s:.0f} deg/s; RMS {measured.rms_px_global:.3f} "
                 f"px with a global shutter, {measured.rms_px:.3f} px with this readout)",
                 highlight=False,
@@ -195,6 +207,19 @@ def _known_intrinsics(path: Path) -> Calibration:
     known = load_calibration(path)
     if known.model != "radtan":
         raise ConfigError(f"--intrinsics {path}: only the radtan lens model is supported here")
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    node = fs.getNode(SIGMA_KEY) if fs.isOpened() else None
+    stated = node.mat() if node is not None and not node.empty() else None
+    fs.release()
+    sigma = None if stated is None else tuple(float(v) for v in np.asarray(stated).ravel())
+    if sigma is None:
+        console.print(
+            f"{path} does not state its lens's uncertainty ({SIGMA_KEY}): the readout's sigma "
+            "leaves it out",
+            style="yellow",
+        )
     return Calibration(
         known.camera_matrix,
         np.asarray(known.dist_coeffs, dtype=float),
@@ -202,6 +227,7 @@ def _known_intrinsics(path: Path) -> Calibration:
         (known.width, known.height),
         0,
         0,
+        sigma,
     )
 
 

@@ -48,6 +48,9 @@ class Calibration:
     image_size: tuple[int, int]  # (width, height)
     views_used: int
     views_total: int
+    # 1-sigma of fx, fy, cx, cy, k1, k2, p1, p2, k3 from the fit (OpenCV's estimate); None when
+    # unknown (a calibration read from a file that does not state it)
+    intrinsics_sigma: tuple[float, ...] | None = None
 
 
 def parse_squares(text: str) -> tuple[int, int]:
@@ -101,5 +104,9 @@ def calibrate_charuco(
             f"the ChArUco board was found in {len(obj_pts)} of {total} views; need at least 3 "
             "(check --squares, --dictionary and the lengths)"
         )
-    rms, k, d, _, _ = cv2.calibrateCamera(obj_pts, img_pts, size, None, None)
-    return Calibration(k, d.ravel()[:5], float(rms), size, len(obj_pts), total)
+    # The starting matrix is ignored without CALIB_USE_INTRINSIC_GUESS (the stubs want one).
+    rms, k, d, _, _, std, _, _ = cv2.calibrateCameraExtended(
+        obj_pts, img_pts, size, np.eye(3), np.zeros(5)
+    )
+    sigma = tuple(float(v) for v in np.asarray(std).ravel()[:9])
+    return Calibration(k, d.ravel()[:5], float(rms), size, len(obj_pts), total, sigma)

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from annotator.errors import ConfigError
+from annotator.fields import number
 from bgt_core.keys import unknown_key
 
 REFINE_MODES = ("none", "map", "all")
@@ -86,14 +87,9 @@ class Priors:
 
 
 def _positive(d: dict[str, Any], key: str, default: float, where: str) -> float:
-    value = d.get(key, default)
-    try:
-        x = float(value)
-    except (TypeError, ValueError, OverflowError):
-        raise ConfigError(f"{where}.{key}: must be a number, not {value!r}") from None
-    if not (math.isfinite(x) and x > 0):
-        raise ConfigError(f"{where}.{key}: must be a positive finite number, not {value!r}")
-    return x
+    return number(
+        d.get(key, default), f"{where}.{key}", math.ulp(0.0), math.inf, "a positive finite number"
+    )
 
 
 def parse_priors(obj: Any, source: str) -> Priors:

@@ -41,17 +41,16 @@ class BoardView:
 @dataclass(frozen=True)
 class ReadoutEstimate:
     readout_s: float
-    sigma_s: float  # 1-sigma from the fit's curvature, scaled by its residuals
+    sigma_s: float  # 1-sigma: the fit's own and, when the lens's was given, what it adds
+    fit_sigma_s: float  # from the fit's curvature, scaled by its residuals
     views_used: int
     rms_px_global: float  # reprojection RMS with a global shutter (readout 0)
     rms_px: float  # with the readout found
     rotation_deg_s: float  # median angular speed of the board: how much the video showed
+    lens_sigma_s: float = float("nan")  # the part the lens calibration's uncertainty adds
 
 
-def _runs(t: np.ndarray, frame_interval: float) -> list[np.ndarray]:
-    """Index runs of views no more than MAX_GAP_FRAMES frames apart, at least three long."""
-    cuts = np.flatnonzero(np.diff(t) > (MAX_GAP_FRAMES + 0.5) * frame_interval) + 1
-    return [r for r in np.split(np.arange(len(t)), cuts) if len(r) >= 3]
+LENS_PARAMETERS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
 
 def estimate_readout(
@@ -62,12 +61,60 @@ def estimate_readout(
     *,
     frame_interval: float | None = None,
     max_readout: float | None = None,
+    intrinsics_sigma: Sequence[float] | None = None,
 ) -> ReadoutEstimate:
     """Fit the readout (s) to ``views`` of a moving board, in time order.
 
     The corners are undistorted with the calibration first; residuals are in pixels (normalised
-    image coordinates times the focal length). Raises NoDataError when fewer than 10 views lie in
-    runs of consecutive frames."""
+    image coordinates times the focal length). ``intrinsics_sigma`` (1-sigma of fx, fy, cx, cy,
+    k1, k2, p1, p2, k3, as ``cv2.calibrateCameraExtended`` gives them) adds what the lens's own
+    uncertainty does to the readout: the fit is repeated with each one moved by its sigma (a
+    first-order propagation; on renders the lens is most of the error). Raises NoDataError when
+    fewer than 10 views lie in runs of consecutive frames."""
+    k = np.asarray(camera_matrix, float)
+    d = np.asarray(dist_coeffs, float).ravel()
+    est = _fit_readout(views, k, d, height, frame_interval, max_readout)
+    if intrinsics_sigma is None:
+        return est
+    var = 0.0
+    for j, sig in enumerate(list(intrinsics_sigma)[: len(LENS_PARAMETERS)]):
+        if not (np.isfinite(sig) and sig > 0):
+            continue
+        k2, d2 = k.copy(), np.zeros(max(5, d.size))
+        d2[: d.size] = d
+        if j < 4:
+            k2[(0, 1, 0, 1)[j], (0, 1, 2, 2)[j]] += sig
+        else:
+            d2[j - 4] += sig
+        moved = _fit_readout(views, k2, d2, height, frame_interval, max_readout)
+        var += (moved.readout_s - est.readout_s) ** 2
+    lens = math.sqrt(var)
+    return ReadoutEstimate(
+        est.readout_s,
+        math.hypot(est.fit_sigma_s, lens),
+        est.fit_sigma_s,
+        est.views_used,
+        est.rms_px_global,
+        est.rms_px,
+        est.rotation_deg_s,
+        lens,
+    )
+
+
+def _runs(t: np.ndarray, frame_interval: float) -> list[np.ndarray]:
+    """Index runs of views no more than MAX_GAP_FRAMES frames apart, at least three long."""
+    cuts = np.flatnonzero(np.diff(t) > (MAX_GAP_FRAMES + 0.5) * frame_interval) + 1
+    return [r for r in np.split(np.arange(len(t)), cuts) if len(r) >= 3]
+
+
+def _fit_readout(
+    views: Sequence[BoardView],
+    camera_matrix: np.ndarray,
+    dist_coeffs: np.ndarray,
+    height: int,
+    frame_interval: float | None,
+    max_readout: float | None,
+) -> ReadoutEstimate:
     views = sorted(views, key=lambda v: v.t)
     if len(views) < 3:
         raise NoDataError(f"the board was found in {len(views)} frames; need at least 10")
@@ -164,6 +211,7 @@ def estimate_readout(
     return ReadoutEstimate(
         readout_s=float(sol.x[-1]),
         sigma_s=sigma,
+        fit_sigma_s=sigma,
         views_used=n,
         rms_px_global=rms0,
         rms_px=float(np.sqrt(np.mean(res**2)) * math.sqrt(2)),

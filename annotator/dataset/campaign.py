@@ -7,14 +7,15 @@ misspelt one is one line naming the keys allowed.
 
 from __future__ import annotations
 
-import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from annotator.errors import ConfigError
-from bgt_core.keys import unknown_key
+from annotator.fields import known_keys as _keys
+from annotator.fields import mapping as _mapping
+from annotator.fields import name as _name
+from annotator.fields import number
 
 CAMPAIGN_KEYS = (
     "name",
@@ -31,7 +32,6 @@ CAMPAIGN_KEYS = (
 SITE_KEYS = ("devices", "par", "plan", "markers")
 RUN_KEYS = ("name", "experiment")
 FINGERPRINT_KEYS = ("recordings",)
-NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")  # a folder name on any file system
 DEFAULT_LICENCE = "CC0-1.0"
 
 
@@ -68,27 +68,6 @@ class Campaign:
     hardware: dict[str, str] = field(default_factory=dict)
 
 
-def _mapping(obj: Any, where: str) -> dict[str, Any]:
-    if not isinstance(obj, dict):
-        raise ConfigError(f"{where}: expected a mapping, not {type(obj).__name__}")
-    return {str(k): v for k, v in obj.items()}
-
-
-def _keys(obj: dict[str, Any], allowed: tuple[str, ...], source: str, section: str = "") -> None:
-    message = unknown_key(obj, allowed, source, section)
-    if message is not None:
-        raise ConfigError(message)
-
-
-def _name(value: Any, where: str) -> str:
-    text = str(value) if isinstance(value, str | int) and not isinstance(value, bool) else ""
-    if not NAME.match(text):
-        raise ConfigError(
-            f"{where}: {value!r:.40} is not a name: letters, digits, '_', '-' and '.', at most 64"
-        )
-    return text
-
-
 def _file(base: Path, value: Any, where: str, *, folder: bool = False) -> Path:
     if not isinstance(value, str) or not value.strip():
         raise ConfigError(f"{where}: expected a path, not {value!r:.40}")
@@ -103,21 +82,7 @@ def _file(base: Path, value: Any, where: str, *, folder: bool = False) -> Path:
 def _cells(value: Any, where: str) -> tuple[float, ...]:
     if not isinstance(value, list) or not value:
         raise ConfigError(f"{where}: expected a list of cell sizes in metres, e.g. [0.5, 1.0]")
-    out = []
-    for raw in value:
-        try:  # the safe loader reads every scalar as text
-            v = (
-                float(raw)
-                if isinstance(raw, str | int | float) and not isinstance(raw, bool)
-                else None
-            )
-        except ValueError:
-            v = None
-        if v is None:
-            raise ConfigError(f"{where}: {raw!r:.40} is not a number")
-        if not (math.isfinite(v) and 0.01 <= v <= 10):
-            raise ConfigError(f"{where}: cell size {v!r} must be within 0.01..10 m")
-        out.append(float(v))
+    out = [number(raw, where, 0.01, 10.0, "a cell size in 0.01..10 m") for raw in value]
     if len(set(out)) != len(out):
         raise ConfigError(f"{where}: a cell size is listed twice")
     return tuple(out)

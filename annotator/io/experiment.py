@@ -7,7 +7,6 @@ Every path inside a YAML file is relative to that file; every problem is one Con
 from __future__ import annotations
 
 import logging
-import math
 import re
 from dataclasses import fields
 from pathlib import Path
@@ -26,8 +25,11 @@ from annotator.core.experiment import (
 )
 from annotator.core.priors import parse_priors
 from annotator.errors import ConfigError
+from annotator.fields import known_keys as _known_keys
+from annotator.fields import mac as _mac
+from annotator.fields import mapping
+from annotator.fields import number as _number
 from bgt_core.formats.markers import read_marker_map
-from bgt_core.keys import unknown_key
 
 log = logging.getLogger(__name__)
 
@@ -69,35 +71,7 @@ def load_yaml(path: Path, what: str) -> Any:
 
 
 def _mapping(obj: Any, source: str, what: str) -> dict[str, Any]:
-    if not isinstance(obj, dict):
-        raise ConfigError(f"{source}: {what} must be a mapping")
-    return obj
-
-
-def _known_keys(
-    obj: dict[Any, Any], allowed: tuple[str, ...], source: str, section: str = ""
-) -> None:
-    """ConfigError naming the first key of ``obj`` not in ``allowed`` (with a close match)."""
-    message = unknown_key(obj, allowed, source, section)
-    if message is not None:
-        raise ConfigError(message)
-
-
-def _number(value: Any, where: str, lo: float, hi: float, expected: str = "") -> float:
-    """A number in [lo, hi], as float. Strings are read as numbers too: YAML 1.1 reads 1.5e9
-    (no sign in the exponent) as a string. Booleans, NaN and infinities are refused."""
-    if isinstance(value, bool) or not isinstance(value, int | float | str):
-        raise ConfigError(f"{where}: must be a number, not {value!r:.40}")
-    try:
-        x = float(value)
-    except OverflowError:
-        x = math.inf
-    except ValueError:
-        raise ConfigError(f"{where}: must be a number, not {value!r:.40}") from None
-    if not (math.isfinite(x) and lo <= x <= hi):
-        expected = expected or f"a finite number in {lo:g}..{hi:g}"
-        raise ConfigError(f"{where}: must be {expected}, not {value!r:.40}")
-    return x
+    return mapping(obj, f"{source}: {what}")
 
 
 def _matrix(value: Any, source: str, key: str, shape: tuple[int, ...] | None = None) -> np.ndarray:
@@ -415,18 +389,6 @@ def parse_experiment(obj: Any, path: Path) -> Experiment:
     return Experiment(
         path, markers, rig, videos, rssi, sync.video_start, sync, priors, receiver=receiver
     )
-
-
-def _mac(value: Any, where: str) -> str:
-    from bgt_core.wire import WireError, normalize_mac
-
-    if isinstance(value, int | float) and not isinstance(value, bool):
-        # 020000000001 unquoted is a number to YAML (octal, even): its digits are lost.
-        raise ConfigError(f"{where}: {value!r:.40} was read as a number; quote the MAC ('...')")
-    try:
-        return normalize_mac(value)
-    except WireError:
-        raise ConfigError(f"{where}: not a MAC address: {value!r:.40}") from None
 
 
 def load_experiment(path: str | Path) -> Experiment:

@@ -171,8 +171,9 @@ def test_calibrate_measures_the_readout_from_a_waved_board(
     fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
     sigma = fs.getNode("rolling_shutter_readout_sigma_s").real()
     fs.release()
-    assert 0 < sigma < 0.001
-    assert abs(cal.readout_s - 0.015) < 4 * sigma
+    assert 0 < sigma < 0.002
+    assert abs(cal.readout_s - 0.015) < 3 * sigma
+    assert "the lens" in res.output  # the lens calibration's uncertainty is part of the sigma
 
 
 def test_readout_needs_a_video_and_enough_consecutive_frames(

@@ -62,7 +62,7 @@ def test_the_issue_example_loads_with_relative_and_absolute_paths(tmp_path: Path
         ("name: x\n" + SITE_YAML + "runs: [{name: a, experiment: runs/a/experiment.yaml}, "
          "{name: a, experiment: runs/a/experiment.yaml}]\n", "used twice"),
         ("name: x\n" + SITE_YAML + "runs: [{name: a, experiment: runs/a/experiment.yaml}]\n"
-         "radiomap_cells: [0.5, zero]\n", "is not a number"),
+         "radiomap_cells: [0.5, zero]\n", "must be a number"),
         ("name: x\nsite: {devices: a.dev}\nruns: []\n", "site: missing par, plan, markers"),
     ],
 )  # fmt: skip
