@@ -127,10 +127,17 @@ def test_build_writes_the_published_layout_and_caches_runs(campaign: Path, tmp_p
 
 
 def test_one_and_two_workers_give_identical_files(campaign: Path, tmp_path: Path) -> None:
-    built = {}
-    for n in (1, 2):
-        out = tmp_path / f"dataset-{n}"
-        invoke("dataset", "build", str(campaign), "--out", str(out), "--workers", str(n),
-               "--cache", str(tmp_path / f"cache-{n}"))  # fmt: skip
-        built[n] = digests(out)
-    assert built[1] == built[2]
+    """One worker of the build's own LocalCluster, and an existing two-worker cluster reached by
+    --scheduler (as a lab's would be): the same files."""
+    from distributed import LocalCluster
+
+    one = tmp_path / "dataset-1"
+    invoke("dataset", "build", str(campaign), "--out", str(one), "--workers", "1",
+           "--cache", str(tmp_path / "cache-1"))  # fmt: skip
+    two = tmp_path / "dataset-2"
+    with LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+    ) as cluster:
+        invoke("dataset", "build", str(campaign), "--out", str(two),
+               "--scheduler", cluster.scheduler_address, "--cache", str(tmp_path / "cache-2"))  # fmt: skip
+    assert digests(one) == digests(two)
