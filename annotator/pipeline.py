@@ -89,8 +89,14 @@ def process_video(
     t_start: float,
     settings: TrackSettings,
     progress: Callable[[int, int], None] | None = None,
+    frames: tuple[int, int | None] | None = None,
+    warmup: int = 0,
 ) -> CameraFrames:
-    """Decode, detect and solve every frame of one camera's video."""
+    """Decode, detect and solve every frame of one camera's video, or only frames
+    ``[first, stop)`` (``stop`` None: to the end) after ``warmup`` frames solved but not kept
+    (the previous frame's pose starts each solve: a chunk begins as the whole video would)."""
+    first, stop = frames if frames is not None else (0, None)
+    lo = max(0, first - warmup)
     info = video_info(path)
     room = MarkerRoom.from_map(markers.markers, markers.length)
     det_settings = dataclasses.replace(
@@ -111,22 +117,29 @@ def process_video(
     prior = None
     threads = 1 if settings.jobs > 1 else None  # one process per video already keeps cores busy
     for k, (pts, frame) in enumerate(iter_frames(path, gray=True, threads=threads, luma=True)):
-        if settings.max_frames is not None and k >= settings.max_frames:
+        if (settings.max_frames is not None and k >= settings.max_frames) or (
+            stop is not None and k >= stop
+        ):
             break
+        if k < lo:
+            continue
         if k == 0 and (frame.shape[1], frame.shape[0]) != (cal.width, cal.height):
             raise NoDataError(
                 f"{path}: frames are {frame.shape[1]}x{frame.shape[0]} but the calibration "
                 f"{Path(cal.source).name} is for {cal.width}x{cal.height}"
             )
         det = detector.detect(frame)
-        ts.append(t_start + pts)
-        dets.append(det)
+        keep = k >= first
+        if keep:
+            ts.append(t_start + pts)
+            dets.append(det)
         if settings.method == "rig":
             obs = observe(det, room, cal, camera.R_bundle_camera, camera.t_bundle_camera)
             pose = solve_bundle_pose([obs], room, settings.solver, prior)
-            poses.append(pose)
+            if keep:
+                poses.append(pose)
             prior = (pose.R_wb, pose.t_wb) if pose is not None and pose.n_markers > 1 else prior
-        else:
+        elif keep:
             mposes.append(marker_poses(det, room, camera))
         if progress is not None and (k % 10 == 0):
             progress(k + 1, total)
@@ -458,11 +471,16 @@ def frames_to_result(
 
 
 def run_experiment(
-    exp: Experiment, settings: RunSettings | None = None, progress: Progress | None = None
+    exp: Experiment,
+    settings: RunSettings | None = None,
+    progress: Progress | None = None,
+    frames: list[CameraFrames] | None = None,
 ) -> RunResult:
     """Everything `annotator run` computes: track, synchronise with the RSSI log, label every
     reading of the bundle's beacon (beacon mode) or every reading its receiver took (receiver
-    mode). Writes nothing (see annotator.commands.run.write_run_outputs)."""
+    mode). Writes nothing (see annotator.commands.run.write_run_outputs). ``frames``: every
+    video already decoded and detected on its own clock (``video_start`` 0; e.g. in chunks on a
+    cluster, annotator.dataset.runs); None decodes them here."""
     from dataclasses import replace
 
     from annotator.core.labeling import label_readings
@@ -497,15 +515,20 @@ def run_experiment(
     if exp.sync_mode in ("auto", "slate"):
         from annotator.sync_stage import sync_frames
 
-        with _worker_pool(track) as pool:
-            frames = _all_videos(
-                replace(exp, video_start={n: 0.0 for n in exp.videos}), track, progress, pool
-            )
+        if frames is None:
+            with _worker_pool(track) as pool:
+                frames = _all_videos(
+                    replace(exp, video_start={n: 0.0 for n in exp.videos}), track, progress, pool
+                )
         frames, sync = sync_frames(exp, frames, table, pooled_by, subject, progress)
     else:
         sync = manual_sync(exp.video_start or {})
-        with _worker_pool(track) as pool:
-            frames = _all_videos(exp, track, progress, pool)
+        if frames is None:
+            with _worker_pool(track) as pool:
+                frames = _all_videos(exp, track, progress, pool)
+        else:
+            starts = exp.video_start or {}
+            frames = [replace(cf, t=cf.t + starts.get(cf.camera, 0.0)) for cf in frames]
     with _worker_pool(track) as pool:
         result = frames_to_result(frames, exp, track, pool)
     traj = result.trajectory

@@ -114,7 +114,9 @@ def build_dataset(
 
     client, cluster = _client(workers, scheduler)
     try:
-        runs = annotate_runs(campaign.runs, cache, client, on_progress, on_run)
+        runs = annotate_runs(
+            campaign.runs, cache, client, on_progress, on_run, chunk_s=campaign.chunk_s
+        )
     finally:
         client.close()
         if cluster is not None:

@@ -24,6 +24,7 @@ CAMPAIGN_KEYS = (
     "fingerprints",
     "radiomap_cells",
     "occupancy_cells",
+    "chunk_s",
     "description",
     "licence",
     "citation",
@@ -62,6 +63,7 @@ class Campaign:
     recordings: Path | None = None  # stationary fingerprints: a folder of <alias>_<x>_<y>_<z>.mbd
     radiomap_cells: tuple[float, ...] = (0.5, 1.0)
     occupancy_cells: tuple[float, ...] = (0.1, 0.2, 0.5, 1.0)
+    chunk_s: float = 60.0  # seconds of video per detection task
     description: str = ""
     licence: str = DEFAULT_LICENCE
     citation: str = ""
@@ -152,6 +154,11 @@ def parse_campaign(obj: Any, path: Path) -> Campaign:
             _cells(d["occupancy_cells"], f"{source}: occupancy_cells")
             if "occupancy_cells" in d
             else Campaign.occupancy_cells
+        ),
+        chunk_s=(
+            number(d["chunk_s"], f"{source}: chunk_s", 1.0, 86_400.0)
+            if "chunk_s" in d
+            else Campaign.chunk_s
         ),
         description=text["description"] or "",
         licence=text["licence"] or DEFAULT_LICENCE,

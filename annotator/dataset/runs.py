@@ -2,9 +2,15 @@
 
 A run's digest covers every byte `annotator run` reads for it (experiment.yaml, rig,
 calibrations, marker map, videos, RSSI files) and the suite's version; its results live in the
-cache under that digest, so a second build with nothing changed annotates nothing. A run is one
-task: it writes into a folder of its own and renames it into place when complete, so a worker
-lost mid-run (Dask retries the task) leaves no half-written results.
+cache under that digest, so a second build with nothing changed annotates nothing.
+
+A run is a small graph: each video is cut into chunks of ``chunk_s`` seconds (fixed by the
+campaign, so the result never depends on the cluster), each chunk's frames are decoded,
+detected and solved by one task (after a few warm-up frames, so it starts as the whole video
+would), and one task merges the chunks and does the rest of `annotator run` (sync, the joint
+solve and self-calibration, the smoother, the labels). That last task writes into a folder of
+its own and renames it into place when complete: a worker lost mid-run (Dask retries the task)
+leaves no half-written results.
 """
 
 from __future__ import annotations
@@ -14,16 +20,21 @@ import logging
 import shutil
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from annotator.dataset.campaign import RunSpec
+
+if TYPE_CHECKING:
+    from annotator.core.tracking import CameraFrames
 
 log = logging.getLogger(__name__)
 
 PROGRESS_TOPIC = "bgt-dataset-progress"
 CHUNK = 1 << 20
+CHUNK_S = 60.0  # seconds of video per detection task
+WARMUP_FRAMES = 10  # solved before a chunk's first frame and dropped
 
 
 def suite_version() -> str:
@@ -63,10 +74,11 @@ def run_inputs(spec: RunSpec) -> list[Path]:
     return out
 
 
-def run_digest(spec: RunSpec) -> str:
-    """SHA-256 over the suite's version and each input's name (relative to the experiment's
-    folder where it lies below it) and bytes."""
-    h = hashlib.sha256(f"ble-groundtruth {suite_version()}\n".encode())
+def run_digest(spec: RunSpec, chunk_s: float = CHUNK_S) -> str:
+    """SHA-256 over the suite's version, the chunk length (the chunks' first frames start from
+    their warm-up, not the whole video's past) and each input's name (relative to the
+    experiment's folder where it lies below it) and bytes."""
+    h = hashlib.sha256(f"ble-groundtruth {suite_version()} chunk {chunk_s!r}\n".encode())
     base = spec.experiment.parent.resolve()
     for f in run_inputs(spec):
         name = str(f.relative_to(base)) if f.is_relative_to(base) else f.name
@@ -97,9 +109,53 @@ def _report(name: str, stage: str, done: int, total: int) -> None:
         pass
 
 
-def annotate_run(name: str, experiment: str, dest: str) -> str:
-    """One Dask task: `annotator run` of ``experiment`` into ``dest`` (written beside it, then
-    renamed into place). Single-process: the cluster's workers are the parallelism."""
+def chunk_ranges(frame_count: int, fps: float, chunk_s: float) -> list[tuple[int, int | None]]:
+    """[first, stop) frame ranges of ``chunk_s`` seconds; the last one runs to the end (a
+    container's frame count may be approximate)."""
+    step = max(1, int(round(chunk_s * max(fps, 1.0))))
+    starts = list(range(0, max(frame_count, 1), step))
+    return [(a, b) for a, b in zip(starts, [*starts[1:], None], strict=True)]
+
+
+def detect_chunk(
+    experiment: str, camera: str, first: int, stop: int | None, warmup: int
+) -> CameraFrames:
+    """One task: frames [first, stop) of one camera's video, decoded, detected and solved on the
+    video's own clock."""
+    from annotator.io.experiment import load_experiment
+    from annotator.pipeline import TrackSettings, process_video
+
+    exp = load_experiment(experiment)
+    return process_video(
+        exp.videos[camera],
+        exp.rig.cameras[camera],
+        exp.markers,
+        0.0,
+        TrackSettings(jobs=1),
+        frames=(first, stop),
+        warmup=warmup,
+    )
+
+
+def merge_chunks(chunks: list[CameraFrames]) -> CameraFrames:
+    """One camera's chunks, in order, as if the video had been processed whole."""
+    import numpy as np
+
+    t = np.concatenate([c.t for c in chunks])
+    interval = float(np.median(np.diff(t))) if len(t) > 1 else chunks[0].frame_interval
+    return replace(
+        chunks[0],
+        t=t,
+        detections=[d for c in chunks for d in c.detections],
+        poses=[p for c in chunks for p in c.poses],
+        marker_poses=[m for c in chunks for m in c.marker_poses],
+        frame_interval=interval,
+    )
+
+
+def finish_run(name: str, experiment: str, dest: str, *chunks: CameraFrames) -> str:
+    """One task: the chunks of every camera merged, the rest of `annotator run`, its outputs
+    written beside ``dest`` and renamed into place."""
     from annotator.commands.run import write_run_outputs
     from annotator.io.experiment import load_experiment
     from annotator.pipeline import RunSettings, TrackSettings, run_experiment
@@ -107,13 +163,15 @@ def annotate_run(name: str, experiment: str, dest: str) -> str:
     final = Path(dest)
     if (final / "report.json").is_file():
         return dest  # a retried task whose first attempt finished
-    tmp = final.with_name(f"{final.name}.part-{uuid.uuid4().hex[:8]}")
     exp = load_experiment(experiment)
+    frames = [merge_chunks([c for c in chunks if c.camera == cam]) for cam in exp.videos]
     result = run_experiment(
         exp,
         RunSettings(track=TrackSettings(jobs=1)),
         lambda stage, done, total: _report(name, stage, done, total),
+        frames=frames,
     )
+    tmp = final.with_name(f"{final.name}.part-{uuid.uuid4().hex[:8]}")
     write_run_outputs(tmp, exp, result, plots=True)
     try:
         tmp.rename(final)
@@ -124,21 +182,71 @@ def annotate_run(name: str, experiment: str, dest: str) -> str:
     return dest
 
 
+def submit_run(
+    client: Any,
+    spec: RunSpec,
+    digest: str,
+    folder: Path,
+    chunk_s: float,
+    on_chunk: Callable[[int], None] | None = None,
+    finish: Callable[..., str] = finish_run,
+) -> Any:
+    """The run's graph on ``client``: one detection task per video chunk, then its finish task
+    (``finish``: `finish_run`, or a test's wrapper of it). Returns the finish task's future."""
+    from annotator.io.experiment import load_experiment
+    from annotator.io.video import video_info
+
+    exp = load_experiment(spec.experiment)
+    chunks = []
+    for cam in exp.videos:
+        info = video_info(exp.videos[cam])
+        for i, (first, stop) in enumerate(chunk_ranges(info.frame_count, info.fps, chunk_s)):
+            fut = client.submit(
+                detect_chunk,
+                str(spec.experiment),
+                cam,
+                first,
+                stop,
+                WARMUP_FRAMES if first else 0,
+                key=f"detect-{spec.name}-{cam}-{i}-{digest[:12]}",
+                pure=False,
+                retries=2,
+            )
+            chunks.append(fut)
+    if on_chunk is not None:
+        total = len(chunks)
+        for fut in chunks:
+            fut.add_done_callback(lambda _f: on_chunk(total))
+    return client.submit(
+        finish,
+        spec.name,
+        str(spec.experiment),
+        str(folder),
+        *chunks,
+        key=f"finish-{spec.name}-{digest[:12]}",
+        pure=False,
+        retries=2,
+    )
+
+
 def annotate_runs(
     runs: tuple[RunSpec, ...],
     cache: Path,
     client: Any,
     on_progress: Callable[[dict[str, Any]], None] | None = None,
     on_done: Callable[[RunDone], None] | None = None,
+    *,
+    chunk_s: float = CHUNK_S,
+    finish: Callable[..., str] = finish_run,
 ) -> list[RunDone]:
     """Every run's results, from the cache or annotated as tasks on ``client`` (a
-    ``distributed.Client``); returned in the campaign's order."""
+    ``distributed.Client``; unused when every run is cached); in the campaign's order."""
     from distributed import as_completed
 
     done: dict[str, RunDone] = {}
     futures = {}
     for spec in runs:
-        digest = run_digest(spec)
+        digest = run_digest(spec, chunk_s)
         folder = cache / "runs" / spec.name / digest[:16]
         for stale in folder.parent.glob(f"{folder.name}.part-*"):
             shutil.rmtree(stale, ignore_errors=True)  # a build or worker that died mid-run
@@ -148,20 +256,15 @@ def annotate_runs(
                 on_done(done[spec.name])
             continue
         folder.parent.mkdir(parents=True, exist_ok=True)
-        fut = client.submit(
-            annotate_run,
-            spec.name,
-            str(spec.experiment),
-            str(folder),
-            key=f"annotate-{spec.name}-{digest[:12]}",
-            pure=False,
-            retries=2,
-        )
+        on_chunk = None
+        if on_progress is not None:
+            on_chunk = _chunk_counter(spec.name, on_progress)
+        fut = submit_run(client, spec, digest, folder, chunk_s, on_chunk, finish)
         futures[fut] = (spec, digest, folder)
     if futures and on_progress is not None:
         client.subscribe_topic(PROGRESS_TOPIC, lambda event: on_progress(event[1]))
     try:
-        for fut in as_completed(list(futures)):
+        for fut in as_completed(list(futures)) if futures else ():
             spec, digest, folder = futures[fut]
             fut.result()  # a run that failed every retry: its error, one line upstream
             done[spec.name] = RunDone(spec.name, digest, folder, False)
@@ -171,3 +274,15 @@ def annotate_runs(
         if futures and on_progress is not None:
             client.unsubscribe_topic(PROGRESS_TOPIC)
     return [done[spec.name] for spec in runs]
+
+
+def _chunk_counter(
+    name: str, on_progress: Callable[[dict[str, Any]], None]
+) -> Callable[[int], None]:
+    state = {"done": 0}
+
+    def one_more(total: int) -> None:
+        state["done"] += 1
+        on_progress({"run": name, "stage": "video chunks", "done": state["done"], "total": total})
+
+    return one_more

@@ -92,3 +92,42 @@ def test_occupancy_from_the_tetam_plan_agrees_with_the_published_grids() -> None
     g = occupancy_from_plan(plan, params, 0.5)
     assert g.cells[(0.0, 0.0)] == 1
     assert g.cells[(6.5, 8.0)] == 0
+
+
+def test_chunk_ranges_cover_every_frame_once() -> None:
+    from annotator.dataset.runs import chunk_ranges
+
+    assert chunk_ranges(300, 30.0, 4.0) == [(0, 120), (120, 240), (240, None)]
+    assert chunk_ranges(0, 30.0, 60.0) == [(0, None)]  # a container that does not say
+    assert chunk_ranges(90, 30.0, 60.0) == [(0, None)]
+
+
+def test_a_video_in_chunks_merges_into_the_whole(tmp_path: Path) -> None:
+    """Frames [0, 40), [40, 80), [80, end) of a short render, each chunk after 10 warm-up
+    frames, merge into what one pass over the video gives: the same frames and detections, and
+    poses within a micrometre (each solve starts from the previous frame's pose, which the
+    warm-up provides)."""
+    import numpy as np
+    from typer.testing import CliRunner
+
+    from annotator.cli import app
+    from annotator.dataset.runs import merge_chunks
+    from annotator.io.experiment import load_experiment
+    from annotator.pipeline import TrackSettings, process_video
+
+    res = CliRunner().invoke(app, ["simulate", "--out", str(tmp_path), "--duration", "4",
+                                   "--width", "480", "--height", "270"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    exp = load_experiment(tmp_path / "experiment.yaml")
+    args = (exp.videos["front"], exp.rig.cameras["front"], exp.markers, 0.0, TrackSettings(jobs=1))
+    whole = process_video(*args)
+    parts = [
+        process_video(*args, frames=(a, b), warmup=10 if a else 0)
+        for a, b in ((0, 40), (40, 80), (80, None))
+    ]
+    merged = merge_chunks(parts)
+    assert np.array_equal(merged.t, whole.t)
+    assert [d.ids.tolist() for d in merged.detections] == [d.ids.tolist() for d in whole.detections]
+    posed = [(a, b) for a, b in zip(merged.poses, whole.poses, strict=True) if a and b]
+    assert len(posed) == sum(p is not None for p in whole.poses)
+    assert max(np.abs(a.t_wb - b.t_wb).max() for a, b in posed) < 1e-6

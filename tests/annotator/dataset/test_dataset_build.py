@@ -141,3 +141,35 @@ def test_one_and_two_workers_give_identical_files(campaign: Path, tmp_path: Path
         invoke("dataset", "build", str(campaign), "--out", str(two),
                "--scheduler", cluster.scheduler_address, "--cache", str(tmp_path / "cache-2"))  # fmt: skip
     assert digests(one) == digests(two)
+
+
+def test_a_worker_lost_mid_run_is_retried_and_corrupts_nothing(
+    campaign: Path, tmp_path: Path
+) -> None:
+    """The finish task's worker process dies once (after leaving half an output folder);
+    Dask's nanny restarts it, the task runs again, and the run's results are whole and equal
+    to an undisturbed annotation's. The run is cut into 2 s chunks: several detection tasks."""
+    from distributed import Client, LocalCluster
+
+    from annotator.dataset.campaign import load_campaign
+    from annotator.dataset.runs import annotate_runs
+    from dask_faults import finish_dying_once
+
+    spec = load_campaign(campaign)
+    runs = spec.runs[:1]
+    with (
+        LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0"
+        ) as cluster,
+        Client(cluster) as client,
+    ):
+        calm = annotate_runs(runs, tmp_path / "calm", client, chunk_s=2.0)
+        hit = annotate_runs(runs, tmp_path / "hit", client, chunk_s=2.0, finish=finish_dying_once)
+    assert (hit[0].results.parent / f".died-{runs[0].name}").is_file()  # it did die once
+    assert not hit[0].cached
+    assert (hit[0].results / "report.json").is_file()
+    assert digests(hit[0].results / "annotated") == digests(calm[0].results / "annotated")
+    # a second build finds the run whole in the cache, and clears the dead attempt's leftovers
+    again = annotate_runs(runs, tmp_path / "hit", None, chunk_s=2.0)  # no task: no client
+    assert again[0].cached
+    assert not list(hit[0].results.parent.glob("*.part-*"))
