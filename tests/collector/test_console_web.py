@@ -267,3 +267,55 @@ def test_live_positions_follow_the_beacon_on_a_radio_map(tmp_path: Path) -> None
     assert 0 < est["sigma_m"] < 2.0
     with pytest.raises(ValueError, match="no cell for beacon"):
         LivePositions(tmp_path, ["aaaaaaaaaaaa"])
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")
+def test_start_and_stop_by_clicking_in_a_real_browser(fleet) -> None:
+    """The operator's way: type a name and notes, click Start, wait, click Stop, in chromium
+    driven over DevTools. The run is recorded under that name, and its folder holds exactly
+    what a run holds."""
+    from cdp import browser_page
+
+    c, base, console = fleet
+    with browser_page(base, free_port()) as page:
+        wait_for(
+            lambda: (
+                page.evaluate("document.readyState") == "complete"
+                and page.evaluate("document.querySelectorAll('#fleet tr').length") > 1
+            ),
+            30,
+            "the page and its fleet table",
+        )
+        page.evaluate(
+            "document.getElementById('run-name').value = 'clicked-walk';"
+            "document.getElementById('run-notes').value = 'started from the page';"
+            "document.getElementById('start').click()"
+        )
+        wait_for(
+            lambda: str(page.evaluate("document.getElementById('reply').textContent")).startswith(
+                "started"
+            ),
+            30,
+            "the page to say the run started",
+        )
+        wait_for(lambda: bool((console.latest or {}).get("run")), 20, "the run in the snapshot")
+        time.sleep(1.5)  # the agent's batches land in the run
+        page.evaluate("document.getElementById('stop').click()")
+        wait_for(
+            lambda: str(page.evaluate("document.getElementById('reply').textContent")).startswith(
+                "stopped"
+            ),
+            30,
+            "the page to say the run stopped",
+        )
+        reply = str(page.evaluate("document.getElementById('reply').textContent"))
+    run_dir = Path(reply.rsplit(" in ", 1)[1])
+    doc = run_yaml_doc(run_dir)
+    assert doc["name"] == "clicked-walk"
+    assert doc["notes"] == "started from the page"
+    # the run folder: run.yaml, the collector's state.json and one file per agent and sensor
+    # that sent readings during the run (the quiet sensor had stopped before), nothing else
+    files = sorted(str(p.relative_to(run_dir)) for p in run_dir.rglob("*") if p.is_file())
+    assert files == sorted(
+        ["run.yaml", "state.json", f"rssi/pi-1/{A}.mbd", f"rssi/pi-1/{B}.mbd"]
+    ), files
