@@ -5,12 +5,17 @@ Prints the console process's CPU (share of one core), the size of each pushed me
 old each snapshot is when the page receives it (median and max); the server aggregates, so the
 page gets one message a second whatever the reading rate.
 
-    python bench/console_scale.py [--seconds 30] [--sensors 100] [--rate 10]
+    python bench/console_scale.py [--seconds 30] [--sensors 100] [--rate 10] [--browser]
+
+With --browser the page is also opened in a real headless chromium (driven over DevTools) and
+the redraw is timed there: how old each snapshot is when the browser has painted it, and how
+long the page's drawing takes (from the message's arrival to the next frame).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -28,6 +33,20 @@ from collector.service import Collector  # noqa: E402
 from collector_helpers import FakeAgent, make_batch, with_floor  # noqa: E402
 from loopback import free_port  # noqa: E402
 
+# Wraps the page's message handler: each snapshot's age (server time to the frame that shows it)
+# and the time from its arrival to that frame.
+HOOK = """
+window.bgtRedraw = [];
+const bgtOriginal = events.onmessage;
+events.onmessage = (ev) => {
+  const t0 = performance.now();
+  bgtOriginal(ev);
+  const snap = JSON.parse(ev.data);
+  requestAnimationFrame(() => window.bgtRedraw.push(
+    {age: Date.now() / 1000 - snap.t, draw: performance.now() - t0}));
+};
+"""
+
 
 def cpu_seconds(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -38,6 +57,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--sensors", type=int, default=100)
+    ap.add_argument("--browser", action="store_true", help="also time the redraw in chromium")
     ap.add_argument("--rate", type=float, default=10.0, help="readings/s per sensor")
     args = ap.parse_args()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -83,15 +103,24 @@ def main() -> None:
                 if time.monotonic() > deadline:
                     raise
                 time.sleep(0.3)
-        cpu0, t0 = cpu_seconds(web.pid), time.monotonic()
-        while time.monotonic() - t0 < args.seconds:
-            line = stream.readline().decode()
-            if line.startswith("data: "):
-                snap = json.loads(line[6:])
-                if "t" in snap:
-                    lags.append(time.time() - snap["t"])
-                    sizes.append(len(line))
-        cpu = (cpu_seconds(web.pid) - cpu0) / (time.monotonic() - t0)
+        with contextlib.ExitStack() as stack:
+            page = None
+            if args.browser:
+                from cdp import browser_page
+
+                page = stack.enter_context(browser_page(f"http://127.0.0.1:{port}/", free_port()))
+                time.sleep(2)  # the page loaded, its stream open
+                page.evaluate(HOOK)
+            cpu0, t0 = cpu_seconds(web.pid), time.monotonic()
+            while time.monotonic() - t0 < args.seconds:
+                line = stream.readline().decode()
+                if line.startswith("data: "):
+                    snap = json.loads(line[6:])
+                    if "t" in snap:
+                        lags.append(time.time() - snap["t"])
+                        sizes.append(len(line))
+            cpu = (cpu_seconds(web.pid) - cpu0) / (time.monotonic() - t0)
+            painted = page.evaluate("JSON.stringify(window.bgtRedraw)") if page else None
         heard = sum(len(a["sensors"]) for a in snap.get("agents", []))
     finally:
         stop.set()
@@ -114,6 +143,15 @@ def main() -> None:
         f"snapshot age at the page: median {statistics.median(lags) * 1000:.0f} ms, "
         f"max {max(lags) * 1000:.0f} ms"
     )
+    if painted is not None:
+        rows = json.loads(str(painted))
+        ages = [r["age"] for r in rows]
+        draws = [r["draw"] for r in rows]
+        print(
+            f"in chromium ({len(rows)} messages): snapshot age when painted median "
+            f"{statistics.median(ages) * 1000:.0f} ms, max {max(ages) * 1000:.0f} ms; drawing "
+            f"median {statistics.median(draws):.1f} ms, max {max(draws):.1f} ms"
+        )
 
 
 if __name__ == "__main__":
