@@ -68,11 +68,21 @@ def digests(folder: Path) -> dict[str, str]:
     }
 
 
-def test_build_writes_the_published_layout_and_caches_runs(campaign: Path, tmp_path: Path) -> None:
-    out = tmp_path / "dataset"
-    cache = tmp_path / "cache"
+@pytest.fixture(scope="module")
+def built(campaign: Path) -> tuple[Path, Path, str]:
+    """The campaign built once with one worker: (dataset, cache, what the command printed)."""
+    out = campaign.parent / "dataset"
+    cache = campaign.parent / "cache"
     text = invoke("dataset", "build", str(campaign), "--out", str(out), "--workers", "1",
                   "--cache", str(cache))  # fmt: skip
+    return out, cache, text
+
+
+def test_build_writes_the_published_layout_and_caches_runs(
+    campaign: Path, built: tuple[Path, Path, str]
+) -> None:
+    out, cache, text = built
+    tmp_path = campaign.parent
     assert "2 runs (2 annotated, 0 from the cache)" in text
     # the layout
     for rel in ("cnf/tetam.dev", "cnf/tetam.par", "map/tetam.png", "vid/marker_positions.dat",
@@ -126,29 +136,28 @@ def test_build_writes_the_published_layout_and_caches_runs(campaign: Path, tmp_p
     assert digests(out) == before
 
 
-def test_one_and_two_workers_give_identical_files(campaign: Path, tmp_path: Path) -> None:
+def test_one_and_two_workers_give_identical_files(
+    campaign: Path, built: tuple[Path, Path, str], tmp_path: Path
+) -> None:
     """One worker of the build's own LocalCluster, and an existing two-worker cluster reached by
     --scheduler (as a lab's would be): the same files."""
     from distributed import LocalCluster
 
-    one = tmp_path / "dataset-1"
-    invoke("dataset", "build", str(campaign), "--out", str(one), "--workers", "1",
-           "--cache", str(tmp_path / "cache-1"))  # fmt: skip
     two = tmp_path / "dataset-2"
     with LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
     ) as cluster:
         invoke("dataset", "build", str(campaign), "--out", str(two),
                "--scheduler", cluster.scheduler_address, "--cache", str(tmp_path / "cache-2"))  # fmt: skip
-    assert digests(one) == digests(two)
+    assert digests(built[0]) == digests(two)
 
 
 def test_a_worker_lost_mid_run_is_retried_and_corrupts_nothing(
-    campaign: Path, tmp_path: Path
+    campaign: Path, built: tuple[Path, Path, str], tmp_path: Path
 ) -> None:
     """The finish task's worker process dies once (after leaving half an output folder);
     Dask's nanny restarts it, the task runs again, and the run's results are whole and equal
-    to an undisturbed annotation's. The run is cut into 2 s chunks: several detection tasks."""
+    to the undisturbed build's."""
     from distributed import Client, LocalCluster
 
     from annotator.dataset.campaign import load_campaign
@@ -163,13 +172,14 @@ def test_a_worker_lost_mid_run_is_retried_and_corrupts_nothing(
         ) as cluster,
         Client(cluster) as client,
     ):
-        calm = annotate_runs(runs, tmp_path / "calm", client, chunk_s=2.0)
-        hit = annotate_runs(runs, tmp_path / "hit", client, chunk_s=2.0, finish=finish_dying_once)
+        hit = annotate_runs(runs, tmp_path / "hit", client, finish=finish_dying_once)
+    calm = annotate_runs(runs, built[1], None)  # the undisturbed build's, from its cache
+    assert calm[0].cached
     assert (hit[0].results.parent / f".died-{runs[0].name}").is_file()  # it did die once
     assert not hit[0].cached
     assert (hit[0].results / "report.json").is_file()
     assert digests(hit[0].results / "annotated") == digests(calm[0].results / "annotated")
     # a second build finds the run whole in the cache, and clears the dead attempt's leftovers
-    again = annotate_runs(runs, tmp_path / "hit", None, chunk_s=2.0)  # no task: no client
+    again = annotate_runs(runs, tmp_path / "hit", None)  # no task: no client
     assert again[0].cached
     assert not list(hit[0].results.parent.glob("*.part-*"))
