@@ -38,7 +38,7 @@ def annotator(*args: str) -> str:
     )
     if res.returncode != 0:
         raise SystemExit(f"annotator {' '.join(args[:2])} failed: {res.stdout}{res.stderr}")
-    return res.stdout
+    return res.stdout + res.stderr
 
 
 def digests(folder: Path) -> dict[str, str]:
@@ -100,7 +100,8 @@ def main() -> None:
         text = annotator("dataset", "build", str(campaign), "--out", str(base / "out-2"),
                          "--workers", "2", "--cache", str(base / "cache-2"))  # fmt: skip
         again = time.perf_counter() - t
-        print(f"rebuild with nothing changed: {again:.1f} s; {text.strip().splitlines()[-1]}")
+        last = [line for line in text.splitlines() if " runs (" in line]
+        print(f"rebuild with nothing changed: {again:.1f} s; {last[-1] if last else text[-200:]}")
         print(f"same files as before: {digests(base / 'out-2') == built[2]}")
         if args.published is not None:
             for cell in (0.1, 0.2, 0.5, 1.0):
