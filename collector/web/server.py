@@ -47,6 +47,12 @@ POLL_S = 1.0
 RUNS_EVERY = 10  # polls
 MAX_BODY = 16 * 1024
 COOKIE = "bgt_console"
+# The charting library, vendored in the package (collector/web/vendor/README.md): name -> type.
+VENDORED = {
+    "uPlot.iife.min.js": "text/javascript",
+    "uPlot.min.css": "text/css",
+    "uPlot.LICENSE": "text/plain",
+}
 
 
 def is_loopback(host: str) -> bool:
@@ -244,12 +250,21 @@ def build_app(console: Console) -> Starlette:
     async def change(request: Request) -> Response:
         return await _change(request, console)
 
+    async def vendored(request: Request) -> Response:
+        name = request.path_params["name"]
+        kind = VENDORED.get(name)
+        if kind is None:
+            return _error("no such file", 404)
+        data = resources.files("collector.web").joinpath("vendor", name).read_bytes()
+        return Response(data, media_type=kind, headers={"Cache-Control": "max-age=86400"})
+
     return Starlette(
         routes=[
             Route("/", page),
             Route("/events", events),
             Route("/snapshot.js", initial),
             Route("/plan.png", plan_image),
+            Route("/vendor/{name}", vendored),
             Route("/api/runs", runs),
             Route("/api/start", change, methods=["POST"]),
             Route("/api/stop", change, methods=["POST"]),

@@ -286,6 +286,21 @@ def test_start_and_stop_by_clicking_in_a_real_browser(fleet) -> None:
             30,
             "the page and its fleet table",
         )
+        # the RSSI chart (the vendored uPlot) has a line per sensor, and the agent's readings
+        # reach it within 2 s: its newest point is never older than that
+        wait_for(lambda: page.evaluate("window.bgtChart ? 1 : 0") == 1, 20, "the chart")
+        labels = page.evaluate("window.bgtChart.series.slice(1).map((s) => s.label)")
+        assert f"pi-1/{A}" in labels, labels
+        ages = []
+        for _ in range(5):
+            ages.append(page.evaluate("Date.now() / 1000 - window.bgtChart.data[0].at(-1)"))
+            time.sleep(0.5)
+        assert max(ages) < 2.0, ages
+        line = labels.index(f"pi-1/{A}") + 1
+        values = page.evaluate(f"window.bgtChart.data[{line}].filter((v) => v !== null)")
+        assert isinstance(values, list)
+        assert values, "no RSSI of the sensor on its line"
+        assert all(-100 < v < -20 for v in values), values
         page.evaluate(
             "document.getElementById('run-name').value = 'clicked-walk';"
             "document.getElementById('run-notes').value = 'started from the page';"
