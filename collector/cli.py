@@ -131,6 +131,10 @@ def serve(
             help="Only validate the config (and its TLS and ACL files), print the resolved settings as JSON and exit.",
         ),
     ] = False,
+    web: Annotated[
+        str | None,
+        typer.Option("--web", help="Also serve the operator's console on HOST:PORT (web extra)."),
+    ] = None,
 ) -> None:
     """Run the collector: the Zenoh router agents connect to. Stops cleanly on Ctrl-C / SIGTERM.
 
@@ -155,9 +159,19 @@ def serve(
         err_console.print(
             f"[yellow]resumed run {collector.resumed_run} (the collector was not stopped cleanly)"
         )
+    child = None
     try:
+        if web is not None:
+            from collector.web.launch import spawn_console
+
+            child = spawn_console(list(cfg.listen), web, cfg.site)
         _wait_for_signal()
+    except CollectorError as e:
+        raise _fail(e) from None
     finally:
+        if child is not None:
+            child.terminate()
+            child.wait(10)
         collector.close()
 
 

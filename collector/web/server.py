@@ -210,6 +210,16 @@ async def _change(request: Request, console: Console) -> Response:
     return JSONResponse(reply)
 
 
+async def vendored(request: Request) -> Response:
+    """The charting library, from the package: nothing but the files VENDORED names."""
+    name = request.path_params["name"]
+    kind = VENDORED.get(name)
+    if kind is None:
+        return _error("no such file", 404)
+    data = resources.files("collector.web").joinpath("vendor", name).read_bytes()
+    return Response(data, media_type=kind, headers={"Cache-Control": "max-age=86400"})
+
+
 def build_app(console: Console) -> Starlette:
     async def page(request: Request) -> Response:
         given = request.query_params.get("token")
@@ -249,14 +259,6 @@ def build_app(console: Console) -> Starlette:
 
     async def change(request: Request) -> Response:
         return await _change(request, console)
-
-    async def vendored(request: Request) -> Response:
-        name = request.path_params["name"]
-        kind = VENDORED.get(name)
-        if kind is None:
-            return _error("no such file", 404)
-        data = resources.files("collector.web").joinpath("vendor", name).read_bytes()
-        return Response(data, media_type=kind, headers={"Cache-Control": "max-age=86400"})
 
     return Starlette(
         routes=[

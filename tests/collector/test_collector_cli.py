@@ -308,3 +308,47 @@ def test_serve_wakes_on_a_signal_delivered_to_another_thread(seconds) -> None:
     )
     assert r.returncode == 0, r.stderr
     assert float(r.stdout) < 10, r.stdout  # 0.3 s plus at most one short wait; generous bound
+
+
+def test_serve_with_web_runs_the_console_and_stops_it(tmp_path, endpoint) -> None:
+    """`collector serve --web ADDR`: the console comes up beside the collector, shows its fleet
+    from the collector's own endpoint, and ends with it on SIGTERM."""
+    pytest.importorskip("starlette")
+    import urllib.request
+
+    from loopback import free_port
+
+    port = free_port()
+    proc = subprocess.Popen(
+        [*COLLECTOR, "serve", "--data-dir", str(tmp_path), "--listen", endpoint,
+         "--web", f"127.0.0.1:{port}"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+    def page() -> str:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as r:
+                return r.read().decode()
+        except OSError:
+            return ""
+
+    try:
+        wait_for(lambda: "operator console" in page(), 60, "the console beside the collector")
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/snapshot.js", timeout=5) as r:
+            assert b"BGT_INITIAL" in r.read()
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0
+    assert page() == ""  # the console went with it
+
+
+def test_serve_web_needs_a_tcp_endpoint() -> None:
+    from collector.web.launch import console_endpoint
+
+    assert console_endpoint(["tcp/0.0.0.0:7447"]) == "tcp/127.0.0.1:7447"
+    assert console_endpoint(["tls/10.0.0.1:7448", "tcp/127.0.0.1:7447"]) == "tcp/127.0.0.1:7447"
+    with pytest.raises(CollectorError, match="needs a tcp/ endpoint"):
+        console_endpoint(["tls/10.0.0.1:7448"])
