@@ -280,6 +280,11 @@ class AgentLive:
     hostname: str | None = None
     adapters: tuple[str, ...] = ()  # "hci0 b827eb4521b4 passive"
     clock_offset_ms: float | None = None
+    # The agent's spool (records and bytes not yet acknowledged, from its status reply) and how
+    # long ago the collector last acknowledged its batches, s.
+    spool_records: int | None = None
+    spool_bytes: int | None = None
+    last_ack_age_s: float | None = None
 
     @classmethod
     def from_dict(cls, d: object, what: str = "agent") -> AgentLive:
@@ -303,6 +308,9 @@ class AgentLive:
             text["hostname"],
             tuple(adapters),
             num_field(m, "clock_offset_ms", what, None),
+            num_field(m, "spool_records", what, None),
+            num_field(m, "spool_bytes", what, None),
+            num_field(m, "last_ack_age_s", what, None),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -314,6 +322,9 @@ class AgentLive:
             "hostname": self.hostname,
             "adapters": list(self.adapters),
             "clock_offset_ms": self.clock_offset_ms,
+            "spool_records": self.spool_records,
+            "spool_bytes": self.spool_bytes,
+            "last_ack_age_s": self.last_ack_age_s,
         }
 
 

@@ -5,6 +5,7 @@ it depends on nothing else of the collector, so neither of the two depends on th
 from __future__ import annotations
 
 import threading
+import time
 
 from bgt_core.messages import AgentStatus
 
@@ -18,6 +19,7 @@ class AgentBook:
         self._alive: dict[str, bool] = {}
         self._info: dict[str, AgentStatus] = {}
         self._pending: set[str] = set()
+        self._acked: dict[str, float] = {}  # monotonic time of the last ack sent to each agent
 
     def set_alive(self, agent: str, alive: bool) -> None:
         with self._lock:
@@ -38,6 +40,14 @@ class AgentBook:
     def infos(self) -> dict[str, AgentStatus]:
         with self._lock:
             return dict(self._info)
+
+    def acked(self, agent: str, now: float | None = None) -> None:
+        with self._lock:
+            self._acked[agent] = time.monotonic() if now is None else now
+
+    def last_acks(self) -> dict[str, float]:
+        with self._lock:
+            return dict(self._acked)
 
     def claim_fetch(self, agent: str) -> bool:
         """True if nobody has asked for this agent's status yet (and it is now pending)."""

@@ -118,6 +118,10 @@ def write_run_yaml(w: Writer, run: RunWriter, reason: str, stop_ns: int) -> RunT
     return totals
 
 
+def _count(v: object) -> int | None:
+    return v if isinstance(v, int) and not isinstance(v, bool) and v >= 0 else None
+
+
 def build_status(w: Writer, now: float) -> CollectorStatus:
     """The status reply (``now`` is monotonic seconds)."""
     alive = w.agents.alive_map()
@@ -139,10 +143,13 @@ def build_status(w: Writer, now: float) -> CollectorStatus:
             beacon_rssi=sl.beacon_rssi(now),
         )
     infos = w.agents.infos()
+    acks = w.agents.last_acks()
 
     def live(a: str, s: dict[str, SensorRate]) -> AgentLive:
         info = infos.get(a)
         clock = w.clock_log.get(a)
+        spool = (info.spool or {}) if info is not None else {}
+        ack = acks.get(a)
         return AgentLive(
             alive.get(a, False),
             s,
@@ -153,6 +160,9 @@ def build_status(w: Writer, now: float) -> CollectorStatus:
             if info is None
             else tuple(f"{x.name or '?'} {x.mac} {x.mode or ''}".strip() for x in info.adapters),
             clock[-1].offset_ms if clock else None,
+            _count(spool.get("records")),
+            _count(spool.get("bytes")),
+            None if ack is None else round(now - ack, 3),
         )
 
     agents = {a: live(a, s) for a, s in sensors.items()}

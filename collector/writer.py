@@ -432,6 +432,7 @@ class Writer:
                     continue
                 try:
                     self.publish(wire.ack_key(self.cfg.site, agent), wire.to_json(msg.to_dict()))
+                    self.agents.acked(agent, self._mono())
                 except Exception as e:  # noqa: BLE001 - the next tick retries
                     log.warning("could not publish ack for %s: %s", agent, e)
         gate.nacks_due.clear()

@@ -82,6 +82,9 @@ def build_snapshot(
                 "hostname": a.hostname,
                 "adapters": list(a.adapters),
                 "clock_offset_ms": a.clock_offset_ms,
+                "spool_records": a.spool_records,
+                "spool_bytes": a.spool_bytes,
+                "last_ack_age_s": a.last_ack_age_s,
                 "sensors": sensors,
             }
         )

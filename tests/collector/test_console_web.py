@@ -286,6 +286,14 @@ def test_start_and_stop_by_clicking_in_a_real_browser(fleet) -> None:
             30,
             "the page and its fleet table",
         )
+        # the agent's row says when the collector last acknowledged its batches
+        wait_for(
+            lambda: (
+                "s ago" in str(page.evaluate("document.querySelector('#agents tbody').textContent"))
+            ),
+            20,
+            "the agent's last acknowledgement",
+        )
         # the RSSI chart (the vendored uPlot) has a line per sensor, and the agent's readings
         # reach it within 2 s: its newest point is never older than that
         wait_for(lambda: page.evaluate("window.bgtChart ? 1 : 0") == 1, 20, "the chart")
