@@ -16,7 +16,8 @@ SILENT_S = 10.0  # a sensor unheard this long turns red
 
 @dataclass
 class ConsoleHistory:
-    """Per stream ("agent/sensor"), the last RSSI once a second, and when it went quiet."""
+    """Per chart line ("agent/sensor beacon", or "agent/sensor"), the last RSSI once a second;
+    per stream ("agent/sensor"), when it went quiet."""
 
     points: dict[str, deque[tuple[float, int | None]]] = field(default_factory=dict)
     quiet_since: dict[str, float] = field(default_factory=dict)
@@ -58,8 +59,13 @@ def build_snapshot(
                 history.quiet_since.pop(name, None)
                 since = None
             rssi = None if silent else s.last_rssi
-            history.add(now, name, rssi)
-            points[name] = rssi
+            # One chart line per sensor and beacon (per sensor when the status has no beacons).
+            lines = {
+                f"{name} {b}": None if silent else r for b, r in sorted(s.beacon_rssi.items())
+            } or {name: rssi}
+            for key, value in lines.items():
+                history.add(now, key, value)
+                points[key] = value
             beacons.update(s.beacons)
             sensors.append(
                 {
@@ -71,6 +77,7 @@ def build_snapshot(
                     "silent": silent,
                     "quiet_since": since,
                     "beacons": dict(s.beacons),
+                    "beacon_rssi": dict(s.beacon_rssi),
                 }
             )
         agents.append(
