@@ -274,7 +274,7 @@ def test_live_positions_follow_the_beacon_on_a_radio_map(tmp_path: Path) -> None
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")
-def test_start_and_stop_by_clicking_in_a_real_browser(fleet) -> None:
+def test_start_and_stop_by_clicking_in_a_real_browser(fleet, endpoint) -> None:
     """The operator's way: type a name and notes, click Start, wait, click Stop, in chromium
     driven over DevTools. The run is recorded under that name, and its folder holds exactly
     what a run holds."""
@@ -290,6 +290,17 @@ def test_start_and_stop_by_clicking_in_a_real_browser(fleet) -> None:
             30,
             "the page and its fleet table",
         )
+        # an agent that leaves (its liveliness token gone) turns red in the agents table
+        gone = FakeAgent(endpoint, agent="pi-2")
+        gone.declare_token()
+        gone.put(with_floor(make_batch(0, agent="pi-2", sensor="000000000301"), 0))
+        row_class = (
+            "Array.from(document.querySelectorAll('#agents tbody tr'))"
+            ".filter((r) => r.cells[0].textContent === 'pi-2').map((r) => r.className).join()"
+        )
+        wait_for(lambda: page.evaluate(row_class) == "", 20, "pi-2 alive in the agents table")
+        gone.close()
+        wait_for(lambda: page.evaluate(row_class) == "silent", 20, "pi-2 red once it left")
         # the agent's row says when the collector last acknowledged its batches
         wait_for(
             lambda: (
