@@ -27,7 +27,13 @@ from collector.service import Collector  # noqa: E402
 from collector.web.plan import PlanError, load_plan  # noqa: E402
 from collector.web.server import Console, build_app  # noqa: E402
 from collector.web.snapshot import ConsoleHistory, build_snapshot  # noqa: E402
-from collector_helpers import FakeAgent, make_batch, run_yaml_doc, with_floor  # noqa: E402
+from collector_helpers import (  # noqa: E402
+    FakeAgent,
+    expected_lines,
+    make_batch,
+    run_yaml_doc,
+    with_floor,
+)
 from loopback import free_port  # noqa: E402
 from polling import wait_for  # noqa: E402
 
@@ -357,3 +363,13 @@ def test_start_and_stop_by_clicking_in_a_real_browser(fleet, endpoint) -> None:
     assert files == sorted(
         ["run.yaml", "state.json", f"rssi/pi-1/{A}.mbd", f"rssi/pi-1/{B}.mbd"]
     ), files
+    # each file holds exactly the readings the agent sent while the run was on: whole batches,
+    # consecutive, each once, in order
+    for sensor in (A, B):
+        sent = expected_lines([make_batch(k, agent="pi-1", sensor=sensor) for k in range(3000)])
+        lines = (run_dir / "rssi" / "pi-1" / f"{sensor}.mbd").read_text().splitlines()
+        assert lines, sensor
+        first = sent.index(lines[0])
+        assert first % 5 == 0  # a batch's first reading
+        assert len(lines) % 5 == 0  # whole batches only
+        assert lines == sent[first : first + len(lines)], sensor
