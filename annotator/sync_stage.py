@@ -117,14 +117,10 @@ def _slate_fits(
             continue
         end = float(cf.t[-1])
         windows = [(-math.inf, sc.slate_window), (end - sc.slate_window, math.inf)]
-        cb = (
-            None
-            if progress is None
-            else (lambda k, name=cf.camera, n=n: progress(f"{name} slate", min(k, n), n))
-        )
+        cb = _pass_progress(progress, f"{cf.camera} slate", n)
         readings = slate_readings(exp.videos[cf.camera], windows, cb)
-        if progress is not None:
-            progress(f"{cf.camera} slate", n, n)
+        if cb is not None:
+            cb(n)
         if not readings:
             log.warning("%s: no clock slate found; falling back to the hands cover", cf.camera)
             continue
@@ -150,19 +146,22 @@ def _cover_series(
     series = {}
     for cf in frames:
         n = len(cf.t)
-        cb = (
-            None
-            if progress is None
-            else (lambda k, name=cf.camera, n=n: progress(f"{name} sync", min(k, n), n))
-        )
+        cb = _pass_progress(progress, f"{cf.camera} sync", n)
         pts, level = brightness_series(exp.videos[cf.camera], cb)
         if len(pts) < n:
             raise NoDataError(f"{exp.videos[cf.camera]}: decoded {len(pts)} frames, expected {n}")
-        if progress is not None:
-            progress(f"{cf.camera} sync", n, n)
+        if cb is not None:
+            cb(n)
         counts = np.array([len(d.ids) for d in cf.detections], dtype=float)
         series[cf.camera] = VideoSeries(cf.t, level[:n], counts)
     return series
+
+
+def _pass_progress(progress: Progress | None, stage: str, n: int) -> Callable[[int], None] | None:
+    """A pass over one video's ``n`` frames as ``stage`` of ``progress`` (frames decoded -> bar)."""
+    if progress is None:
+        return None
+    return lambda k: progress(stage, min(k, n), n)
 
 
 def trim_frames(cf: CameraFrames, segments: list[tuple[float, float]]) -> CameraFrames:

@@ -92,10 +92,12 @@ def write_occupancy(
         occ = occupancy_from_plan(plan, params, cell)
         write_occ(occ, out / "occ" / f"{site}_{float(cell)!r}.occ")
         xs, ys = grid_corners(occ.limits, cell)
+        row = {x: i for i, x in enumerate(xs)}
+        col = {y: j for j, y in enumerate(ys)}
         px = max(4, int(round(cell / params.parity)))
         img = np.full((len(xs) * px, len(ys) * px, 3), 255, np.uint8)
         for (gx, gy), v in occ.cells.items():
-            i, j = xs.index(gx), ys.index(gy)
+            i, j = row[gx], col[gy]
             if v:
                 img[i * px : (i + 1) * px, j * px : (j + 1) * px] = (40, 40, 190)
         img[::px, :] = 200
