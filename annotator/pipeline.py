@@ -238,6 +238,9 @@ class TrackResult:
     # Uncertainty of the map, rig and lenses the final pass used (refined, or the priors'):
     # what the uncertainty propagation consumes.
     params: ParameterCovariance | None = None
+    # How much later than its synchronised stamps each camera's frames were seen, as the
+    # self-calibration found (the cameras' mean held at 0); empty without it.
+    clock_s: dict[str, float] = field(default_factory=dict)
 
 
 def _track_rig(
@@ -277,6 +280,7 @@ def _track_rig(
     given = exp
     rounds = 2 if settings.refine != "none" else 0
     clock = {"solve": 0.0, "retrack": 0.0, "rounds": 0}  # what the self-calibration cost, s
+    offsets = {cf.camera: 0.0 for cf in frames}  # each camera's clock as the rounds found it
     while rounds:
         rounds -= 1
         initial = None if refinement is None else mapped_poses(refinement)
@@ -299,9 +303,20 @@ def _track_rig(
         # Track again with the refined map, rig and lenses; the last pass gives the motion.
         exp = refinement.experiment
         room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
+        # Each camera's frames at the time they were seen (the clock offsets found); the last
+        # pass's motion stays on its own grid.
+        t_prev = t_out
+        if any(refinement.clock_s.values()):
+            frames = [
+                dataclasses.replace(cf, t=cf.t + refinement.clock_s.get(cf.camera, 0.0))
+                for cf in frames
+            ]
+            for name, dt in refinement.clock_s.items():
+                offsets[name] += dt
+            t_out = np.unique(np.concatenate([cf.t for cf in frames]))
         joint = resolve_ambiguities(
             joint_measurements(
-                frames, exp, room, settings, t_out, pos, R, pool, resolve_singles=True
+                frames, exp, room, settings, t_prev, pos, R, pool, resolve_singles=True
             ),
             s.max_gap_s,
         )
@@ -351,7 +366,7 @@ def _track_rig(
         R,
         {**measurement_quality(meas, t_out), **total_sigma(sig, u, settings.uncertainty)},
     )
-    return TrackResult(traj, refinement, params)
+    return TrackResult(traj, refinement, params, offsets if any(offsets.values()) else {})
 
 
 def _apply_jig(
@@ -532,6 +547,15 @@ def run_experiment(
     with _worker_pool(track) as pool:
         result = frames_to_result(frames, exp, track, pool)
     traj = result.trajectory
+    if result.clock_s:
+        # The self-calibration saw each camera's frames this much later than the sync put them.
+        sync = replace(
+            sync,
+            clocks={
+                n: replace(c, video_start=c.video_start + result.clock_s.get(n, 0.0))
+                for n, c in sync.clocks.items()
+            },
+        )
     if sync.slates and result.refinement is not None:
         from annotator.sync_stage import readout_shift
 

@@ -53,6 +53,8 @@ class TrackSettings:
     )  # what sigma_m holds
     # rig: self-calibration after the first pass (annotator.core.refine): none | map | all
     refine: str = "all"
+    # Joint solves also inside the previous pass's gaps up to this long (s; 0: never)
+    joint_bridge_s: float = 2.0
     # Assumed exposure for the motion-blur measure (predicted smear, px, of each frame's markers).
     exposure_s: float = 0.008
 
@@ -312,7 +314,11 @@ def joint_measurements(
         pairs.append(cams)
     # Pass-1 poses at every time involved, interpolated in one go.
     need = np.array([float(cf.t[j]) for cams in pairs for cf, j in cams])
-    R_at, p_at, om_at, v_at, ok_at = motion_at(need, t_grid, pos, R)
+    # Where the previous pass has a short gap (a fast turn that blurred the markers of both
+    # cameras past a sure single-camera pose), its motion is bridged: the pairing and the rows'
+    # times need only a rough motion, and the two cameras together often pose what neither could.
+    guess = Trajectory(t_grid, pos, R).bridged(settings.joint_bridge_s)
+    R_at, p_at, om_at, v_at, ok_at = motion_at(need, t_grid, guess.position, guess.rotation)
     lookup = {float(tt): n for n, tt in enumerate(need)}
     tasks: list[
         tuple[float, list[CameraObservation], tuple[np.ndarray, np.ndarray], list[tuple[int, int]]]

@@ -71,6 +71,25 @@ class Trajectory:
         keep = np.concatenate([[True], np.diff(t) > 0]) if t.size else np.zeros(0, dtype=bool)
         return self.select(idx[keep])
 
+    def bridged(self, max_gap_s: float) -> Trajectory:
+        """The same rows with every gap no longer than ``max_gap_s`` (between the poses around it)
+        filled by ``blend`` between those two poses; longer gaps and the ends stay gaps. A guess
+        of the motion, for where only a rough pose is needed (a start, a row's time)."""
+        ok = self.valid
+        idx = np.flatnonzero(ok)
+        if idx.size < 2 or ok.all():
+            return self
+        pos, rot = self.position.copy(), self.rotation.copy()
+        for a, b in zip(idx[:-1], idx[1:], strict=True):
+            if b - a < 2 or self.t[b] - self.t[a] > max_gap_s:
+                continue
+            rows = np.arange(a + 1, b)
+            w = (self.t[rows] - self.t[a]) / (self.t[b] - self.t[a])
+            pos[rows], rot[rows] = blend(
+                self.position, self.rotation, np.full(rows.size, a), np.full(rows.size, b), w
+            )
+        return Trajectory(self.t, pos, rot, dict(self.quality))
+
     def at_point(self, offset: np.ndarray) -> Trajectory:
         """The same motion followed at ``offset`` (metres, bundle frame) instead of the bundle's
         origin: position + R_world_bundle @ offset per row, rotations and quality unchanged (a

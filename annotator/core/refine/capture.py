@@ -7,7 +7,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -237,6 +237,8 @@ class Refinement:
     covariance: ParameterCovariance
     report: dict[str, Any]
     mapped: list[int]  # markers the survey did not give, now mapped from the video
+    # Per camera: its frames were seen this much later than their stamps (s; the cameras' mean 0).
+    clock_s: dict[str, float] = field(default_factory=dict)
 
 
 def refine_capture(
@@ -311,7 +313,8 @@ def refine_capture(
     report = refinement_report(
         prob, sol, cams, exp, s, len(keyframes), mapped, time.perf_counter() - t0
     )
-    return Refinement(refined, sol, sol.covariance, report, mapped)
+    clock_s = {cf.camera: sol.cameras[c].clock_s for c, cf in enumerate(frames)}
+    return Refinement(refined, sol, sol.covariance, report, mapped, clock_s)
 
 
 def length_used(exp: Experiment, sol: Solution) -> float:
@@ -326,6 +329,7 @@ _BLOCK_NAMES = {
     "intr": ("focal length and principal point", "the calibration's"),
     "dist": ("lens distortion", "the calibration's"),
     "readout": ("rolling-shutter readout", "the calibration's"),
+    "clock": ("clock offset from the other cameras", "the sync's"),
     "bias": ("corner bias", "0 px"),
 }
 
@@ -382,6 +386,10 @@ def refinement_report(
             "readout_s": round(b.readout_s, 5),
             "corner_bias_px": round(b.corner_bias_px, 3),
             "readout_sigma_s": None if ro is None else round(float(np.sqrt(ro[0, 0])), 5),
+            "clock_offset_ms": round(1000 * b.clock_s, 2),
+            "clock_sigma_ms": (
+                round(1000 * sol.clock_sigma_s[a.name], 2) if a.name in sol.clock_sigma_s else None
+            ),
             **observability(sol.determined.get(a.name, {}), a),
         }
     moved = []

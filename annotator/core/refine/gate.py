@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from annotator.core.refine.model import RIG, Problem, RefineSettings, _Layout
+from annotator.core.refine.model import CLOCK, READOUT, RIG, Problem, RefineSettings, _Layout
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,8 @@ def _gate(
     """Static indices of the blocks whose correction is within noise of their prior.
 
     Per-camera blocks: no component beyond ``gate_sigma`` posterior sigmas. The rig as a whole
-    (its gauge is pinned to the mean of the cameras, so one camera cannot be judged alone).
+    (its gauge is pinned to the mean of the cameras, so one camera cannot be judged alone), and
+    the cameras' clocks likewise; the cameras' readouts together (any combination beyond the gate).
     Surveyed markers: the correction's Mahalanobis distance per degree of freedom below
     ``marker_gate_sigma``.
     """
@@ -125,14 +126,31 @@ def _gate(
                 if _mahalanobis(d, cov[i : i + 6, i : i + 6] + floor) < s.marker_gate_sigma:
                     out.extend(range(i, i + 6))
             continue
-        if name == RIG:
+        if name in (RIG, CLOCK):  # gauged to the cameras' mean: judged as a whole
             z = np.abs(xs[off : off + n * size]) / sd[off : off + n * size]
             if z.max() < s.gate_sigma:
                 log.info(
-                    "refine: rig change not significant (max %.1f sigma); the measured rig kept",
+                    "refine: %s change not significant (max %.1f sigma); %s kept",
+                    "rig" if name == RIG else "cameras' clock",
                     z.max(),
+                    "the measured rig" if name == RIG else "the sync's offsets",
                 )
                 out.extend(range(off, off + n * size))
+            continue
+        if name == READOUT and n > 1:
+            # The cameras' readouts together: with their clocks free, a readout trades against
+            # its camera's clock where the markers fill few rows (a level cart), while their
+            # common part, the walk's rolling shutter, stays sharp. Kept at the priors only if no
+            # combination of them moved beyond the gate (the largest z in any direction).
+            idx = np.arange(off, off + n * size)
+            d = xs[idx]
+            try:
+                z_max = math.sqrt(max(float(d @ np.linalg.solve(cov[np.ix_(idx, idx)], d)), 0.0))
+            except np.linalg.LinAlgError:
+                z_max = float(np.max(np.abs(d) / sd[idx]))
+            if z_max < s.gate_sigma:
+                log.info("refine: readouts not significant (%.1f sigma); priors kept", z_max)
+                out.extend(idx.tolist())
             continue
         for c in range(n):
             i = off + c * size

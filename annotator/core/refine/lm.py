@@ -11,6 +11,8 @@ import scipy.sparse as sp
 from annotator.core.refine.model import (
     _FD_STEP,
     BIAS,
+    CLOCK,
+    CLOCK_SIGMA_S,
     CORNER_BIAS_SIGMA_PX,
     DIST,
     INTR,
@@ -75,22 +77,40 @@ def _prior_precision(
                 prec[b : b + size] = 1 / pr.distortion_sigma**2
             elif name == READOUT:
                 prec[b] = 1 / pr.readout_sigma_s**2
+            elif name == CLOCK:
+                prec[b] = 1 / CLOCK_SIGMA_S**2
             elif name == BIAS:
                 prec[b] = 1 / CORNER_BIAS_SIGMA_PX**2
             elif name == SCALE:
                 prec[b] = 1 / prob.length_sigma_rel**2
+    coupled_rows.extend(_gauge_rows(layout))
+    A = np.array(coupled_rows) if coupled_rows else np.zeros((0, layout.n_static))
+    return prec, A
+
+
+def _gauge_rows(layout: _Layout) -> list[np.ndarray]:
+    """Rows pinning what the data cannot see to its measurement: the rig's and the clocks' mean
+    change over the cameras, held at zero."""
+    rows: list[np.ndarray] = []
+    sl = layout.static_slices()
     if RIG in sl:
-        # The gauge: a motion common to every camera of the rig (with the opposite motion of the
-        # bundle) moves no camera, so the data cannot tell it - but the frame-time offsets between
+        # A motion common to every camera of the rig (with the opposite motion of the bundle)
+        # moves no camera, so the data cannot tell it - but the frame-time offsets between
         # cameras make it look weakly observable through the first pass's motion. Pin it to the
-        # rig's measurement: the mean change over the cameras is held at zero.
+        # rig's measurement.
         o, n, _ = sl[RIG]
         for i in range(6):
             a = np.zeros(layout.n_static)
             a[o + i : o + 6 * n : 6] = 1.0 / n
-            coupled_rows.append(a * 1e5)
-    A = np.array(coupled_rows) if coupled_rows else np.zeros((0, layout.n_static))
-    return prec, A
+            rows.append(a * 1e5)
+    if CLOCK in sl:
+        # A delay common to every camera moves every keyframe's pose along the walk, which the
+        # keyframe poses absorb: the cameras' mean stays the sync's.
+        o, n, _ = sl[CLOCK]
+        a = np.zeros(layout.n_static)
+        a[o : o + n] = 1.0 / n
+        rows.append(a * 1e5)
+    return rows
 
 
 def _jacobian(model: _Model, x: np.ndarray, uv0: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
@@ -111,6 +131,7 @@ def _jacobian(model: _Model, x: np.ndarray, uv0: np.ndarray) -> tuple[np.ndarray
         INTR: o.camera,
         DIST: o.camera,
         READOUT: o.camera,
+        CLOCK: o.camera,
         BIAS: o.camera,
         SCALE: np.zeros(N, int),
     }

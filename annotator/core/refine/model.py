@@ -24,7 +24,17 @@ log = logging.getLogger(__name__)
 # Block order in the static part of the parameter vector, per camera after the markers; then
 # one block for all markers: their printed size relative to the length the experiment states.
 RIG, INTR, DIST, READOUT, BIAS = "rig", "intr", "dist", "readout", "bias"
+# Each camera's clock against the others' (with two or more cameras): the sync puts every video
+# on the RSSI clock on its own, a few ms apart (a slate read to within a refresh, a cover edge).
+# A frame seen this much later than its stamp looks, to the corners, like a readout that starts
+# late: unmodelled it leans on the readout (on fast field walks 20-26 ms found for 15 true).
+CLOCK = "clock"
 SCALE = "scale"
+# Prior sigma of a camera's clock offset from the mean of the cameras' (s): a slate read to within
+# a refresh (+-8.3 ms at 60 Hz), the same cover edges seen by both cameras. Tight enough that
+# where a level walk leaves a camera's clock and readout alike, the clock does not take the
+# readout's part.
+CLOCK_SIGMA_S = 0.01
 # Prior sigma of the detector's corner bias: ArUco corners sit a fraction of a pixel off the true
 # corner along the square's diagonal (threshold, blur, print bleed), the same way for every marker.
 # Unmodelled, it makes each small marker look a few per cent too small, i.e. too far away.
@@ -36,6 +46,7 @@ _FD_STEP = {
     INTR: 1e-3,
     DIST: 1e-6,
     READOUT: 1e-6,
+    CLOCK: 1e-6,
     BIAS: 1e-3,
     SCALE: 1e-6,
 }
@@ -113,6 +124,7 @@ class CameraParams:
     corner_bias_px: float = (
         0.0  # detected corners sit this far outward (+) / inward (-) along the diagonal
     )
+    clock_s: float = 0.0  # the camera's frames were seen this much later than their stamps
 
 
 @dataclass(frozen=True, eq=False)
@@ -170,9 +182,11 @@ class Solution:
     length_scale: float = 1.0
     length_scale_sigma: float = float("nan")
     length_scale_determined: bool = False
-    # Per camera and block (rig, intr, dist, readout, bias): True when the capture determined
+    # Per camera and block (rig, intr, dist, readout, clock, bias): True when the capture determined
     # it (the correction was applied), False when it was within noise of its prior (kept).
     determined: dict[str, dict[str, bool]] = field(default_factory=dict)
+    # Per camera: the posterior 1-sigma of its clock offset (s), where it was estimated.
+    clock_sigma_s: dict[str, float] = field(default_factory=dict)
 
 
 # --- projection -------------------------------------------------------------------------------
@@ -244,7 +258,7 @@ class _Layout:
                 out[b] = (off, 1, 1)
                 off += 1
                 continue
-            size = {RIG: 6, INTR: 4, DIST: self.nd, READOUT: 1, BIAS: 1}[b]
+            size = {RIG: 6, INTR: 4, DIST: self.nd, READOUT: 1, CLOCK: 1, BIAS: 1}[b]
             out[b] = (off, self.C, size)
             off += size * self.C
         return out
@@ -307,6 +321,7 @@ class _Model:
             "K": self.K0 + u.get(INTR, np.zeros((C, 4))),
             "dist": self.d0 + u.get(DIST, np.zeros((C, self.L.nd))),
             "readout": self.r0 + u.get(READOUT, np.zeros((C, 1)))[:, 0],
+            "clock": u.get(CLOCK, np.zeros((C, 1)))[:, 0],
             "bias": self.b0 + u.get(BIAS, np.zeros((C, 1)))[:, 0],
             "scale": 1.0 + u.get(SCALE, np.zeros((1, 1)))[:, 0],
             "R_k": _rot(u["pose"][:, :3]) @ self.p.R_k,
@@ -348,10 +363,11 @@ class _Model:
         )  # R_k^T (X - p_k)
 
         def motion() -> tuple[np.ndarray, np.ndarray]:
-            tau = v["readout"][o.camera] * self.row  # row_delay(row, height, readout)
+            # row_delay(row, height, readout), after the camera's clock offset
+            tau = v["readout"][o.camera] * self.row + v["clock"][o.camera]
             return _rot(o.omega * tau[:, None]) @ o.R_D, o.t_D + o.vel * tau[:, None]
 
-        R_D, t_D = self._stage("motion", v["readout"], motion)
+        R_D, t_D = self._stage("motion", np.concatenate([v["readout"], v["clock"]]), motion)
         Y = _mtv(R_D, Yk - t_D)
         c = o.camera
         Xc = _mtv(v["R_bc"][c], Y - v["t_bc"][c])

@@ -23,6 +23,7 @@ from annotator.core.refine.gate import _gate, _mahalanobis, _rigid_rows, marker_
 from annotator.core.refine.lm import _LM
 from annotator.core.refine.model import (
     BIAS,
+    CLOCK,
     DIST,
     INTR,
     READOUT,
@@ -93,6 +94,8 @@ def _solve(
     if s.mode == "all" and not all(supported_lens(c.model, c.dist) for c in prob.cameras):
         log.warning("refine: a lens model with more than 5 coefficients: distortion held fixed")
         blocks = (RIG, INTR, READOUT, BIAS)
+    if s.mode == "all" and len(prob.cameras) > 1:
+        blocks = (*blocks, CLOCK)
     if s.mode == "all" and prob.length_sigma_rel > 0:
         blocks = (*blocks, SCALE)
     layout = _Layout(len(prob.R_k), len(prob.markers), len(prob.cameras), nd, seen, blocks)
@@ -183,6 +186,13 @@ def _solve(
         }
         for c, cam in enumerate(prob.cameras)
     }
+    clock_sigma: dict[str, float] = {}
+    if CLOCK in slices:
+        o = slices[CLOCK][0]
+        clock_sigma = {
+            cam.name: math.sqrt(max(float(post[o + c, o + c]), 0.0))
+            for c, cam in enumerate(prob.cameras)
+        }
     scale_sigma, scale_determined = float("nan"), False
     if SCALE in slices:
         i = slices[SCALE][0]
@@ -228,6 +238,7 @@ def _solve(
                 float(max(v["readout"][c], 0.0)),
                 cam.height,
                 float(v["bias"][c]),
+                cam.clock_s + float(v["clock"][c]),
             )
         )
     # A marker's stated uncertainty includes what its frames cannot average away (the floors): the
@@ -274,4 +285,5 @@ def _solve(
         scale_sigma,
         scale_determined,
         determined,
+        clock_sigma,
     )

@@ -627,3 +627,61 @@ def test_no_length_sigma_no_scale_estimated():
     _, sol = _solve(survey_map, cams, keyframes, length)
     assert sol.length_scale == 1.0
     assert np.isnan(sol.length_scale_sigma)
+
+
+def _moving_keyframes(delay_s: float, seed: int = 0) -> tuple:
+    """Keyframes of a bundle turning at ~60 deg/s about changing axes and moving at ~1 m/s, the
+    second camera's frames seen ``delay_s`` after their stamps; every view claims its stamp."""
+    rng = np.random.default_rng(seed)
+    room = make_room()
+    rig_true = make_rig()
+    t, pos, rot = make_path(N_KF, 0.5, seed)
+    names = list(rig_true)
+    keyframes = []
+    for k in range(N_KF):
+        R = rot[k].as_matrix()
+        omega = np.radians(60) * Rotation.random(random_state=int(rng.integers(1 << 30))).apply(
+            [0.0, 0.0, 1.0]
+        )
+        vel = rng.standard_normal(3)
+        vel *= 1.0 / np.linalg.norm(vel)
+        views = []
+        for c, name in enumerate(names):
+            dt = delay_s if c == 1 else 0.0
+            R_seen = Rotation.from_rotvec(omega * dt).as_matrix() @ R
+            det = project(room, rig_true[name], R_seen, pos[k] + vel * dt, 0.3, rng)
+            views.append(FrameView(c, det.ids, det.corners, omega=R.T @ omega, vel=R.T @ vel))
+        keyframes.append(Keyframe(R, pos[k].copy(), views))
+    survey = {
+        int(m): (room.R_world_marker[i], room.t_world_marker[i]) for i, m in enumerate(room.ids)
+    }
+    return survey, _exact_cameras(rig_true), keyframes, room.length
+
+
+def test_a_camera_whose_clock_is_late_gets_its_offset_back():
+    # The sync put the second camera's frames 8 ms early: found within its sigma, the cameras'
+    # mean held at the sync's (each camera moves half of it, in opposite directions).
+    survey, cams, keyframes, length = _moving_keyframes(0.008)
+    prob, sol = _solve(survey, cams, keyframes, length)
+    a, b = sol.cameras
+    assert sol.determined["front"]["clock"]
+    assert sol.determined["back"]["clock"]
+    assert a.clock_s + b.clock_s == pytest.approx(0.0, abs=1e-6)
+    sigma = float(np.hypot(sol.clock_sigma_s["front"], sol.clock_sigma_s["back"]))
+    assert sigma < 0.002
+    assert abs((b.clock_s - a.clock_s) - 0.008) < 3 * sigma
+
+
+def test_cameras_on_one_clock_keep_the_sync():
+    survey, cams, keyframes, length = _moving_keyframes(0.0, seed=1)
+    prob, sol = _solve(survey, cams, keyframes, length)
+    assert not sol.determined["front"]["clock"]
+    assert [c.clock_s for c in sol.cameras] == pytest.approx([0.0, 0.0], abs=1e-6)
+
+
+def test_one_camera_has_no_clock_to_refine():
+    survey, cams, keyframes, length = _moving_keyframes(0.0)
+    views = [Keyframe(k.R_wb, k.t_wb, k.views[:1]) for k in keyframes]
+    prob, sol = _solve(survey, cams[:1], views, length)
+    assert "clock" not in sol.determined["front"]
+    assert not sol.clock_sigma_s

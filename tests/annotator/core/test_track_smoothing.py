@@ -144,3 +144,23 @@ def test_a_bad_start_after_a_gap_does_not_lose_the_track():
     assert ok[10:].all()
     assert err[10:].max() < 0.01
     assert err.max() < 0.05
+
+
+def test_bridged_fills_short_gaps_between_poses_and_leaves_long_ones_and_the_ends():
+    from annotator.core.trajectory import Trajectory
+
+    t = np.arange(40) * 0.1
+    yaw = np.radians(30) * t  # a steady 30 deg/s turn
+    pos = np.stack([t, 0.5 * t, np.ones_like(t)], 1)
+    rot = Rotation.from_euler("z", yaw[:, None]).as_matrix()
+    short, long_ = np.arange(5, 12), np.arange(20, 38)  # 0.8 s and 1.9 s between poses
+    p, r = pos.copy(), rot.copy()
+    for rows in (short, long_, np.arange(0, 2)):
+        p[rows], r[rows] = np.nan, np.nan
+    out = Trajectory(t, p, r).bridged(1.0)
+    assert np.allclose(out.position[short], pos[short])  # linear motion: exact
+    angle = Rotation.from_matrix(out.rotation[short]).as_euler("xyz")[:, 2]
+    assert np.allclose(angle, yaw[short])  # a steady turn: slerp is exact
+    assert not out.valid[long_].any()  # longer than asked: still a gap
+    assert not out.valid[:2].any()  # before the first pose: never extrapolated
+    assert Trajectory(t, pos, rot).bridged(1.0).valid.all()
