@@ -38,7 +38,7 @@ def main() -> int:
         f"rootfs {'cold build' if built else 'cached'}: {took if built else time.monotonic() - t0:.1f} s"
     )
     state = Path(tempfile.mkdtemp(prefix="bgt-testbed-bench-"))
-    tb.STATE = state
+    tb.use_state(state)
     try:
         up = tb.up()
         print(f"boot of 3 hosts: {up['boot_s']:.1f} s")

@@ -55,7 +55,7 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
     if why:
         pytest.skip(f"cannot boot containers here: {why}")
     state = tmp_path_factory.mktemp("testbed")
-    tb.STATE = state
+    tb.use_state(state)
     try:
         t0 = time.monotonic()
         _path, took, built = tb.build_rootfs()

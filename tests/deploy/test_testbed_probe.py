@@ -28,7 +28,7 @@ def test_probe_names_a_missing_tool_and_its_package(tb, monkeypatch: pytest.Monk
         return
     real = shutil.which
     monkeypatch.setattr(
-        tb.shutil, "which", lambda name: None if name == "systemd-nspawn" else real(name)
+        tb.probe.shutil, "which", lambda name: None if name == "systemd-nspawn" else real(name)
     )
     why = tb.missing_capability()
     assert why == "no systemd-nspawn (Debian package systemd-container)"
@@ -36,6 +36,6 @@ def test_probe_names_a_missing_tool_and_its_package(tb, monkeypatch: pytest.Monk
 
 def test_probe_names_a_missing_apt_source(tb, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("BGT_TESTBED_MIRROR", raising=False)
-    monkeypatch.setattr(tb, "_sources_entries", lambda: [])
+    monkeypatch.setattr(tb.rootfs, "_sources_entries", lambda: [])
     with pytest.raises(tb.TestbedError, match=r"no apt source for Debian bookworm main"):
         tb.apt_source()
