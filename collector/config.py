@@ -293,3 +293,17 @@ def check_files(cfg: CollectorConfig) -> None:
         build_config(cfg.session_spec(acl_text))
     except Exception as e:  # noqa: BLE001 - zenoh reports config problems as ZError or ValueError
         raise ConfigError(f"zenoh rejects the configuration: {zenoh_reason(e)}") from None
+
+
+def descriptor_budget(open_files: int) -> int:
+    """Files the writer may hold open: the configured number, at most half the soft RLIMIT_NOFILE
+    (Zenoh's sockets and the rest of the process need the other half)."""
+    try:
+        import resource
+
+        soft, _hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    except (ImportError, OSError, ValueError):
+        return open_files
+    if soft == resource.RLIM_INFINITY:
+        return open_files
+    return max(4, min(open_files, soft // 2))

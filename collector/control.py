@@ -29,6 +29,7 @@ from collector.agents import AgentBook
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
 from collector.store import iso_utc, list_runs
+from collector.summary import build_status
 
 if TYPE_CHECKING:
     import zenoh
@@ -216,9 +217,9 @@ class Control:
         return fut.result(timeout)
 
     def status(self, timeout: float = 10.0) -> CollectorStatus:
-        from collector.summary import build_status
-
-        return self.writer.call(lambda: build_status(self.writer, self._mono()), timeout)
+        return self.writer.call(
+            lambda: build_status(self.writer.status_view(self._mono())), timeout
+        )
 
     # -- agents -------------------------------------------------------------------------------------
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 
+from bgt_core.control_messages import SensorRate
 from collector.beacon_rates import MAX_BEACONS, BeaconTrend, Drop
 
 RATE_WINDOW_S = 5.0
@@ -74,3 +75,15 @@ class SensorLive:
     def rate(self, now: float) -> float:
         self._prune(now)
         return sum(n for _, n in self.window) / RATE_WINDOW_S
+
+    def sensor_rate(self, now: float) -> SensorRate:
+        """What a status reply lists for this sensor at ``now``."""
+        return SensorRate(
+            rate_hz=round(self.rate(now), 2),
+            last_seen_age_s=round(now - self.last_seen, 3),
+            last_rssi=self.last_rssi,
+            readings=self.readings,
+            recent_rssi=tuple(self.rssi),
+            beacons=self.beacon_rates(now),
+            beacon_rssi=self.beacon_rssi(now),
+        )

@@ -24,7 +24,7 @@ from bgt_core.messages import ClockSample
 from bgt_core.sdnotify import Notifier
 from bgt_core.zenoh_config import AclFileError, build_config, load_acl, zenoh_reason
 from collector.agents import AgentBook
-from collector.config import CollectorConfig
+from collector.config import CollectorConfig, descriptor_budget
 from collector.control import COMMANDS, Control
 from collector.errors import CollectorError
 from collector.inbox import Inbox
@@ -43,7 +43,6 @@ from collector.writer import (
     QUARANTINE_MAX_BYTES,
     Resumed,
     Writer,
-    descriptor_budget,
 )
 
 if TYPE_CHECKING:
@@ -373,7 +372,7 @@ class Collector:
         """The status reply built on the calling thread: for a collector that is not open."""
         if self._session is not None:
             raise CollectorError("status_now is for a collector that is not open; use status()")
-        return build_status(self.writer, self._mono()).to_dict()
+        return build_status(self.writer.status_view(self._mono())).to_dict()
 
     def runs(self) -> list[dict[str, Any]]:
         return list_runs(self.cfg.data_dir)

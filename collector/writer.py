@@ -12,16 +12,17 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
-from importlib import metadata
 from typing import Any, TypeVar
 
-from bgt_core import wire
-from bgt_core.control_messages import StartReply, StopReply
+from bgt_core import __version__, wire
+from bgt_core.control_messages import RefusedStreams, StartReply, StopReply
 from bgt_core.messages import Ack, ClockSample
 from bgt_core.sdnotify import Notifier
+from collector import views
 from collector.admission import MAX_AGENT_ENTRIES, StreamGate
 from collector.agents import AgentBook
 from collector.beacon_rates import count_beacons, report_drop
@@ -34,6 +35,7 @@ from collector.ingest import (
 )
 from collector.live_stats import SensorLive
 from collector.store import STATE_FILE, FileWrite, RunWriter, is_disk_full, make_run_id
+from collector.summary import Counters, StatusView, run_summary
 
 log = logging.getLogger(__name__)
 
@@ -45,27 +47,6 @@ LIVE_IDLE_S = 3600.0  # live state of a stream silent this long is dropped
 MAX_BUFFER_BYTES = 64 * 1024 * 1024  # rows held in memory while the disk refuses them
 DISK_RETRY_S = 1.0
 QUARANTINE_MAX_BYTES = 16 * 1024 * 1024  # per run; beyond it rejects are only counted
-
-
-def descriptor_budget(open_files: int) -> int:
-    """Files the writer may hold open: the configured number, at most half the soft RLIMIT_NOFILE
-    (Zenoh's sockets and the rest of the process need the other half)."""
-    try:
-        import resource
-
-        soft, _hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    except (ImportError, OSError, ValueError):
-        return open_files
-    if soft == resource.RLIM_INFINITY:
-        return open_files
-    return max(4, min(open_files, soft // 2))
-
-
-def software_version() -> str:
-    try:
-        return metadata.version("ble-groundtruth")
-    except metadata.PackageNotFoundError:
-        return "unknown"
 
 
 @dataclass(slots=True)
@@ -470,7 +451,7 @@ class Writer:
             if not (self.cfg.data_dir / run_id).exists():
                 break
             run_id = f"{base}-{i}"
-        meta: dict[str, Any] = {"site": self.cfg.site, "software_version": software_version()}
+        meta: dict[str, Any] = {"site": self.cfg.site, "software_version": __version__}
         if notes:
             meta["notes"] = notes
         run = RunWriter(
@@ -516,9 +497,39 @@ class Writer:
             return
         self.stopping = Stopping(fut, self._mono(), reason)
 
-    def _maybe_finish_stop(self, st: Stopping, now: float) -> None:
-        from collector.summary import write_run_yaml
+    def counters(self) -> Counters:
+        inbox = self.inbox
+        return Counters(
+            discarded_no_run=self.discarded,
+            duplicates_dropped=self.tracker.duplicates,
+            rejected_payloads=inbox.rejects.snapshot(),
+            queue=inbox.data.qsize(),
+            queue_bytes=inbox.data.bytes,
+            write_errors=self.write_errors,
+            deferred_batches=self.deferred,
+            queue_overflow=inbox.overflow,
+            quarantine_dropped=inbox.quarantine_dropped,
+            unknown_agents=dict(Counter(self.unknown_agents).most_common(20)),
+            restarts=self.restarts,
+        )
 
+    def refused(self) -> RefusedStreams:
+        return views.refused_of(self.gate)
+
+    def status_view(self, now: float) -> StatusView:
+        """A copy of what the status reply says (``now``: monotonic s), for summary.build_status."""
+        return views.status_view(
+            now,
+            self.live,
+            self.agents,
+            self.clock_log,
+            self.run,
+            self.stopping is not None,
+            self.gate,
+            self.counters(),
+        )
+
+    def _maybe_finish_stop(self, st: Stopping, now: float) -> None:
         run = self.run
         if run is None:
             return
@@ -544,7 +555,18 @@ class Writer:
             run.fsync()
             run.write_state(self.state())
             self.tracker.mark_durable()
-            totals = write_run_yaml(self, run, st.reason, self._clock())
+            stop_ns = self._clock()
+            view = views.run_view(
+                run,
+                stop_ns,
+                self.tracker,
+                self.agents,
+                self.clock_log,
+                self.refused(),
+                self.counters(),
+            )
+            agents, extra, totals = run_summary(view, st.reason)
+            run.write_yaml(stop_ns=stop_ns, agents=agents, extra=extra)
             state = self.state()
             state["active"] = False
             run.write_state(state)
