@@ -69,7 +69,7 @@ def run(args: argparse.Namespace, base: Path) -> None:
     for s in range(args.sensors):
         w.append("pi-01", sensor_mac(s), format_rows(sensor_mac(s), rows(10, 0)), 10)
     w.fsync()
-    state = w.state({"tracker": tracker.to_state(), "lost_base": {}, "clock": {}, "restarts": 0})
+    state = w.state(tracker=tracker.to_state())
     times = []
     for _ in range(20):
         t = time.perf_counter()
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace, base: Path) -> None:
             w.append("pi-01", sensor_mac(s), format_rows(sensor_mac(s), rows(10, 100 + 10 * r)), 10)
         t = time.perf_counter()
         w.fsync()
-        w.write_state(w.state({"tracker": tracker.to_state()}))
+        w.write_state(w.state(tracker=tracker.to_state()))
         rounds.append(time.perf_counter() - t)
     print(
         f"fsync round (all {args.sensors} files + state): median "

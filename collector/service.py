@@ -29,9 +29,9 @@ from collector.control import COMMANDS, Control
 from collector.errors import CollectorError
 from collector.inbox import Inbox
 from collector.ingest import StreamTracker
+from collector.run_state import RunState
 from collector.store import (
     STATE_FILE,
-    STATE_VERSION,
     FileWrite,
     RunWriter,
     find_active_state,
@@ -68,41 +68,30 @@ def resume_state(
 ) -> Resumed:
     """Reopen the run of ``run_dir`` from its state.json (files cut back to what it covers)."""
     where = run_dir / STATE_FILE
-    if state.get("version") != STATE_VERSION:
+    rs = RunState.from_dict(state, str(where))
+    if rs.run_id != run_dir.name:
         raise CollectorError(
-            f"{where}: version {state.get('version')} state of an unfinished run, written by an "
-            f"older collector (this one resumes version {STATE_VERSION}); finish the run with "
-            "that collector, or move the file aside to start fresh"
-        )
-    if state.get("run_id") != run_dir.name:
-        raise CollectorError(
-            f"{where}: run_id {state.get('run_id')!r} is not its directory's "
+            f"{where}: run_id {rs.run_id!r} is not its directory's "
             "name; move the file aside to start fresh"
         )
     try:
-        tracker = StreamTracker.from_state(
-            state["tracker"], {k: int(v) for k, v in state.get("lost_base", {}).items()}
-        )
+        tracker = StreamTracker.from_state(dict(rs.tracker), dict(rs.lost_base))
         run = RunWriter(
             run_dir.parent,
             run_dir.name,
-            state["name"],
-            int(state["start_ns"]),
-            dict(state["meta"]),
-            resume=state,
+            rs.name,
+            rs.start_ns,
+            dict(rs.meta),
+            resume=rs,
             write=write,
             open_files=open_files,
         )
-        clock_log = {
-            k: [ClockSample.from_dict(smp) for smp in v] for k, v in state.get("clock", {}).items()
-        }
-        restarts = int(state.get("restarts", 0)) + 1
-        quarantined = int(state.get("quarantined_bytes", 0))
     except (KeyError, TypeError, ValueError, AttributeError) as e:  # WireError is a ValueError
         raise CollectorError(f"{where}: cannot resume the run: {e!r}") from None
     except OSError as e:
         raise CollectorError(f"cannot resume run {run_dir}: {e}") from None
-    return Resumed(run, tracker, clock_log, restarts, quarantined)
+    clock_log = {a: list(v) for a, v in rs.clock.items()}
+    return Resumed(run, tracker, clock_log, rs.restarts + 1, rs.quarantined_bytes)
 
 
 def find_unfinished_run(data_dir: Path, *, write: FileWrite, open_files: int) -> Resumed | None:

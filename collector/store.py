@@ -22,15 +22,16 @@ from pathlib import Path
 from typing import Any
 
 from bgt_core.atomic import write_atomic
+from bgt_core.messages import ClockSample
 from bgt_core.safe_open import FileRefused, open_regular, read_limited
 from collector.errors import CollectorError
+from collector.run_state import RunState, SensorRecord
 
 log = logging.getLogger(__name__)
 
 _NAME_RE = re.compile(r"[^A-Za-z0-9_.-]+")
 FLUSH_BYTES = 1 << 20  # a sensor's buffer is written out once it holds this much text
 STATE_FILE = "state.json"
-STATE_VERSION = 2  # 2: files keyed by agent/sensor (rssi/<agent>/<sensor>.mbd)
 OPEN_FILES = 256  # .mbd files kept open at once (see RunWriter); more are closed and reopened
 FileWrite = Callable[[int, bytes], int]  # os.write's shape
 
@@ -197,17 +198,14 @@ class SensorStats:
             elif len(self.beacons) < MAX_BEACONS_LISTED:
                 self.beacons[key] = n
 
-    def to_state(self) -> dict[str, Any]:
-        return {"readings": self.readings, "batches": self.batches, "beacons": self.beacons}
+    def to_state(self) -> SensorRecord:
+        return SensorRecord(
+            readings=self.readings, batches=self.batches, beacons=dict(self.beacons)
+        )
 
     @classmethod
-    def from_state(cls, st: dict[str, Any]) -> SensorStats:
-        beacons = st.get("beacons") or {}
-        return cls(
-            int(st["readings"]),
-            int(st["batches"]),
-            {str(k): int(v) for k, v in beacons.items()} if isinstance(beacons, dict) else {},
-        )
+    def from_state(cls, st: SensorRecord) -> SensorStats:
+        return cls(st["readings"], st["batches"], dict(st["beacons"]))
 
 
 StreamKey = tuple[str, str]  # (agent id, sensor MAC)
@@ -276,7 +274,7 @@ class RunWriter:
         start_ns: int,
         meta: dict[str, Any],
         *,
-        resume: dict[str, Any] | None = None,
+        resume: RunState | None = None,
         write: FileWrite = os.write,
         open_files: int = OPEN_FILES,
     ) -> None:
@@ -308,9 +306,9 @@ class RunWriter:
     def path(self, key: StreamKey) -> Path:
         return self.dir / "rssi" / key[0] / f"{key[1]}.mbd"
 
-    def _resume(self, state: dict[str, Any]) -> None:
+    def _resume(self, state: RunState) -> None:
         """Reopen the files of a run a killed collector left, cut to what its state covers."""
-        files = {parse_stream_name(k): int(v) for k, v in state.get("files", {}).items()}
+        files = {parse_stream_name(k): int(v) for k, v in state.files.items()}
         rssi = self.dir / "rssi"
         rssi.mkdir(parents=True, exist_ok=True)
         for path in sorted(rssi.glob("*/*.mbd")):
@@ -324,12 +322,12 @@ class RunWriter:
                     removed,
                     stream_name(key) + ".mbd",
                 )
-        for name, st in state.get("sensors", {}).items():
+        for name, st in state.sensors.items():
             key = parse_stream_name(name)
             self.sensors[key] = SensorStats.from_state(st)
             if self.path(key).exists():
                 self.appenders[key] = self._appender(key)
-        self.readings = int(state.get("readings", 0))
+        self.readings = state.readings
 
     def _appender(self, key: StreamKey) -> SensorAppender:
         def opener(app: SensorAppender) -> int:
@@ -415,23 +413,34 @@ class RunWriter:
             by_mac.setdefault(mac, []).append(agent)
         return {m: sorted(a) for m, a in sorted(by_mac.items()) if len(a) > 1}
 
-    def state(self, extra: dict[str, Any]) -> dict[str, Any]:
-        """The crash-recovery record; call right after fsync() so the sizes are durable."""
-        return {
-            "version": STATE_VERSION,
-            "active": True,
-            "run_id": self.run_id,
-            "name": self.name,
-            "start_ns": self.start_ns,
-            "meta": self.meta,
-            "readings": self.readings,
-            "files": {stream_name(k): a.size for k, a in self.appenders.items()},
-            "sensors": {stream_name(k): st.to_state() for k, st in self.sensors.items()},
-            **extra,
-        }
+    def state(
+        self,
+        *,
+        tracker: dict[str, Any] | None = None,
+        lost_base: dict[str, int] | None = None,
+        clock: dict[str, tuple[ClockSample, ...]] | None = None,
+        restarts: int = 0,
+        quarantined_bytes: int = 0,
+    ) -> RunState:
+        """The crash-recovery record (with the writer's parts); call right after fsync() so the
+        sizes are durable."""
+        return RunState(
+            run_id=self.run_id,
+            name=self.name,
+            start_ns=self.start_ns,
+            meta=self.meta,
+            readings=self.readings,
+            files={stream_name(k): a.size for k, a in self.appenders.items()},
+            sensors={stream_name(k): st.to_state() for k, st in self.sensors.items()},
+            tracker=tracker or {},
+            lost_base=lost_base or {},
+            clock=clock or {},
+            restarts=restarts,
+            quarantined_bytes=quarantined_bytes,
+        )
 
-    def write_state(self, state: dict[str, Any]) -> None:
-        write_json_atomic(self.dir / STATE_FILE, state)
+    def write_state(self, state: RunState) -> None:
+        write_json_atomic(self.dir / STATE_FILE, state.to_dict())
 
     def write_yaml(
         self, *, stop_ns: int | None, agents: dict[str, Any], extra: dict[str, Any]

@@ -9,6 +9,7 @@ thread and waits for its result.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import threading
@@ -34,6 +35,7 @@ from collector.ingest import (
     format_rows,
 )
 from collector.live_stats import SensorLive
+from collector.run_state import RunState
 from collector.store import STATE_FILE, FileWrite, RunWriter, is_disk_full, make_run_id
 from collector.summary import Counters, StatusView, run_summary
 
@@ -278,18 +280,16 @@ class Writer:
                     )
         return set()
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> RunState:
         """state.json of the active run (which must exist)."""
         if self.run is None:
             raise CollectorError("no run is active")
         return self.run.state(
-            {
-                "tracker": self.tracker.to_state(),
-                "lost_base": self.tracker.lost_base,
-                "clock": {a: [s.to_dict() for s in v] for a, v in self.clock_log.items()},
-                "restarts": self.restarts,
-                "quarantined_bytes": self._quarantined_bytes,
-            }
+            tracker=self.tracker.to_state(),
+            lost_base=dict(self.tracker.lost_base),
+            clock={a: tuple(v) for a, v in self.clock_log.items()},
+            restarts=self.restarts,
+            quarantined_bytes=self._quarantined_bytes,
         )
 
     def _ingest_some(self) -> None:
@@ -567,9 +567,7 @@ class Writer:
             )
             agents, extra, totals = run_summary(view, st.reason)
             run.write_yaml(stop_ns=stop_ns, agents=agents, extra=extra)
-            state = self.state()
-            state["active"] = False
-            run.write_state(state)
+            run.write_state(dataclasses.replace(self.state(), active=False))
             run.close()
         except Exception as e:  # noqa: BLE001 - reported to the caller of stop; the run stays active
             self.stopping = None

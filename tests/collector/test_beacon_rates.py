@@ -98,7 +98,7 @@ def test_run_yaml_counts_per_beacon_survive_a_restart(tmp_path) -> None:
     w.append("pi-1", "b827eb4521b4", "x\n", 1, count_beacons(rows[:1]))
     st = w.sensors[("pi-1", "b827eb4521b4")]
     assert st.beacons == {BEACON.hex(): 3, OTHER.hex(): 1}
-    state = w.state({})
+    state = w.state()
     w.close()
     again = RunWriter(tmp_path, "r1", "n", 1_795_318_500 * 10**9, {"site": "default"}, resume=state)
     assert again.sensors[("pi-1", "b827eb4521b4")].beacons == {BEACON.hex(): 3, OTHER.hex(): 1}

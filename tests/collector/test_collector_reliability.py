@@ -148,7 +148,7 @@ def test_run_writer_resume_truncates_to_state(tmp_path) -> None:
     b0, b1 = make_batch(0, n=2), make_batch(1, n=2)
     w.append("pi-01", A, "\n".join(expected_lines([b0])) + "\n", 2)
     w.fsync()
-    state = w.state({})
+    state = w.state()
     w.append("pi-01", A, "\n".join(expected_lines([b1])) + "\n", 2)
     w.flush()  # written but never covered by a state: must not survive a crash
     (w.dir / "rssi" / "pi-01" / f"{B}.mbd").write_text(
