@@ -29,6 +29,11 @@ def merged(h: config.Host) -> Path:
     return hostdir(h) / "root"
 
 
+def _keygen(path: Path, comment: str) -> None:
+    """A new ed25519 key pair without a passphrase at ``path`` (and ``path``.pub)."""
+    config.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", comment, "-f", str(path)])
+
+
 def _prepare_host(h: config.Host, lower: Path) -> None:
     d = hostdir(h)
     for sub in ("upper", "work", "root"):
@@ -52,20 +57,7 @@ def _prepare_host(h: config.Host, lower: Path) -> None:
     if not (root / "etc/machine-id").read_text().strip():
         config.write_file(root / "etc/machine-id", uuid.uuid4().hex + "\n", 0o444)
     if not (root / "etc/ssh/ssh_host_ed25519_key").exists():
-        config.run(
-            [
-                "ssh-keygen",
-                "-q",
-                "-t",
-                "ed25519",
-                "-N",
-                "",
-                "-C",
-                h.name,
-                "-f",
-                str(root / "etc/ssh/ssh_host_ed25519_key"),
-            ]
-        )
+        _keygen(root / "etc/ssh/ssh_host_ed25519_key", h.name)
     ak = root / "root/.ssh/authorized_keys"
     config.write_file(ak, (config.STATE / "id_ed25519.pub").read_text(), 0o600)
     ak.parent.chmod(0o700)
@@ -243,20 +235,7 @@ def up() -> dict[str, float]:
     lower, _took, _built = rootfs.build_rootfs()
     config.STATE.mkdir(parents=True, exist_ok=True)
     if not (config.STATE / "id_ed25519").exists():
-        config.run(
-            [
-                "ssh-keygen",
-                "-q",
-                "-t",
-                "ed25519",
-                "-N",
-                "",
-                "-C",
-                "bgt-testbed",
-                "-f",
-                str(config.STATE / "id_ed25519"),
-            ]
-        )
+        _keygen(config.STATE / "id_ed25519", "bgt-testbed")
     network.setup_network()
     known = []
     for h in config.HOSTS:

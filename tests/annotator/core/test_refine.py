@@ -24,6 +24,12 @@ from track_helpers import make_path, make_rig, make_room, project
 N_KF = 60
 
 
+def _walk(seed: int) -> tuple:
+    """A random stream, the tetam room, the exact rig and the keyframes' walk (positions, turns)."""
+    _t, pos, rot = make_path(N_KF, 0.5, seed)
+    return np.random.default_rng(seed), make_room(), make_rig(), pos, rot
+
+
 def _scene(
     seed: int = 0,
     survey=(0.015, 1.0),
@@ -34,10 +40,7 @@ def _scene(
     noise_px: float = 0.3,
 ):
     """Truth and what a capture would hand the refinement: keyframes, perturbed survey, rig, lens."""
-    rng = np.random.default_rng(seed)
-    room = make_room()
-    rig_true = make_rig()
-    t, pos, rot = make_path(N_KF, 0.5, seed)
+    rng, room, rig_true, pos, rot = _walk(seed)
     names = list(rig_true)
     keyframes = []
     for k in range(N_KF):
@@ -632,10 +635,7 @@ def test_no_length_sigma_no_scale_estimated():
 def _moving_keyframes(delay_s: float, seed: int = 0) -> tuple:
     """Keyframes of a bundle turning at ~60 deg/s about changing axes and moving at ~1 m/s, the
     second camera's frames seen ``delay_s`` after their stamps; every view claims its stamp."""
-    rng = np.random.default_rng(seed)
-    room = make_room()
-    rig_true = make_rig()
-    t, pos, rot = make_path(N_KF, 0.5, seed)
+    rng, room, rig_true, pos, rot = _walk(seed)
     names = list(rig_true)
     keyframes = []
     for k in range(N_KF):
