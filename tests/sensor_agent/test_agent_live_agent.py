@@ -5,24 +5,15 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
 
 from agent_testing import AGENT, FakeCollector, agent_env
 from bgt_core import wire
+from polling import wait_for
 
 pytestmark = pytest.mark.slow
-
-
-def wait_until(cond, timeout_s: float, collector: FakeCollector) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        collector.poll()
-        time.sleep(0.01)
 
 
 def test_simulated_agent_status_token_and_sigterm(endpoint: str, tmp_path: Path) -> None:
@@ -41,7 +32,9 @@ simulated: {{seed: 3, sensors: [sensor10, sensor40], drop_prob: 0.0}}
         AGENT + ["run", "--config", str(cfg)], stdout=log, stderr=log, env=agent_env()
     )
     try:
-        wait_until(lambda: len(collector.batches) >= 20, 30, collector)
+        wait_for(
+            lambda: len(collector.batches) >= 20, 30, "20 batches", step=0.01, poll=collector.poll
+        )
 
         tokens = [
             r.ok.key_expr
