@@ -548,14 +548,9 @@ def run_experiment(
         result = frames_to_result(frames, exp, track, pool)
     traj = result.trajectory
     if result.clock_s:
-        # The self-calibration saw each camera's frames this much later than the sync put them.
-        sync = replace(
-            sync,
-            clocks={
-                n: replace(c, video_start=c.video_start + result.clock_s.get(n, 0.0))
-                for n, c in sync.clocks.items()
-            },
-        )
+        from annotator.sync_stage import clock_shift
+
+        sync = clock_shift(sync, result.clock_s)
     if sync.slates and result.refinement is not None:
         from annotator.sync_stage import readout_shift
 

@@ -184,6 +184,18 @@ def trim_frames(cf: CameraFrames, segments: list[tuple[float, float]]) -> Camera
     )
 
 
+def clock_shift(sync: SyncResult, offsets: dict[str, float]) -> SyncResult:
+    """The clock maps with each camera's start moved by the offset the self-calibration found
+    (its frames were seen that much later than the sync put them; the cameras' mean is 0)."""
+    clocks = {
+        n: replace(
+            c, video_start=c.video_start + offsets.get(n, 0.0), refined_offset_s=offsets.get(n, 0.0)
+        )
+        for n, c in sync.clocks.items()
+    }
+    return replace(sync, clocks=clocks)
+
+
 def readout_shift(
     sync: SyncResult, used: dict[str, float], found: dict[str, float], trajectory: Trajectory
 ) -> tuple[SyncResult, Trajectory]:

@@ -207,6 +207,7 @@ def build_report(
             "edge_residual_rms_s": cm.residual_rms,
             "edge_bias_s": cm.edge_bias,
             "method": cm.method,
+            "refined_offset_s": cm.refined_offset_s,
             "events": [_event_dict(e, cm) for e in sync.video_events.get(name, [])],
         }
         slate = sync.slates.get(name)

@@ -54,6 +54,11 @@ def test_slate_sync_maps_each_video_within_a_refresh(render: Path) -> None:
         assert len(slate["filmings_pts_s"]) == 2  # the start and the end
         assert slate["frames_used"] >= 40
         assert slate["frames_refused"] == 0
+    # The walk measured each camera's clock against the other's: the moves are opposite (their
+    # mean stays the slate's), each within a refresh, and they are in the starts above.
+    moves = [cam["refined_offset_s"] for cam in report["sync"]["cameras"].values()]
+    assert sum(moves) == pytest.approx(0.0, abs=1e-6)
+    assert max(abs(m) for m in moves) < 1 / 60
     # the slate's frames are not rows of the trajectory: it spans the walk alone, every row posed
     traj = read_trajectory(results / "trajectory.csv")
     assert traj.t[0] >= T0 - 0.05

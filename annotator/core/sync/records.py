@@ -47,6 +47,9 @@ class ClockMap:
     # signals fade differently while the hands close. Fitted when a cover/release pair exists.
     edge_bias: float = math.nan
     start_drift_cov: float = 0.0  # covariance of video_start and drift from the fit (s * 1)
+    # How far the self-calibration moved video_start: this camera's clock against the others'
+    # (``Refinement.clock_s``), already in video_start; 0 when not refined.
+    refined_offset_s: float = 0.0
 
     def to_rssi(self, pts: np.ndarray | float) -> np.ndarray:
         return self.video_start + np.asarray(pts, dtype=float) * (1.0 + self.drift)
