@@ -128,7 +128,7 @@ def default_jobs() -> int:
 # What to change in the capture when one part of sigma_m holds most of its variance.
 _SIGMA_HINTS = {
     "sigma_params_m": "most of it is how well the map, rig and lenses are known: survey more "
-    "markers along the walk{jig} (docs/annotator.md, 'Field procedure')",
+    "markers along the walk{jig} (docs/field-guide.md)",
     "sigma_smoother_m": "most of it is frame noise: few or far markers in view; add markers "
     "along the walk",
     "sigma_blur_m": "most of it is motion blur: a shorter exposure or a slower walk",

@@ -96,8 +96,8 @@ def track(
         bool | None,
         typer.Option(
             help="Place each corner where the fitted outer edges of the marker's black square meet "
-            "(unbiased for small and large markers; see docs/annotator.md, 'Clean 1080p video "
-            "with half-size detection'). Default: on where detection runs on a downscaled copy "
+            "(unbiased for small and large markers; see docs/annotator.md, 'Corners: the window's "
+            "and the edge fit'). Default: on where detection runs on a downscaled copy "
             "(frames wider than 1280 px), off otherwise.",
             show_default=False,
         ),

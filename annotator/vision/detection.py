@@ -60,7 +60,7 @@ class DetectorSettings:
     # self-calibration take a clean 1080p capture from 0.04 to ~1 cm; off at full-size detection,
     # where on the 960x540 field renders it is a wash (better on average over five seeds, worse on
     # some); the self-calibration measures with them there too (edge_corners_for_refine). See
-    # docs/annotator.md, "Clean 1080p video with half-size detection".
+    # docs/annotator.md, "Corners: the window's and the edge fit".
     edge_corners: bool | None = None
     # Board refinement accepts a projected marker this close (full-resolution pixels) to a
     # candidate; a wide one lets it take a small marker's inner contour, one cell in.
@@ -72,7 +72,7 @@ class DetectorSettings:
     # on clean 960x540 walks a few markers took corrections of 1-2 cm and the trajectory 0.5 cm.
     # The edge corner has no such bias on sharp frames but is pulled inward on blurred small
     # markers, so the final pass, which also uses blurred frames, keeps the window corners
-    # (docs/annotator.md, "The refinement measures with edge corners").
+    # (docs/annotator.md, "Corners: the window's and the edge fit").
     edge_corners_for_refine: bool = False
 
 
