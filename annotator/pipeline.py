@@ -291,7 +291,11 @@ def _track_rig(
             t_out,
             pos,
             R,
-            RefineSettings(mode=settings.refine, exposure_s=settings.exposure_s),
+            RefineSettings(
+                mode=settings.refine,
+                exposure_s=settings.exposure_s,
+                clock_sigma_s=settings.clock_sigma_s,
+            ),
             initial,
         )
         clock["solve"] += time.perf_counter() - t0
@@ -544,6 +548,11 @@ def run_experiment(
         else:
             starts = exp.video_start or {}
             frames = [replace(cf, t=cf.t + starts.get(cf.camera, 0.0)) for cf in frames]
+    if sync.slates and set(sync.slates) == set(sync.clocks):
+        # Each video read the slate on its own: its clock is free against the others'.
+        from annotator.core.refine.model import CLOCK_SIGMA_S
+
+        track = replace(track, clock_sigma_s=track.clock_sigma_s or CLOCK_SIGMA_S)
     with _worker_pool(track) as pool:
         result = frames_to_result(frames, exp, track, pool)
     traj = result.trajectory

@@ -53,6 +53,9 @@ class TrackSettings:
     )  # what sigma_m holds
     # rig: self-calibration after the first pass (annotator.core.refine): none | map | all
     refine: str = "all"
+    # Each camera's clock against the others' as the self-calibration's prior (s; 0: held at the
+    # sync's). `annotator run` sets it where the clock slate synchronised every video.
+    clock_sigma_s: float = 0.0
     # Joint solves also inside the previous pass's gaps up to this long (s; 0: never)
     joint_bridge_s: float = 2.0
     # Assumed exposure for the motion-blur measure (predicted smear, px, of each frame's markers).

@@ -32,6 +32,7 @@ def _prior_precision(
     model: _Model,
     skip_marker_prior: np.ndarray,
     floors: np.ndarray | None = None,
+    clock_sigma_s: float = CLOCK_SIGMA_S,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Diagonal precision of the static priors and the rows A of the coupled priors (cost |A x|^2 / 2):
     each camera's aspect ratio, the rig's gauge, and (``floors``: (M, 6, 6)) each surveyed marker's
@@ -78,7 +79,7 @@ def _prior_precision(
             elif name == READOUT:
                 prec[b] = 1 / pr.readout_sigma_s**2
             elif name == CLOCK:
-                prec[b] = 1 / CLOCK_SIGMA_S**2
+                prec[b] = 1 / clock_sigma_s**2
             elif name == BIAS:
                 prec[b] = 1 / CORNER_BIAS_SIGMA_PX**2
             elif name == SCALE:
@@ -173,7 +174,9 @@ class _LM:
         self._priors()
 
     def _priors(self, floors: np.ndarray | None = None) -> None:
-        self.prec, self.A = _prior_precision(self.prob, self.L, self.model, self.skip, floors)
+        self.prec, self.A = _prior_precision(
+            self.prob, self.L, self.model, self.skip, floors, self.s.clock_sigma_s or CLOCK_SIGMA_S
+        )
         self.aspect_prec = 1.0  # the rows of A carry their own weights
 
     def cost(self, x: np.ndarray) -> tuple[float, np.ndarray]:

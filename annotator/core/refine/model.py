@@ -30,10 +30,8 @@ RIG, INTR, DIST, READOUT, BIAS = "rig", "intr", "dist", "readout", "bias"
 # late: unmodelled it leans on the readout (on fast field walks 20-26 ms found for 15 true).
 CLOCK = "clock"
 SCALE = "scale"
-# Prior sigma of a camera's clock offset from the mean of the cameras' (s): a slate read to within
-# a refresh (+-8.3 ms at 60 Hz), the same cover edges seen by both cameras. Tight enough that
-# where a level walk leaves a camera's clock and readout alike, the clock does not take the
-# readout's part.
+# Prior sigma of a camera's clock offset from the mean of the cameras' (s) where each video was
+# synchronised on its own by the clock slate: read to within a refresh (+-8.3 ms at 60 Hz).
 CLOCK_SIGMA_S = 0.01
 # Prior sigma of the detector's corner bias: ArUco corners sit a fraction of a pixel off the true
 # corner along the square's diagonal (threshold, blur, print bleed), the same way for every marker.
@@ -94,6 +92,11 @@ class RefineSettings:
     # out there. The estimate keeps the survey's prior either way (docs/annotator.md).
     floors_in_record: bool = True
     exposure_s: float = 0.008  # assumed exposure for the motion-blur measure
+    # Prior sigma of each camera's clock against the cameras' mean, s; 0 holds the clocks at the
+    # sync's. Only where each video was synchronised on its own (the slate): with the hands cover
+    # the cameras' errors are shared, and a free clock trades against the readout on short walks
+    # (a 6 s walk on exact clocks: 13.4 / 19.9 ms found for 15).
+    clock_sigma_s: float = 0.0
     max_smear_px: float = 3.0  # most keyframes are sharper than this (predicted smear) ...
     # ... and up to this share of them may be frames of a moving picture (turns: what shows the
     # readout), smeared up to max_turn_smear_px and weighted down by their smear.

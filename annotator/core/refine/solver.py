@@ -94,7 +94,7 @@ def _solve(
     if s.mode == "all" and not all(supported_lens(c.model, c.dist) for c in prob.cameras):
         log.warning("refine: a lens model with more than 5 coefficients: distortion held fixed")
         blocks = (RIG, INTR, READOUT, BIAS)
-    if s.mode == "all" and len(prob.cameras) > 1:
+    if s.mode == "all" and len(prob.cameras) > 1 and s.clock_sigma_s > 0:
         blocks = (*blocks, CLOCK)
     if s.mode == "all" and prob.length_sigma_rel > 0:
         blocks = (*blocks, SCALE)

@@ -662,7 +662,7 @@ def test_a_camera_whose_clock_is_late_gets_its_offset_back():
     # The sync put the second camera's frames 8 ms early: found within its sigma, the cameras'
     # mean held at the sync's (each camera moves half of it, in opposite directions).
     survey, cams, keyframes, length = _moving_keyframes(0.008)
-    prob, sol = _solve(survey, cams, keyframes, length)
+    prob, sol = _solve(survey, cams, keyframes, length, clock_sigma_s=0.01)
     a, b = sol.cameras
     assert sol.determined["front"]["clock"]
     assert sol.determined["back"]["clock"]
@@ -674,7 +674,7 @@ def test_a_camera_whose_clock_is_late_gets_its_offset_back():
 
 def test_cameras_on_one_clock_keep_the_sync():
     survey, cams, keyframes, length = _moving_keyframes(0.0, seed=1)
-    prob, sol = _solve(survey, cams, keyframes, length)
+    prob, sol = _solve(survey, cams, keyframes, length, clock_sigma_s=0.01)
     assert not sol.determined["front"]["clock"]
     assert [c.clock_s for c in sol.cameras] == pytest.approx([0.0, 0.0], abs=1e-6)
 
@@ -682,6 +682,15 @@ def test_cameras_on_one_clock_keep_the_sync():
 def test_one_camera_has_no_clock_to_refine():
     survey, cams, keyframes, length = _moving_keyframes(0.0)
     views = [Keyframe(k.R_wb, k.t_wb, k.views[:1]) for k in keyframes]
-    prob, sol = _solve(survey, cams[:1], views, length)
+    prob, sol = _solve(survey, cams[:1], views, length, clock_sigma_s=0.01)
     assert "clock" not in sol.determined["front"]
     assert not sol.clock_sigma_s
+
+
+def test_clocks_are_held_at_the_sync_unless_asked():
+    # The default (a sync whose cameras' errors are shared, or unknown): no clock block, and an
+    # 8 ms offset is left to the other blocks.
+    survey, cams, keyframes, length = _moving_keyframes(0.008)
+    prob, sol = _solve(survey, cams, keyframes, length)
+    assert "clock" not in sol.determined["front"]
+    assert [c.clock_s for c in sol.cameras] == [0.0, 0.0]
