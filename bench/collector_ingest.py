@@ -163,12 +163,15 @@ def bare(args) -> dict:
 
 
 def collector(args) -> dict:
-    from collector.config import CollectorConfig
+    from collector.config import CollectorConfig, Limits
     from collector.service import Collector
 
     ep = f"tcp/127.0.0.1:{free_port()}"
+    # One agent floods as fast as it can: the per-agent quotas (20,000 readings/s by default) are
+    # lifted to their ceilings, or they, not the ingest path, would set the rate.
+    limits = Limits(agent_readings_per_s=10_000_000, agent_mb_per_run=10_000_000)
     with tempfile.TemporaryDirectory() as tmp:
-        c = Collector(CollectorConfig(data_dir=Path(tmp), listen=(ep,))).open()
+        c = Collector(CollectorConfig(data_dir=Path(tmp), listen=(ep,), limits=limits)).open()
         run = c.start_run("bench")
         p, t0 = run_publisher(ep, args)
         depth = [0]
