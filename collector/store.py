@@ -308,7 +308,7 @@ class RunWriter:
 
     def _resume(self, state: RunState) -> None:
         """Reopen the files of a run a killed collector left, cut to what its state covers."""
-        files = {parse_stream_name(k): int(v) for k, v in state.files.items()}
+        files = {parse_stream_name(k): v for k, v in state.files.items()}
         rssi = self.dir / "rssi"
         rssi.mkdir(parents=True, exist_ok=True)
         for path in sorted(rssi.glob("*/*.mbd")):

@@ -12,7 +12,6 @@ from annotator.core.refine.model import (
     _FD_STEP,
     BIAS,
     CLOCK,
-    CLOCK_SIGMA_S,
     CORNER_BIAS_SIGMA_PX,
     DIST,
     INTR,
@@ -32,7 +31,7 @@ def _prior_precision(
     model: _Model,
     skip_marker_prior: np.ndarray,
     floors: np.ndarray | None = None,
-    clock_sigma_s: float = CLOCK_SIGMA_S,
+    clock_sigma_s: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Diagonal precision of the static priors and the rows A of the coupled priors (cost |A x|^2 / 2):
     each camera's aspect ratio, the rig's gauge, and (``floors``: (M, 6, 6)) each surveyed marker's
@@ -78,7 +77,7 @@ def _prior_precision(
                 prec[b : b + size] = 1 / pr.distortion_sigma**2
             elif name == READOUT:
                 prec[b] = 1 / pr.readout_sigma_s**2
-            elif name == CLOCK:
+            elif name == CLOCK:  # present only when clock_sigma_s > 0 (solver._solve)
                 prec[b] = 1 / clock_sigma_s**2
             elif name == BIAS:
                 prec[b] = 1 / CORNER_BIAS_SIGMA_PX**2
@@ -175,7 +174,7 @@ class _LM:
 
     def _priors(self, floors: np.ndarray | None = None) -> None:
         self.prec, self.A = _prior_precision(
-            self.prob, self.L, self.model, self.skip, floors, self.s.clock_sigma_s or CLOCK_SIGMA_S
+            self.prob, self.L, self.model, self.skip, floors, self.s.clock_sigma_s
         )
         self.aspect_prec = 1.0  # the rows of A carry their own weights
 
