@@ -25,10 +25,11 @@ from bgt_core.control_messages import (
     StopReply,
 )
 from bgt_core.messages import AgentStatus, ClockReply, ClockRequest, ClockSample
+from bgt_core.run_record import iso_utc
 from collector.agents import AgentBook
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
-from collector.store import iso_utc, list_runs
+from collector.store import list_runs
 from collector.summary import build_status
 
 if TYPE_CHECKING:

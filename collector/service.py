@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 from bgt_core import wire
 from bgt_core.control_messages import StartRequest
 from bgt_core.messages import ClockSample
+from bgt_core.run_record import RunRecordError
 from bgt_core.sdnotify import Notifier
 from bgt_core.zenoh_config import AclFileError, build_config, load_acl, zenoh_reason
 from collector.agents import AgentBook
@@ -36,6 +37,7 @@ from collector.store import (
     RunWriter,
     find_active_state,
     list_runs,
+    read_run_record,
 )
 from collector.summary import build_status
 from collector.writer import (
@@ -53,14 +55,12 @@ log = logging.getLogger(__name__)
 SUB_CHANNEL = 16  # samples Zenoh may hold for the receive thread (a FIFO: Zenoh waits when full)
 
 
-def _run_yaml(run_dir: Path) -> dict[str, Any]:
-    from bgt_core.safe_yaml import YamlError, load_file
-
+def _stopped(run_dir: Path) -> bool:
+    """Whether run.yaml says the run stopped (an unreadable one says not)."""
     try:
-        doc = load_file(run_dir / "run.yaml") or {}
-    except YamlError:
-        doc = {}
-    return doc if isinstance(doc, dict) else {}
+        return read_run_record(run_dir).stopped
+    except RunRecordError:
+        return False
 
 
 def resume_state(
@@ -99,7 +99,7 @@ def find_unfinished_run(data_dir: Path, *, write: FileWrite, open_files: int) ->
     reopened; older ones are only reported."""
     resumed: Resumed | None = None
     for run_dir, state in find_active_state(data_dir):
-        if _run_yaml(run_dir).get("stop") is not None:  # stopped, killed before state.json said so
+        if _stopped(run_dir):  # stopped, killed before state.json said so
             continue
         if resumed is not None:
             log.warning(

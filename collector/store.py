@@ -15,7 +15,7 @@ import logging
 import os
 import re
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -23,6 +23,7 @@ from typing import Any
 
 from bgt_core.atomic import write_atomic
 from bgt_core.messages import ClockSample
+from bgt_core.run_record import AgentEntry, RunRecord, RunRecordError
 from bgt_core.safe_open import FileRefused, open_regular, read_limited
 from collector.errors import CollectorError
 from collector.run_state import RunState, SensorRecord
@@ -34,14 +35,6 @@ FLUSH_BYTES = 1 << 20  # a sensor's buffer is written out once it holds this muc
 STATE_FILE = "state.json"
 OPEN_FILES = 256  # .mbd files kept open at once (see RunWriter); more are closed and reopened
 FileWrite = Callable[[int, bytes], int]  # os.write's shape
-
-
-def iso_utc(t_ns: int) -> str:
-    return (
-        datetime.fromtimestamp(t_ns / 1e9, tz=UTC)
-        .isoformat(timespec="milliseconds")
-        .replace("+00:00", "Z")
-    )
 
 
 def clean_name(name: str | None) -> str:
@@ -299,7 +292,7 @@ class RunWriter:
                 raise CollectorError(
                     f"cannot create run directory {self.dir}: {e.strerror}"
                 ) from None
-            self.write_yaml(stop_ns=None, agents={}, extra={})
+            self.write_yaml(stop_ns=None, agents={}, summary={})
         else:
             self._resume(resume)
 
@@ -442,22 +435,46 @@ class RunWriter:
     def write_state(self, state: RunState) -> None:
         write_json_atomic(self.dir / STATE_FILE, state.to_dict())
 
+    def record(
+        self,
+        *,
+        stop_ns: int | None,
+        agents: Mapping[str, AgentEntry],
+        summary: Mapping[str, Any],
+    ) -> RunRecord:
+        """What run.yaml says of this run (``summary``: the keys a stopped run gains)."""
+        return RunRecord(
+            run_id=self.run_id,
+            name=self.name,
+            start_ns=self.start_ns,
+            stop_ns=stop_ns,
+            readings=self.readings,
+            meta=self.meta,
+            summary=summary,
+            agents=agents,
+        )
+
     def write_yaml(
-        self, *, stop_ns: int | None, agents: dict[str, Any], extra: dict[str, Any]
+        self,
+        *,
+        stop_ns: int | None,
+        agents: Mapping[str, AgentEntry],
+        summary: Mapping[str, Any],
     ) -> None:
-        doc: dict[str, Any] = {
-            "id": self.run_id,
-            "name": self.name,
-            "start": iso_utc(self.start_ns),
-            "start_ns": self.start_ns,
-            "stop": iso_utc(stop_ns) if stop_ns is not None else None,
-            "stop_ns": stop_ns,
-            **self.meta,
-            "readings": self.readings,
-            **extra,
-            "agents": agents,
-        }
+        doc = self.record(stop_ns=stop_ns, agents=agents, summary=summary).to_dict()
         write_yaml_atomic(self.dir / "run.yaml", doc)
+
+
+def read_run_record(run_dir: Path) -> RunRecord:
+    """A run directory's run.yaml; RunRecordError (one line) when it is unreadable or not one."""
+    from bgt_core.safe_yaml import YamlError, load_file
+
+    path = Path(run_dir) / "run.yaml"
+    try:
+        doc = load_file(path)
+    except YamlError as e:
+        raise RunRecordError(str(e)) from None
+    return RunRecord.from_dict(doc, str(path), default_id=Path(run_dir).name)
 
 
 def find_active_state(data_dir: Path) -> list[tuple[Path, dict[str, Any]]]:
@@ -484,30 +501,17 @@ def find_active_state(data_dir: Path) -> list[tuple[Path, dict[str, Any]]]:
 
 def list_runs(data_dir: Path) -> list[dict[str, Any]]:
     """Every run under data_dir (oldest first) with id, name, start, stop and reading count."""
-    from bgt_core.safe_yaml import YamlError, load_file
-
     out: list[dict[str, Any]] = []
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         return out
     for p in sorted(data_dir.glob("*/run.yaml")):
         try:
-            doc = load_file(p) or {}
-        except YamlError as e:
+            rec = read_run_record(p.parent)
+        except RunRecordError as e:
             log.warning("skipping unreadable %s: %s", p, e)
             continue
-        if not isinstance(doc, dict):
-            log.warning("skipping %s: not a mapping", p)
-            continue
-        out.append(
-            {
-                "run_id": doc.get("id", p.parent.name),
-                "name": doc.get("name"),
-                "start": doc.get("start"),
-                "stop": doc.get("stop"),
-                "readings": doc.get("readings"),
-            }
-        )
+        out.append(rec.listing())
     return out
 
 

@@ -22,7 +22,7 @@ from bgt_core.control_messages import (
     StreamCounts,
 )
 from bgt_core.messages import AdapterStatus, AgentStatus, ClockSample
-from collector.store import iso_utc
+from bgt_core.run_record import AgentEntry, BeaconCount, SensorEntry, iso_utc
 
 STATUS_MAX_STREAMS = 200  # streams listed in a status reply; the rest only counted
 
@@ -135,54 +135,58 @@ def refused_streams(
     )
 
 
-def run_summary(view: RunView, reason: str) -> tuple[dict[str, Any], dict[str, Any], RunTotals]:
-    """run.yaml's ``agents`` section, its other summary keys, and the gap/missing/lost totals."""
-    agents: dict[str, Any] = {}
+def run_summary(
+    view: RunView, reason: str
+) -> tuple[dict[str, AgentEntry], dict[str, Any], RunTotals]:
+    """run.yaml's ``agents`` section, its other summary keys (``run_record.SUMMARY_KEYS``), and
+    the gap/missing/lost totals."""
+    agents: dict[str, AgentEntry] = {}
     gaps_total = missing_total = lost_total = 0
     for (agent_id, sensor), acc in sorted(view.streams.items()):
         info = view.infos.get(agent_id) or AgentStatus(agent_id)
         a = agents.setdefault(
             agent_id,
-            {
-                "hostname": info.hostname,
-                "version": info.version,
-                "backend": info.backend,
-                "boot_ids": [],
-                "sensors": {},
-            },
+            AgentEntry(
+                hostname=info.hostname,
+                version=info.version,
+                backend=info.backend,
+                boot_ids=[],
+                sensors={},
+            ),
         )
         adapter = info.adapter(sensor) or AdapterStatus(None, sensor)
+        boot_ids = a.setdefault("boot_ids", [])
         for boot in acc.boots:
-            if boot not in a["boot_ids"]:
-                a["boot_ids"].append(boot)
+            if boot not in boot_ids:
+                boot_ids.append(boot)
         gaps_total += acc.gaps
         missing_total += acc.missing
         lost_total += acc.lost
-        a["sensors"][sensor] = {
-            "adapter": adapter.name,
-            "mac": sensor,
-            "file": f"rssi/{agent_id}/{sensor}.mbd",
-            "backend": adapter.backend if adapter.backend is not None else info.backend,
-            "mode": adapter.mode,
-            "readings": acc.readings,
-            "batches": acc.batches,
+        a.setdefault("sensors", {})[sensor] = SensorEntry(
+            adapter=adapter.name,
+            mac=sensor,
+            file=f"rssi/{agent_id}/{sensor}.mbd",
+            backend=adapter.backend if adapter.backend is not None else info.backend,
+            mode=adapter.mode,
+            readings=acc.readings,
+            batches=acc.batches,
             # readings and readings/s over the run per beacon, the most heard first
-            "beacons": {
-                mac: {
-                    "readings": n,
-                    "rate_hz": round(n / view.span_s, 3) if view.span_s > 0 else None,
-                }
+            beacons={
+                mac: BeaconCount(
+                    readings=n,
+                    rate_hz=round(n / view.span_s, 3) if view.span_s > 0 else None,
+                )
                 for mac, n in sorted(acc.beacons.items(), key=lambda kv: -kv[1])
             },
-            "gaps": acc.gaps,
-            "missing_batches": acc.missing,
-            "lost_batches": acc.lost,
-        }
+            gaps=acc.gaps,
+            missing_batches=acc.missing,
+            lost_batches=acc.lost,
+        )
     for agent, samples in view.clock_log.items():
         known = view.infos.get(agent)
         agents.setdefault(
             agent,
-            {"hostname": None if known is None else known.hostname, "boot_ids": [], "sensors": {}},
+            AgentEntry(hostname=None if known is None else known.hostname, boot_ids=[], sensors={}),
         )["clock"] = [smp.to_dict() for smp in samples]
     totals = RunTotals(gaps_total, missing_total, lost_total)
     extra = {

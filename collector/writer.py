@@ -565,8 +565,8 @@ class Writer:
                 self.refused(),
                 self.counters(),
             )
-            agents, extra, totals = run_summary(view, st.reason)
-            run.write_yaml(stop_ns=stop_ns, agents=agents, extra=extra)
+            agents, summary, totals = run_summary(view, st.reason)
+            run.write_yaml(stop_ns=stop_ns, agents=agents, summary=summary)
             run.write_state(dataclasses.replace(self.state(), active=False))
             run.close()
         except Exception as e:  # noqa: BLE001 - reported to the caller of stop; the run stays active

@@ -11,13 +11,13 @@ import logging
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from annotator.errors import ConfigError, NoDataError
 from bgt_core.formats._textio import iter_lines
 from bgt_core.formats.mbd import MbdError, MbdRow, parse_line
+from bgt_core.run_record import RunRecord, RunRecordError
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +31,7 @@ class RssiTable:
     beacon: np.ndarray  # str
     rssi: np.ndarray  # int16
     files: tuple[Path, ...] = ()
-    run_info: dict[str, Any] | None = None  # run.yaml of a collector run, if there is one
+    run_info: RunRecord | None = None  # run.yaml of a collector run, if there is one
 
     def __len__(self) -> int:
         return int(self.t_ns.size)
@@ -115,11 +115,11 @@ def load_rssi(path: str | Path) -> RssiTable:
         from bgt_core.safe_yaml import YamlError, load_file
 
         try:
-            info = load_file(run_yaml)
-        except YamlError as e:
+            info = RunRecord.from_dict(
+                load_file(run_yaml), str(run_yaml), default_id=run_yaml.parent.name
+            )
+        except (YamlError, RunRecordError) as e:
             raise ConfigError(f"run info: {e}") from None
-        if not isinstance(info, dict):
-            info = None
     table = RssiTable(
         t_ns[order],
         np.asarray(sensor)[order],

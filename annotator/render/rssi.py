@@ -10,7 +10,6 @@ the demo use; the beacon sits at the bundle's origin, as the rig's contract says
 
 from __future__ import annotations
 
-import datetime as dt
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ from bgt_core.formats.devices import read_dev
 from bgt_core.formats.mbd import format_row
 from bgt_core.motion import CoverEvent
 from bgt_core.radio_sim import RadioModel, Sensor, Simulation, receiver_readings
+from bgt_core.run_record import AgentEntry, RunRecord, SensorEntry
 from bgt_core.safe_yaml import dump
 from bgt_core.sites import site_dir
 
@@ -176,54 +176,54 @@ def write_simulated_run(
         files[mac] = folder / f"{mac}.mbd"
         files[mac].write_text("".join(lines), encoding="utf-8")
     n = sum(len(v) for v in rows.values())
-    info = {
-        "id": "simulated",
-        "name": "simulated",
-        "start": _iso(start),
-        "start_ns": round(start * 1e9),
-        "stop": _iso(stop),
-        "stop_ns": round(stop * 1e9),
-        "site": site,
-        "software_version": __version__,
-        "readings": n,
-        "layout": "rssi/<agent>/<sensor_mac>.mbd",
-        "simulated": {
-            **(
-                {
-                    "receiver": receiver,
-                    "receiver_antenna": [float(v) for v in receiver_antenna],
-                    "beacons": {b.mac: list(b.position) for b in sensors},
-                }
-                if receiver is not None
-                else {"beacon": beacon}
-            ),
-            "rate_hz": rate_hz,
-            "seed": seed,
-            "radio": {
-                "tx_1m": radio.tx_1m,
-                "path_loss_exponent": radio.path_loss_exponent,
-                "sigma_db": radio.sigma_db,
-                "drop_prob": radio.drop_prob,
-                "floor_dbm": radio.floor_dbm,
-            },
-            # seconds after the start of the readings, MARGIN_S before the first frame
-            "covers": [e.to_dict() for e in events],
-        },
-        "agents": {
-            AGENT: {
-                "backend": "simulated",
-                "sensors": {
-                    mac: {
-                        "adapter": alias,
-                        "mac": mac,
-                        "file": f"rssi/{AGENT}/{mac}.mbd",
-                        "readings": len(rows[mac]),
+    record = RunRecord(
+        run_id="simulated",
+        name="simulated",
+        start_ns=round(start * 1e9),
+        stop_ns=round(stop * 1e9),
+        readings=n,
+        meta={
+            "site": site,
+            "software_version": __version__,
+            "simulated": {
+                **(
+                    {
+                        "receiver": receiver,
+                        "receiver_antenna": [float(v) for v in receiver_antenna],
+                        "beacons": {b.mac: list(b.position) for b in sensors},
                     }
+                    if receiver is not None
+                    else {"beacon": beacon}
+                ),
+                "rate_hz": rate_hz,
+                "seed": seed,
+                "radio": {
+                    "tx_1m": radio.tx_1m,
+                    "path_loss_exponent": radio.path_loss_exponent,
+                    "sigma_db": radio.sigma_db,
+                    "drop_prob": radio.drop_prob,
+                    "floor_dbm": radio.floor_dbm,
+                },
+                # seconds after the start of the readings, MARGIN_S before the first frame
+                "covers": [e.to_dict() for e in events],
+            },
+        },
+        summary={"layout": "rssi/<agent>/<sensor_mac>.mbd"},
+        agents={
+            AGENT: AgentEntry(
+                backend="simulated",
+                sensors={
+                    mac: SensorEntry(
+                        adapter=alias,
+                        mac=mac,
+                        file=f"rssi/{AGENT}/{mac}.mbd",
+                        readings=len(rows[mac]),
+                    )
                     for mac, alias in listening
                 },
-            }
+            )
         },
-    }
+    )
     header = (
         "# Written by `annotator simulate --receiver`: the RSSI the site's fixed beacons give at "
         "the bundle's receiver.\n"
@@ -231,7 +231,9 @@ def write_simulated_run(
         else "# Written by `annotator simulate`: the RSSI the rendered walk gives at the site's "
         "sensors.\n"
     )
-    (out / "run.yaml").write_text(header + dump(info, sort_keys=False), encoding="utf-8")
+    (out / "run.yaml").write_text(
+        header + dump(record.to_dict(), sort_keys=False), encoding="utf-8"
+    )
     if receiver is not None:
         return SimulatedRun(out, files, n, "", receiver, tuple(s.mac for s in sensors))
     return SimulatedRun(out, files, n, beacon)
@@ -252,11 +254,3 @@ def add_receiver(
         with (path.parent / "rig.yaml").open("a", encoding="utf-8") as f:
             f.write("# where the bundle's receiver sits in the bundle frame, m\n")
             f.write(dump(antennas, default_flow_style=None))
-
-
-def _iso(t: float) -> str:
-    return (
-        dt.datetime.fromtimestamp(t, dt.UTC)
-        .isoformat(timespec="milliseconds")
-        .replace("+00:00", "Z")
-    )

@@ -203,7 +203,7 @@ def test_run_writer_files_and_yaml(tmp_path) -> None:
     rows = decode(wire.to_wire(b)).rows
     w.append("pi-01", b.sensor, format_rows(b.sensor, rows), len(rows))
     w.close()
-    w.write_yaml(stop_ns=1_795_318_560 * 10**9, agents={"pi-01": {}}, extra={"gaps": 0})
+    w.write_yaml(stop_ns=1_795_318_560 * 10**9, agents={"pi-01": {}}, summary={"gaps": 0})
     got = [
         (r.t_ns, r.sensor, r.beacon, r.rssi)
         for r in iter_rows(w.dir / "rssi" / "pi-01" / f"{b.sensor}.mbd")
@@ -214,6 +214,7 @@ def test_run_writer_files_and_yaml(tmp_path) -> None:
     assert doc["stop"] == "2026-11-22T03:36:00.000Z"
     assert doc["readings"] == 4
     assert doc["site"] == "default"
+    assert doc["version"] == 1 and doc["gaps"] == 0
     assert list_runs(tmp_path) == [
         {
             "run_id": "20261122T033500Z-x",

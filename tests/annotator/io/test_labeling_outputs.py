@@ -62,7 +62,9 @@ def test_load_run_dir_and_plain_folder(tmp_path: Path) -> None:
     table = load_rssi(tmp_path / "run")
     assert len(table) == 3 * 300
     assert (np.diff(table.t_ns) >= 0).all()
-    assert table.run_info == {"site": "tetam", "run": "test"}
+    assert table.run_info is not None
+    assert table.run_info.run_id == "run"  # the directory's name: the file states no id
+    assert dict(table.run_info.meta) == {"site": "tetam", "run": "test"}
     assert set(table.sensor.tolist()) == set(SENSORS)
     assert bundle_beacon(table) == BEACON
     # Exact ns survive: the first row of one file is in the table.

@@ -30,7 +30,8 @@ def test_per_agent_run_dir_loads_every_agents_files(tmp_path: Path) -> None:
     t = load_rssi(run)
     assert t.rssi.tolist() == [-60, -50, -70]  # time order across agents
     assert len(t.files) == 3
-    assert t.run_info == {"id": "r", "readings": 3}
+    assert t.run_info is not None
+    assert (t.run_info.run_id, t.run_info.readings, t.run_info.stopped) == ("r", 3, False)
 
 
 def test_flat_run_dir_still_loads(tmp_path: Path) -> None:
