@@ -72,6 +72,7 @@ from annotator.vision.pose import observe, solve_bundle_pose
 if TYPE_CHECKING:
     from annotator.core.labeling import Labels
     from annotator.core.sync import SyncResult
+    from annotator.io.report_records import Report
     from annotator.io.rssi import RssiTable
 
 log = logging.getLogger(__name__)
@@ -454,7 +455,7 @@ class RunResult:
     sync: SyncResult
     labels: Labels  # one per reading of `rssi`
     rssi: RssiTable  # the readings labelled: of the bundle's beacon, or taken by its receiver
-    report: dict[str, Any]  # report.json's content, without the names of the files written
+    report: Report  # report.json's content, without the names of the files written
     refinement: Refinement | None = (
         None  # what the self-calibration did (None: --refine none, paper)
     )

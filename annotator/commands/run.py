@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
@@ -23,6 +23,7 @@ from annotator.errors import ConfigError
 
 if TYPE_CHECKING:
     from annotator.core.experiment import Experiment
+    from annotator.io.report_records import Report
     from annotator.pipeline import RunResult
 
 log = logging.getLogger(__name__)
@@ -30,7 +31,7 @@ log = logging.getLogger(__name__)
 
 def write_run_outputs(
     out_dir: str | Path, exp: Experiment, result: RunResult, *, plots: bool = True
-) -> dict[str, Any]:
+) -> Report:
     """What `annotator run` writes into ``out_dir``: trajectory.csv, annotated/, annotated.parquet,
     the plots, refined/ (after a self-calibration) and report.json. Returns the report as
     written: ``result.report`` plus the names of the plot and refined files."""
@@ -44,7 +45,7 @@ def write_run_outputs(
     from annotator.io.trajectory import write_trajectory
 
     traj, table, labels = result.trajectory, result.rssi, result.labels
-    report = dict(result.report)
+    report: Report = {**result.report}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     receiver_mode = report.get("mode") == "receiver"

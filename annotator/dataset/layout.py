@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +31,7 @@ import numpy as np
 
 from annotator.dataset.campaign import Campaign
 from annotator.dataset.runs import RunDone
+from annotator.io.report_records import read_report
 from bgt_core.formats.devices import Devices, MapParams
 
 TRACK_POSITION = "0.00_0.00_0.00"  # a moving track's files carry no fixed position
@@ -42,7 +44,7 @@ def copy(src: Path, dst: Path) -> Path:
     return dst
 
 
-def clean_report(report: dict[str, Any], name: str) -> dict[str, Any]:
+def clean_report(report: Mapping[str, Any], name: str) -> dict[str, Any]:
     """A run's report.json for publication: the experiment named by the run, not by a path of
     the machine that built it, and no timings (they differ from build to build)."""
     out = json.loads(json.dumps(report))
@@ -67,7 +69,7 @@ def write_tracks(out: Path, run: RunDone, devices: Devices) -> dict[str, Any]:
         copy(f, trk / f"{alias}_{TRACK_POSITION}.mbd")
     if (res / "trajectory_map.png").is_file():
         copy(res / "trajectory_map.png", out / "trk" / f"{run.name}.png")
-    report = clean_report(json.loads((res / "report.json").read_text("utf-8")), run.name)
+    report = clean_report(read_report(res / "report.json"), run.name)
     dest = out / "runs" / run.name
     dest.mkdir(parents=True, exist_ok=True)
     (dest / "report.json").write_text(json.dumps(report, indent=1, sort_keys=True), "utf-8")

@@ -17,6 +17,15 @@ from typing import Any
 import numpy as np
 
 from annotator.core.labeling import Labels
+from annotator.io.report_records import (
+    REPORT_VERSION,
+    CameraSync,
+    ReadingCount,
+    Report,
+    Stats,
+    SyncEvent,
+    SyncReport,
+)
 from annotator.io.rssi import RssiTable
 from bgt_core.formats.mbd import TRACK_COLUMNS
 from bgt_core.wire import format_ts
@@ -138,14 +147,14 @@ def _json_safe(obj: Any) -> Any:
     return obj
 
 
-def write_report(path: str | Path, report: dict[str, Any]) -> Path:
+def write_report(path: str | Path, report: Report) -> Path:
     path = Path(path)
     _atomic_write_text(path, [json.dumps(_json_safe(report), indent=2, allow_nan=False) + "\n"])
     return path
 
 
-def _event_dict(e: Any, clock: Any = None) -> dict[str, Any]:
-    d = {
+def _event_dict(e: Any, clock: Any = None) -> SyncEvent:
+    d: SyncEvent = {
         "cover": e.cover,
         "release": e.release,
         "cover_sigma": e.cover_sigma,
@@ -159,7 +168,7 @@ def _event_dict(e: Any, clock: Any = None) -> dict[str, Any]:
     return d
 
 
-def _stats(x: np.ndarray) -> dict[str, float | None]:
+def _stats(x: np.ndarray) -> Stats:
     x = np.asarray(x, dtype=float)
     x = x[np.isfinite(x)]
     if not x.size:
@@ -185,7 +194,7 @@ def build_report(
     method: str,
     receiver: str | None = None,
     antenna: np.ndarray | None = None,
-) -> dict[str, Any]:
+) -> Report:
     """What report.json says: sync offsets with uncertainty, counts, coverage and quality.
 
     ``sync`` is an :class:`annotator.core.sync.SyncResult`; ``table`` and ``labels`` are the
@@ -196,9 +205,9 @@ def build_report(
 
     tv = np.asarray(traj_t)[np.asarray(traj_valid, dtype=bool)]
     lab = labels.labelled
-    sync_part: dict[str, Any] = {"mode": sync.mode, "cameras": {}}
+    cameras: dict[str, CameraSync] = {}
     for name, cm in sync.clocks.items():
-        sync_part["cameras"][name] = {
+        cameras[name] = {
             "video_start": cm.video_start,
             "video_start_sigma_s": cm.video_start_sigma,
             "drift": cm.drift,
@@ -212,23 +221,33 @@ def build_report(
         }
         slate = sync.slates.get(name)
         if slate is not None:  # which frames showed the clock slate, on the video's own clock
-            sync_part["cameras"][name]["slate"] = {
+            cameras[name]["slate"] = {
                 "filmings_pts_s": [[round(a, 4), round(b, 4)] for a, b in slate.segments],
                 "frames_used": slate.frames_used,
                 "frames_refused": slate.frames_refused,
                 "row_fraction": round(slate.row_fraction, 4),
             }
-    sync_part["rssi_events"] = [_event_dict(e) for e in sync.rssi_events]
+    sync_part: SyncReport = {
+        "mode": sync.mode,
+        "cameras": cameras,
+        "rssi_events": [_event_dict(e) for e in sync.rssi_events],
+    }
     markers = labels.markers[lab]
-    by = "beacon" if receiver is not None else "sensor"
     column = table.beacon if receiver is not None else table.sensor
-    return {
+    per: dict[str, ReadingCount] = {
+        s: {"readings": int(np.sum(column == s)), "labelled": int(np.sum(lab & (column == s)))}
+        for s in sorted(set(column.tolist()))
+    }
+    report: Report = {
+        "version": REPORT_VERSION,
         "experiment": str(experiment),
         "method": method,
         "mode": "receiver" if receiver is not None else "beacon",
         "beacon": beacon,
         "receiver": receiver,
-        "labelled_point_bundle_m": [0.0, 0.0, 0.0] if antenna is None else antenna,
+        "labelled_point_bundle_m": (
+            [0.0, 0.0, 0.0] if antenna is None else [float(v) for v in antenna]
+        ),
         "sync": sync_part,
         "tracked_span": {
             "start": float(tv[0]) if tv.size else None,
@@ -254,11 +273,9 @@ def build_report(
                 "zero": int(np.sum(markers == 0)),
             },
         },
-        f"per_{by}": {
-            s: {
-                "readings": int(np.sum(column == s)),
-                "labelled": int(np.sum(lab & (column == s))),
-            }
-            for s in sorted(set(column.tolist()))
-        },
     }
+    if receiver is not None:
+        report["per_beacon"] = per
+    else:
+        report["per_sensor"] = per
+    return report

@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 from annotator.cli import app
 from annotator.commands.run import write_run_outputs
 from annotator.io.experiment import load_experiment
+from annotator.io.report_records import REPORT_VERSION, read_report
 from annotator.pipeline import RunSettings, run_experiment
 from annotator.render import LoopTrajectory, render_experiment
 from bgt_core.formats.devices import read_dev
@@ -100,7 +101,8 @@ def test_auto_sync_run_labels_readings_with_centimetre_error(
     truth_start = {"front": T0, "back": T0 + START_OFFSET}
 
     # Sync: each camera's start within a few ms, with an honest uncertainty.
-    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    rep = read_report(tmp_path / "out" / "report.json")
+    assert rep["version"] == REPORT_VERSION
     for name, true_start in truth_start.items():
         cam = rep["sync"]["cameras"][name]
         err = cam["video_start"] - true_start

@@ -120,4 +120,6 @@ def test_a_bad_key_is_one_line_naming_the_file(doc: object, says: str) -> None:
     with pytest.raises(RunRecordError) as err:
         RunRecord.from_dict(doc, "runs/r1/run.yaml")
     msg = str(err.value)
-    assert msg.startswith("runs/r1/run.yaml: ") and says in msg and "\n" not in msg
+    assert msg.startswith("runs/r1/run.yaml: ")
+    assert says in msg
+    assert "\n" not in msg

@@ -214,7 +214,8 @@ def test_run_writer_files_and_yaml(tmp_path) -> None:
     assert doc["stop"] == "2026-11-22T03:36:00.000Z"
     assert doc["readings"] == 4
     assert doc["site"] == "default"
-    assert doc["version"] == 1 and doc["gaps"] == 0
+    assert doc["version"] == 1
+    assert doc["gaps"] == 0
     assert list_runs(tmp_path) == [
         {
             "run_id": "20261122T033500Z-x",

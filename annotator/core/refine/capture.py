@@ -8,7 +8,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -16,6 +16,14 @@ from scipy.spatial.transform import Rotation
 from annotator.core.priors import ParameterCovariance
 from annotator.core.refine.model import CameraParams, Problem, RefineSettings, Solution
 from annotator.core.refine.problem import FrameView, Keyframe, build_problem
+from annotator.core.refine.report import (
+    REFINEMENT_VERSION,
+    CameraRefinement,
+    MovedMarker,
+    Observability,
+    PrintedLength,
+    RefinementReport,
+)
 from annotator.core.refine.solver import solve
 
 if TYPE_CHECKING:
@@ -235,7 +243,7 @@ class Refinement:
     experiment: Experiment  # with the refined map, rig and calibrations
     solution: Solution
     covariance: ParameterCovariance
-    report: dict[str, Any]
+    report: RefinementReport
     mapped: list[int]  # markers the survey did not give, now mapped from the video
     # Per camera: its frames were seen this much later than their stamps (s; the cameras' mean 0).
     clock_s: dict[str, float] = field(default_factory=dict)
@@ -334,10 +342,10 @@ _BLOCK_NAMES = {
 }
 
 
-def observability(determined: dict[str, bool], cam: CameraParams) -> dict[str, Any]:
+def observability(determined: dict[str, bool], cam: CameraParams) -> Observability:
     """report.json's per-camera verdicts: which parameters the capture determined and which kept
     their prior because the walk did not show them (``determined``: block -> applied)."""
-    out: dict[str, Any] = {"determined": {}, "notes": []}
+    out: Observability = {"determined": {}, "notes": []}
     for block, (what, prior) in _BLOCK_NAMES.items():
         if block not in determined:
             out["determined"][block] = None  # not refined (mode map)
@@ -358,9 +366,9 @@ def refinement_report(
     n_keyframes: int,
     mapped: list[int],
     seconds: float,
-) -> dict[str, Any]:
-    """report.json's ``refinement`` section."""
-    cameras = {}
+) -> RefinementReport:
+    """report.json's ``refinement`` section (refinement.json)."""
+    cameras: dict[str, CameraRefinement] = {}
     for a, b in zip(cams, sol.cameras, strict=True):
         cov = sol.covariance
         ro = cov.readout.get(a.name)
@@ -392,7 +400,7 @@ def refinement_report(
             ),
             **observability(sol.determined.get(a.name, {}), a),
         }
-    moved = []
+    moved: list[MovedMarker] = []
     for mid in sol.moved:
         m = prob.markers.index(mid)
         moved.append(
@@ -404,22 +412,25 @@ def refinement_report(
             }
         )
     seen = sorted(int(prob.markers[m]) for m in np.unique(prob.obs.marker))
-    printed: dict[str, Any] = {"stated_m": exp.markers.length, "estimated": False}
+    printed: PrintedLength = {"stated_m": exp.markers.length, "estimated": False}
     if math.isfinite(sol.length_scale_sigma):
         printed.update(
-            estimated=True,
-            scale=round(sol.length_scale, 5),
-            scale_sigma=round(sol.length_scale_sigma, 5),
-            found_m=round(exp.markers.length * sol.length_scale, 5),
-            determined=sol.length_scale_determined,
-            used_m=round(length_used(exp, sol), 5),
-            note=(
-                "the capture measured the printed size"
-                if sol.length_scale_determined
-                else "within noise of the stated length, which was kept"
-            ),
+            {
+                "estimated": True,
+                "scale": round(sol.length_scale, 5),
+                "scale_sigma": round(sol.length_scale_sigma, 5),
+                "found_m": round(exp.markers.length * sol.length_scale, 5),
+                "determined": sol.length_scale_determined,
+                "used_m": round(length_used(exp, sol), 5),
+                "note": (
+                    "the capture measured the printed size"
+                    if sol.length_scale_determined
+                    else "within noise of the stated length, which was kept"
+                ),
+            }
         )
     return {
+        "version": REFINEMENT_VERSION,
         "mode": s.mode,
         "keyframes": n_keyframes,
         "corners": int(len(prob.obs.uv)),
