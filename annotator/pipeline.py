@@ -50,6 +50,7 @@ from annotator.core.tracking import (
     joint_measurements,
     mapped_poses,
     measurement_quality,
+    motion_rotations,
     resolve_ambiguities,
     smooth,
     stack_poses,
@@ -291,7 +292,7 @@ def _track_rig(
             given,
             t_out,
             pos,
-            R,
+            motion_rotations(meas, t_out, R, s),
             RefineSettings(
                 mode=settings.refine,
                 exposure_s=settings.exposure_s,

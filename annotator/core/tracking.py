@@ -206,6 +206,31 @@ def anchor_unresolved(
     return sorted(kept + list(found.items()), key=lambda it: it[0])
 
 
+def motion_rotations(
+    meas: Trajectory, t_out: np.ndarray, R: np.ndarray, s: SmootherSettings
+) -> np.ndarray:
+    """The rotations the self-calibration reads each frame's motion from: the same measurements
+    fitted with the narrower ``motion_rot_bandwidth_s`` kernel, at the rows ``R`` (the smoothed
+    rotations) has; ``R`` itself where the narrow fit has no support."""
+    vague = (
+        np.sqrt(np.trace(meas.quality["cov"][:, 3:, 3:], axis1=1, axis2=2) / 3) > s.max_meas_sigma_m
+    )
+    meas = meas.select(~vague)
+    out = np.array(R, dtype=float, copy=True)
+    rows = np.isfinite(out).all((1, 2))
+    if len(meas.t) == 0 or not rows.any() or s.motion_rot_bandwidth_s >= s.rot_bandwidth_s:
+        return out
+    var = np.trace(meas.quality["cov"][:, :3, :3], axis1=1, axis2=2) / 3
+    narrow = dataclasses.replace(s, rot_bandwidth_s=s.motion_rot_bandwidth_s)
+    fit, _ = smooth_rotations(
+        meas.t, Rotation.from_matrix(meas.rotation), var, np.asarray(t_out)[rows], narrow
+    )
+    found = np.isfinite(fit).all((1, 2))
+    idx = np.flatnonzero(rows)[found]
+    out[idx] = fit[found]
+    return out
+
+
 def smooth(
     meas: Trajectory,
     t_out: np.ndarray,
