@@ -4,6 +4,7 @@ plays the collector: every row of the recording must arrive exactly once, timest
 from __future__ import annotations
 
 import subprocess
+import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -17,11 +18,17 @@ pytestmark = pytest.mark.slow
 
 
 def _run_agent(
-    args: list[str], collector: FakeCollector, log: Path, timeout_s: float = 60
+    args: list[str],
+    collector: FakeCollector,
+    log: Path,
+    timeout_s: float = 60,
+    under: list[str] | None = None,
 ) -> tuple[int, str]:
-    """Run the agent to its end while the collector polls; returns (exit code, stderr)."""
+    """Run the agent (``under`` a launcher that execs it) to its end while the collector polls;
+    returns (exit code, stderr)."""
     with log.open("w") as f:
-        proc = subprocess.Popen(AGENT + args, stdout=f, stderr=f, env=agent_env())
+        cmd = [*(under or []), *AGENT, *args]
+        proc = subprocess.Popen(cmd, stdout=f, stderr=f, env=agent_env())
         deadline = time.monotonic() + timeout_s
         while proc.poll() is None and time.monotonic() < deadline:
             collector.poll()
@@ -203,3 +210,55 @@ def test_replay_of_a_track_with_an_absurd_rssi_delivers_every_other_reading(
     assert got == expected
     assert "skipped 2 implausible reading(s)" in stderr
     assert "Traceback" not in stderr
+
+
+# The agent unit sets MemoryDenyWriteExecute=yes. The kernel's own form of it (prctl
+# PR_SET_MDWE, Linux >= 6.3, kept across exec) refuses the same mappings: writable memory made
+# executable. Python's ctypes (the management socket's bind), libffi, Zenoh and bleak must
+# all do without them.
+PR_SET_MDWE, PR_GET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN = 65, 66, 1
+UNDER_MDWE = [
+    sys.executable,
+    "-c",
+    "import ctypes, os, sys\n"
+    "libc = ctypes.CDLL(None, use_errno=True)\n"
+    f"if libc.prctl({PR_SET_MDWE}, {PR_MDWE_REFUSE_EXEC_GAIN}, 0, 0, 0) != 0:\n"
+    "    sys.exit('no PR_SET_MDWE: ' + os.strerror(ctypes.get_errno()))\n"
+    "os.execv(sys.argv[1], sys.argv[1:])\n",
+]
+
+
+def test_the_agent_runs_with_write_execute_memory_refused(
+    endpoint: str, dataset_dir: Path, tmp_path: Path
+) -> None:
+    probe = subprocess.run(
+        [
+            *UNDER_MDWE,
+            sys.executable,
+            "-c",
+            f"import ctypes; print(ctypes.CDLL(None).prctl({PR_GET_MDWE}, 0, 0, 0, 0))",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    if "no PR_SET_MDWE" in probe.stderr:
+        pytest.skip(f"this kernel cannot refuse write-execute memory ({probe.stderr.strip()})")
+    assert probe.stdout.strip() == str(PR_MDWE_REFUSE_EXEC_GAIN), probe.stdout + probe.stderr
+    files = sorted((dataset_dir / "trk" / "straight_01").glob("*.mbd"))[:3]
+    expected = Counter((r.t_ns, r.sensor, r.beacon, r.rssi) for r in read_rows(files))
+    collector = FakeCollector(endpoint, "lab")
+    try:
+        args = ["run", "--agent-id", "pi-07", "--site", "lab", "--connect", endpoint]
+        args += ["--replay-keep-time", "--replay-speed", "0", "--ack-timeout", "20"]
+        for f in files:
+            args += ["--replay", str(f)]
+        rc, stderr = _run_agent(args, collector, tmp_path / "agent.log", under=UNDER_MDWE)
+    finally:
+        collector.close()
+    assert rc == 0, stderr
+    got = Counter(
+        (r.t_ns, b.sensor, r.beacon, r.rssi) for b in collector.batches for r in b.readings
+    )
+    assert got == expected
