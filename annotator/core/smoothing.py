@@ -26,7 +26,7 @@ CHI2_3DOF_999 = 16.27  # 99.9 % gate for a 3-d innovation
 class SmootherSettings:
     accel_psd: float = 0.5  # white-acceleration spectral density, m^2/s^3 (a person carrying a rig)
     min_sigma_m: float = 0.002  # floor on a measurement's position sigma
-    max_gap_s: float = 0.6  # no output across a longer run without measurements
+    max_gap_s: float = 0.8  # no output across a longer run without measurements
     max_extrapolate_s: float = 0.1  # output this far beyond the first / last measurement of a run
     max_meas_sigma_m: float = 0.15  # measurements vaguer than this (a lone far marker) are ignored
     max_out_sigma_m: float = 0.05  # output times whose smoothed sigma exceeds this become gaps
@@ -262,5 +262,21 @@ def smooth_rotations(
         accepted = ~ok | (angle <= gate)
     fits, ok = _fit_many(t_out, t_meas, rot, inv_var * accepted, h, exclude_self=False)
     if fits is not None:
+        ok &= _fit_holds(t_meas[accepted], t_out, h, s.max_extrapolate_s)
         out[ok] = fits.as_matrix()[ok]
     return out, accepted
+
+
+def _fit_holds(t_used: np.ndarray, t_out: np.ndarray, h: float, reach: float) -> np.ndarray:
+    """Where a local-linear rotation fit can be trusted: between measurements on both sides
+    within the kernel's 3h, or within ``reach`` of one. Past a measurement on one side only, the
+    fit runs on the rate of the few measurements at the kernel's edge: 0.2 s beyond the last
+    pose of a fast turn that was tens of degrees off. Such rows are left to the caller (the
+    smoother blends the rotations on either side of a short gap)."""
+    n = len(t_used)
+    if n == 0:
+        return np.zeros(len(t_out), dtype=bool)
+    i = np.searchsorted(t_used, t_out)
+    left = np.where(i > 0, t_out - t_used[np.clip(i - 1, 0, n - 1)], np.inf)
+    right = np.where(i < n, t_used[np.clip(i, 0, n - 1)] - t_out, np.inf)
+    return ((left <= 3 * h) & (right <= 3 * h)) | (np.minimum(left, right) <= reach)

@@ -278,6 +278,14 @@ def smooth(
         noise_scale,
     )
     ok = supported(meas.t[ok_p & ok_r], t_out, s.max_gap_s, s.max_extrapolate_s)
+    # The rotation fit reaches 3 kernel widths (0.24 s) from a measurement; the position filter
+    # bridges gaps up to max_gap_s with a sigma that grows with the gap. In between (a fast
+    # turn where both cameras lose the markers for half a second) the rotation is blended
+    # between the fits on either side, so a row the filter places is not lost for its rotation.
+    missing = ok & np.isfinite(pos).all(1) & ~np.isfinite(R).all((1, 2))
+    if missing.any():
+        filled = Trajectory(t_out, np.zeros((len(t_out), 3)), R).bridged(s.max_gap_s).rotation
+        R[missing] = filled[missing]
     bad = ~ok | ~np.isfinite(pos).all(1) | ~np.isfinite(R).all((1, 2)) | ~(sig <= s.max_out_sigma_m)
     pos[bad], R[bad], sig[bad] = np.nan, np.nan, np.nan
     # Which rows are posed follows the stated noise (above); the sigma reported follows the noise
