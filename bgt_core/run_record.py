@@ -121,6 +121,7 @@ class RunRecord:
             **{k: v for k, v in self.meta.items() if k not in _OWN_KEYS},
             "readings": self.readings,
             **{k: self.summary[k] for k in SUMMARY_KEYS if k in self.summary},
+            **{k: v for k, v in self.summary.items() if k not in SUMMARY_KEYS + tuple(_OWN_KEYS)},
             "agents": {a: dict(e) for a, e in self.agents.items()},
         }
 

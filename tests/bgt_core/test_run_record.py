@@ -78,6 +78,13 @@ def test_a_record_goes_through_yaml_and_comes_back_equal() -> None:
     }
 
 
+def test_a_summary_key_the_record_does_not_list_is_written_not_dropped() -> None:
+    rec = RunRecord(run_id="r", summary={"gaps": 1, "new_counter": 5})
+    doc = rec.to_dict()
+    assert (doc["gaps"], doc["new_counter"]) == (1, 5)
+    assert list(doc)[-1] == "agents"
+
+
 def test_a_file_from_before_the_version_key_reads_as_version_1() -> None:
     old = {
         "id": "r1",
