@@ -74,6 +74,14 @@ class DetectorSettings:
     # markers, so the final pass, which also uses blurred frames, keeps the window corners
     # (docs/annotator.md, "Corners: the window's and the edge fit").
     edge_corners_for_refine: bool = False
+    # Where detection runs on a downscaled copy, look again at full resolution where the markers
+    # found put the map's others (a pose from two or more found markers): a 30 px marker is
+    # 15 px in a half-size copy, too small to read once a real lens and compression soften it.
+    # Markers predicted at least `roi_min_side_px` (full-resolution pixels) on a side and wholly
+    # in the picture are searched in a crop around their predicted square.
+    roi_search: bool = True
+    roi_min_side_px: float = 12.0
+    roi_below: int = 4  # ... on frames where fewer map markers than this were found (0: every frame)
 
 
 EDGE_BOARD_REFINE_PX = 6.0
@@ -143,6 +151,11 @@ class MarkerDetector:
         K[:2] *= s  # the intrinsics of the downscaled image (pixel centres ignored: sub-pixel only)
         self._K_small = K
         self._dist = calibration.dist_coeffs
+        self._roi = (
+            _aruco_detector(dictionary, _REFINE["none"], settings.retry_windows or (3, 23, 10))
+            if settings.roi_search and s < 1
+            else None
+        )
 
     def _add_sharpened(
         self, small: np.ndarray, corners: Any, ids: np.ndarray | None, rejected: Any
@@ -207,6 +220,8 @@ class MarkerDetector:
             win = max(2, int(round(2.5 / s)))
             cv2.cornerSubPix(gray, flat, (win, win), (-1, -1), _SUBPIX_CRITERIA)
             pts = flat.reshape(-1, 4, 2)
+        if self._roi is not None:
+            ids, pts = self._search_predicted(gray, ids, pts)
         if self.edge_corners:
             pts = refine_corners_by_edges(gray, pts, self.calibration).astype(np.float32)
         # A marker detected twice (reflections, refine) keeps its first copy only.
@@ -218,6 +233,74 @@ class MarkerDetector:
         if not self.edge_corners and self.settings.edge_corners_for_refine:
             edge = refine_corners_by_edges(gray, corners, self.calibration)
         return Detections(ids[keep].astype(int), corners, edge)
+
+
+    def _search_predicted(
+        self, gray: np.ndarray, ids: np.ndarray, pts: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``ids``/``pts`` (full-resolution corners) plus the map's markers found at full
+        resolution in a crop around where the found ones put them (``roi_search``)."""
+        assert self._roi is not None
+        idx = self.room.index(ids)
+        known = idx >= 0
+        n_known = int(np.count_nonzero(known))
+        if n_known < 2:  # one square's pose is ambiguous: no prediction
+            return ids, pts
+        if 0 < self.settings.roi_below <= n_known:
+            return ids, pts
+        cal = self.calibration
+        ok, rvec, tvec = cv2.solvePnP(
+            self.room.corners_world[idx[known]].reshape(-1, 3).astype(np.float64),
+            pts[known].reshape(-1, 2).astype(np.float64),
+            cal.camera_matrix,
+            cal.dist_coeffs,
+            flags=cv2.SOLVEPNP_SQPNP,
+        )
+        if not ok:
+            return ids, pts
+        R = cv2.Rodrigues(rvec)[0]
+        missing = np.setdiff1d(np.arange(len(self.room.ids)), idx[known])
+        if not len(missing):
+            return ids, pts
+        world = self.room.corners_world[missing]  # (m, 4, 3)
+        cam = world @ R.T + tvec.reshape(1, 1, 3)
+        centre = cam.mean(axis=1)
+        normal = np.cross(cam[:, 1] - cam[:, 0], cam[:, 2] - cam[:, 1])
+        facing = (cam[..., 2] > 0.05).all(1) & (np.einsum("ij,ij->i", normal, centre) > 0)
+        if not facing.any():
+            return ids, pts
+        uv = cv2.projectPoints(
+            world[facing].reshape(-1, 1, 3), rvec, tvec, cal.camera_matrix, cal.dist_coeffs
+        )[0].reshape(-1, 4, 2)
+        h, w = gray.shape[:2]
+        side = np.linalg.norm(np.roll(uv, -1, 1) - uv, axis=2).mean(1)
+        pad = np.maximum(8.0, 0.4 * side)
+        lo, hi = uv.min(1) - pad[:, None], uv.max(1) + pad[:, None]
+        inside = (lo[:, 0] >= 0) & (lo[:, 1] >= 0) & (hi[:, 0] < w) & (hi[:, 1] < h)
+        want = inside & (side >= self.settings.roi_min_side_px)
+        new_ids, new_pts = [], []
+        for k in np.flatnonzero(want):
+            mid = int(self.room.ids[missing[np.flatnonzero(facing)[k]]])
+            x0, y0 = int(lo[k, 0]), int(lo[k, 1])
+            x1, y1 = int(np.ceil(hi[k, 0])) + 1, int(np.ceil(hi[k, 1])) + 1
+            found_c, found_i, _ = self._roi.detectMarkers(gray[y0:y1, x0:x1])
+            if found_i is None:
+                continue
+            for c, i in zip(found_c, np.asarray(found_i).reshape(-1), strict=True):
+                quad = np.asarray(c, np.float32).reshape(4, 2) + np.array([x0, y0], np.float32)
+                # The id the map puts there, where it puts it (a quarter of a side).
+                if int(i) == mid and np.abs(quad - uv[k]).max() < 0.25 * side[k]:
+                    new_ids.append(mid)
+                    new_pts.append(quad)
+                    break
+        if not new_ids:
+            return ids, pts
+        flat = np.asarray(new_pts, np.float32).reshape(-1, 1, 2)
+        cv2.cornerSubPix(gray, flat, (3, 3), (-1, -1), _SUBPIX_CRITERIA)
+        return (
+            np.concatenate([ids, np.asarray(new_ids, ids.dtype)]),
+            np.concatenate([pts, flat.reshape(-1, 4, 2)]).astype(np.float32),
+        )
 
 
 def nested_quads(corners: np.ndarray) -> np.ndarray:
