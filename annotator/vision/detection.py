@@ -81,7 +81,9 @@ class DetectorSettings:
     # in the picture are searched in a crop around their predicted square.
     roi_search: bool = True
     roi_min_side_px: float = 12.0
-    roi_below: int = 4  # ... on frames where fewer map markers than this were found (0: every frame)
+    roi_below: int = (
+        4  # ... on frames where fewer map markers than this were found (0: every frame)
+    )
 
 
 EDGE_BOARD_REFINE_PX = 6.0
@@ -233,7 +235,6 @@ class MarkerDetector:
         if not self.edge_corners and self.settings.edge_corners_for_refine:
             edge = refine_corners_by_edges(gray, corners, self.calibration)
         return Detections(ids[keep].astype(int), corners, edge)
-
 
     def _search_predicted(
         self, gray: np.ndarray, ids: np.ndarray, pts: np.ndarray
