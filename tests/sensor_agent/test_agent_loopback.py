@@ -40,37 +40,37 @@ def _run_agent(
     return proc.returncode, log.read_text()
 
 
+def _replay_files(
+    endpoint: str, files: list[Path], log: Path, under: list[str] | None = None
+) -> tuple[int, str, FakeCollector]:
+    """Replay ``files`` (their own times, no pacing) through a real agent to a fake collector;
+    returns the agent's exit code and output, and the collector (closed)."""
+    collector = FakeCollector(endpoint, "lab")
+    try:
+        args = ["run", "--agent-id", "pi-07", "--site", "lab", "--connect", endpoint]
+        args += ["--replay-keep-time", "--replay-speed", "0", "--ack-timeout", "20"]
+        for f in files:
+            args += ["--replay", str(f)]
+        rc, stderr = _run_agent(args, collector, log, under=under)
+    finally:
+        collector.close()
+    return rc, stderr, collector
+
+
+def _delivered(collector: FakeCollector) -> Counter[tuple[int, str, str, int]]:
+    return Counter(
+        (r.t_ns, b.sensor, r.beacon, r.rssi) for b in collector.batches for r in b.readings
+    )
+
+
 def test_replay_delivers_every_row_exactly_once(
     endpoint: str, dataset_dir: Path, tmp_path: Path
 ) -> None:
     files = sorted((dataset_dir / "trk" / "straight_01").glob("*.mbd"))
     expected = Counter((r.t_ns, r.sensor, r.beacon, r.rssi) for r in read_rows(files))
-    collector = FakeCollector(endpoint, "lab")
-    try:
-        args = [
-            "run",
-            "--agent-id",
-            "pi-07",
-            "--site",
-            "lab",
-            "--connect",
-            endpoint,
-            "--replay-keep-time",
-            "--replay-speed",
-            "0",
-            "--ack-timeout",
-            "20",
-        ]
-        for f in files:
-            args += ["--replay", str(f)]
-        rc, stderr = _run_agent(args, collector, tmp_path / "agent.log")
-    finally:
-        collector.close()
+    rc, stderr, collector = _replay_files(endpoint, files, tmp_path / "agent.log")
     assert rc == 0, stderr
-    got = Counter(
-        (r.t_ns, b.sensor, r.beacon, r.rssi) for b in collector.batches for r in b.readings
-    )
-    assert got == expected
+    assert _delivered(collector) == expected
     assert sum(expected.values()) == 1365
     # One boot, twelve streams, each numbered 0..n-1 without gaps or repeats.
     assert {b.agent_id for b in collector.batches} == {"pi-07"}
@@ -248,17 +248,6 @@ def test_the_agent_runs_with_write_execute_memory_refused(
     assert probe.stdout.strip() == str(PR_MDWE_REFUSE_EXEC_GAIN), probe.stdout + probe.stderr
     files = sorted((dataset_dir / "trk" / "straight_01").glob("*.mbd"))[:3]
     expected = Counter((r.t_ns, r.sensor, r.beacon, r.rssi) for r in read_rows(files))
-    collector = FakeCollector(endpoint, "lab")
-    try:
-        args = ["run", "--agent-id", "pi-07", "--site", "lab", "--connect", endpoint]
-        args += ["--replay-keep-time", "--replay-speed", "0", "--ack-timeout", "20"]
-        for f in files:
-            args += ["--replay", str(f)]
-        rc, stderr = _run_agent(args, collector, tmp_path / "agent.log", under=UNDER_MDWE)
-    finally:
-        collector.close()
+    rc, stderr, collector = _replay_files(endpoint, files, tmp_path / "agent.log", UNDER_MDWE)
     assert rc == 0, stderr
-    got = Counter(
-        (r.t_ns, b.sensor, r.beacon, r.rssi) for b in collector.batches for r in b.readings
-    )
-    assert got == expected
+    assert _delivered(collector) == expected
