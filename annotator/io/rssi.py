@@ -119,8 +119,7 @@ def load_rssi(path: str | Path) -> RssiTable:
                 load_file(run_yaml), str(run_yaml), default_id=run_yaml.parent.name
             )
         except (YamlError, RunRecordError) as e:
-            # The readings do not depend on it: label them, and say why the run's record is left.
-            log.warning("rssi: ignoring the run's record: %s", e)
+            raise ConfigError(f"run info: {e}") from None
     table = RssiTable(
         t_ns[order],
         np.asarray(sensor)[order],

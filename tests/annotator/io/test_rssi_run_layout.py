@@ -3,11 +3,11 @@ in the older flat one (rssi/<sensor>.mbd)."""
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import pytest
 
+from annotator.errors import ConfigError
 from annotator.io.rssi import load_rssi
 
 
@@ -42,14 +42,12 @@ def test_flat_run_dir_still_loads(tmp_path: Path) -> None:
     assert load_rssi(run).rssi.tolist() == [-50]
 
 
-def test_a_garbled_run_yaml_is_reported_and_the_readings_still_load(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
-) -> None:
+def test_a_garbled_run_yaml_is_one_line_naming_the_key(tmp_path: Path) -> None:
     mac = "b827eb4521b4"
     run = _run(tmp_path, {f"pi-01/{mac}.mbd": f"1700000000.2,{mac},e78f135624ce,-50\n"})
     (run / "run.yaml").write_text("id: r\nreadings: many\n")
-    with caplog.at_level(logging.WARNING):
-        t = load_rssi(run)
-    assert t.rssi.tolist() == [-50]
-    assert t.run_info is None
-    assert "readings must be a whole number" in caplog.text
+    with pytest.raises(ConfigError) as err:
+        load_rssi(run)
+    msg = str(err.value)
+    assert "run.yaml: readings must be a whole number" in msg
+    assert "\n" not in msg
