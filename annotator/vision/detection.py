@@ -78,12 +78,11 @@ class DetectorSettings:
     # found put the map's others (a pose from two or more found markers): a 30 px marker is
     # 15 px in a half-size copy, too small to read once a real lens and compression soften it.
     # Markers predicted at least `roi_min_side_px` (full-resolution pixels) on a side and wholly
-    # in the picture are searched in a crop around their predicted square.
+    # in the picture are searched in a crop around their predicted square, on frames where fewer
+    # than `roi_below` map markers were found (0: every frame; docs/annotator.md, "Detection").
     roi_search: bool = True
     roi_min_side_px: float = 12.0
-    roi_below: int = (
-        4  # ... on frames where fewer map markers than this were found (0: every frame)
-    )
+    roi_below: int = 4
 
 
 EDGE_BOARD_REFINE_PX = 6.0
