@@ -43,6 +43,7 @@ from annotator.core.jig import (
 )
 from annotator.core.priors import ParameterCovariance
 from annotator.core.refine import Refinement, RefineSettings, refine_capture
+from annotator.core.refine.model import CLOCK_SIGMA_S
 from annotator.core.tracking import (
     CameraFrames,
     TrackSettings,
@@ -552,8 +553,6 @@ def run_experiment(
             frames = [replace(cf, t=cf.t + starts.get(cf.camera, 0.0)) for cf in frames]
     if sync.slates and set(sync.slates) == set(sync.clocks):
         # Each video read the slate on its own: its clock is free against the others'.
-        from annotator.core.refine.model import CLOCK_SIGMA_S
-
         track = replace(track, clock_sigma_s=track.clock_sigma_s or CLOCK_SIGMA_S)
     with _worker_pool(track) as pool:
         result = frames_to_result(frames, exp, track, pool)

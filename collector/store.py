@@ -435,15 +435,15 @@ class RunWriter:
     def write_state(self, state: RunState) -> None:
         write_json_atomic(self.dir / STATE_FILE, state.to_dict())
 
-    def record(
+    def write_yaml(
         self,
         *,
         stop_ns: int | None,
         agents: Mapping[str, AgentEntry],
         summary: Mapping[str, Any],
-    ) -> RunRecord:
-        """What run.yaml says of this run (``summary``: the keys a stopped run gains)."""
-        return RunRecord(
+    ) -> None:
+        """run.yaml as it stands (``summary``: the keys a stopped run gains), in one rename."""
+        record = RunRecord(
             run_id=self.run_id,
             name=self.name,
             start_ns=self.start_ns,
@@ -453,16 +453,7 @@ class RunWriter:
             summary=summary,
             agents=agents,
         )
-
-    def write_yaml(
-        self,
-        *,
-        stop_ns: int | None,
-        agents: Mapping[str, AgentEntry],
-        summary: Mapping[str, Any],
-    ) -> None:
-        doc = self.record(stop_ns=stop_ns, agents=agents, summary=summary).to_dict()
-        write_yaml_atomic(self.dir / "run.yaml", doc)
+        write_yaml_atomic(self.dir / "run.yaml", record.to_dict())
 
 
 def read_run_record(run_dir: Path) -> RunRecord:

@@ -206,21 +206,27 @@ def anchor_unresolved(
     return sorted(kept + list(found.items()), key=lambda it: it[0])
 
 
+def _usable(meas: Trajectory, s: SmootherSettings) -> tuple[Trajectory, np.ndarray]:
+    """The measurements the smoother uses, without the vague ones (a lone far marker would only
+    bridge gaps with guesses), and each one's rotation variance (rad^2)."""
+    vague = (
+        np.sqrt(np.trace(meas.quality["cov"][:, 3:, 3:], axis1=1, axis2=2) / 3) > s.max_meas_sigma_m
+    )
+    meas = meas.select(~vague)
+    return meas, np.trace(meas.quality["cov"][:, :3, :3], axis1=1, axis2=2) / 3
+
+
 def motion_rotations(
     meas: Trajectory, t_out: np.ndarray, R: np.ndarray, s: SmootherSettings
 ) -> np.ndarray:
     """The rotations the self-calibration reads each frame's motion from: the same measurements
     fitted with the narrower ``motion_rot_bandwidth_s`` kernel, at the rows ``R`` (the smoothed
     rotations) has; ``R`` itself where the narrow fit has no support."""
-    vague = (
-        np.sqrt(np.trace(meas.quality["cov"][:, 3:, 3:], axis1=1, axis2=2) / 3) > s.max_meas_sigma_m
-    )
-    meas = meas.select(~vague)
+    meas, var = _usable(meas, s)
     out = np.array(R, dtype=float, copy=True)
     rows = np.isfinite(out).all((1, 2))
     if len(meas.t) == 0 or not rows.any() or s.motion_rot_bandwidth_s >= s.rot_bandwidth_s:
         return out
-    var = np.trace(meas.quality["cov"][:, :3, :3], axis1=1, axis2=2) / 3
     narrow = dataclasses.replace(s, rot_bandwidth_s=s.motion_rot_bandwidth_s)
     fit, _ = smooth_rotations(
         meas.t, Rotation.from_matrix(meas.rotation), var, np.asarray(t_out)[rows], narrow
@@ -251,11 +257,7 @@ def smooth(
             np.full((len(t_out), 3, 3), np.nan),
             np.full(len(t_out), np.nan),
         )
-    # Vague measurements (a lone far marker) would only bridge gaps with guesses.
-    vague = (
-        np.sqrt(np.trace(meas.quality["cov"][:, 3:, 3:], axis1=1, axis2=2) / 3) > s.max_meas_sigma_m
-    )
-    meas = meas.select(~vague)
+    meas, var = _usable(meas, s)
     if len(meas.t) == 0:
         return (
             np.full((len(t_out), 3), np.nan),
@@ -263,7 +265,6 @@ def smooth(
             np.full(len(t_out), np.nan),
         )
     cov = meas.quality["cov"]
-    var = np.trace(cov[:, :3, :3], axis1=1, axis2=2) / 3
     rot_args = (meas.t, Rotation.from_matrix(meas.rotation), var, t_out, s)
     rot_future = None if pool is None else pool.submit(smooth_rotations, *rot_args)
     pos, sig, ok_p, noise_scale = smooth_positions(meas.t, meas.position, cov[:, 3:, 3:], t_out, s)
