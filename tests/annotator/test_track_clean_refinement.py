@@ -41,9 +41,11 @@ def test_clean_1080p_render_keeps_its_accuracy_through_the_default_refinement(tm
     pos, report = _clean_track(
         tmp_path, "--duration", "2", "--width", "1920", "--height", "1080", "--seed", "0"
     )
-    # Measured: 0.008 / 0.04 cm (with --refine none 0.007 / 0.04 cm); the window corners gave
-    # 1.0 / 1.06 cm, with a reprojection RMS of 0.8 (front) and 2.0 px (back) before refinement.
-    assert np.median(pos) < 0.0003
+    # Measured: 0.036 / 0.045 cm (with --refine none 0.007 / 0.04 cm; 0.008 cm while every lens
+    # correction under 3 posterior sigmas was held, which on field pushes kept focal lengths and
+    # readouts off); the window corners gave 1.0 / 1.06 cm, with a reprojection RMS of 0.8
+    # (front) and 2.0 px (back) before refinement.
+    assert np.median(pos) < 0.0006
     assert np.percentile(pos, 95) < 0.002
     for c in report["cameras"].values():
         assert c["rms_px_before"] < 0.6
@@ -64,10 +66,11 @@ def test_clean_fisheye_walk_keeps_its_accuracy_through_the_default_refinement(tm
     pos, report = _clean_track(
         tmp_path, "--duration", "30", "--seed", "0", "--lens", "fisheye", "--exposure", "0"
     )
-    # Measured: 0.08 / 0.22 cm, fx and fy unchanged. With an aspect prior of 0.1 % the refinement
-    # took the detectors' x-narrowing of slanted wall markers for a short fy (-0.26 %) and the walk
-    # to 0.13 / 0.25 cm; 12 s walks did not show it.
-    assert np.median(pos) < 0.001
+    # Measured: 0.107 / 0.24 cm (0.08 / 0.22 cm, fx and fy unchanged, while corrections under 3
+    # posterior sigmas were held). With an aspect prior of 0.1 % the refinement took the
+    # detectors' x-narrowing of slanted wall markers for a short fy (-0.26 %) and the walk to
+    # 0.13 / 0.25 cm; 12 s walks did not show it.
+    assert np.median(pos) < 0.0013
     for c in report["cameras"].values():
         fx, fy = c["focal_change_rel"]
         assert abs(fy - fx) < 5e-4

@@ -9,7 +9,15 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from annotator.core.refine.model import CLOCK, READOUT, RIG, Problem, RefineSettings, _Layout
+from annotator.core.refine.model import (
+    CLOCK,
+    READOUT,
+    RIG,
+    SCALE,
+    Problem,
+    RefineSettings,
+    _Layout,
+)
 
 log = logging.getLogger(__name__)
 
@@ -98,69 +106,124 @@ def marker_floors(prob: Problem, s: RefineSettings) -> np.ndarray:
 
 
 def _gate(
-    x: np.ndarray, cov: np.ndarray, layout: _Layout, s: RefineSettings, has_prior: np.ndarray
-) -> list[int]:
-    """Static indices of the blocks whose correction is within noise of their prior.
+    x: np.ndarray,
+    cov: np.ndarray,
+    layout: _Layout,
+    s: RefineSettings,
+    has_prior: np.ndarray,
+    prior_sd: np.ndarray,
+) -> tuple[list[int], list[int]]:
+    """Static indices held at their prior: (what the capture did not show, the corrections of
+    the significance-gated blocks and markers that are within noise).
 
-    Per-camera blocks: no component beyond ``gate_sigma`` posterior sigmas. The rig as a whole
-    (its gauge is pinned to the mean of the cameras, so one camera cannot be judged alone), and
-    the cameras' clocks likewise; the cameras' readouts together (any combination beyond the gate).
-    Surveyed markers: the correction's Mahalanobis distance per degree of freedom below
-    ``marker_gate_sigma``.
+    - Each component of a camera's block (a rig axis, fx, cx, the readout, ...) the capture did
+      not show: its posterior sigma at least ``observable_ratio`` of its prior's (``prior_sd``).
+      The principal point of a level walk is one: it trades with the rig's turn, and its
+      correction then follows the corners' errors (2-4 px off on a push, measured).
+    - The blocks in ``gate_blocks`` whose correction is within ``gate_sigma`` posterior sigmas:
+      the rig and the cameras' clocks as a whole (gauged to the cameras' mean, one camera cannot
+      be judged alone), the cameras' readouts together (any combination beyond the gate), the
+      other blocks per camera, the markers' printed size.
+    - Surveyed markers whose correction's Mahalanobis distance per degree of freedom (against the
+      posterior widened by the floors) is below ``marker_gate_sigma``.
     """
     out: list[int] = []
-    if s.gate_sigma <= 0:
-        return out
+    unseen_all: list[int] = []
     sd = np.sqrt(np.maximum(np.diag(cov), 1e-30))
     xs = x[layout.n_pose :]
     for name, (off, n, size) in layout.static_slices().items():
         if name == "marker":
-            for m in range(n):
-                i = off + 6 * m
-                if not (layout.free_markers[m] and has_prior[m]):
-                    continue
-                d = xs[i : i + 6]
-                floor = np.diag(
-                    [math.radians(s.marker_floor_deg) ** 2] * 3 + [s.marker_floor_m**2] * 3
-                )
-                if _mahalanobis(d, cov[i : i + 6, i : i + 6] + floor) < s.marker_gate_sigma:
-                    out.extend(range(i, i + 6))
+            if s.marker_gate_sigma > 0:
+                out.extend(_held_markers(xs, cov, off, n, layout, s, has_prior))
             continue
-        if name in (RIG, CLOCK):  # gauged to the cameras' mean: judged as a whole
-            z = np.abs(xs[off : off + n * size]) / sd[off : off + n * size]
-            if z.max() < s.gate_sigma:
-                log.info(
-                    "refine: %s change not significant (max %.1f sigma); %s kept",
-                    "rig" if name == RIG else "cameras' clock",
-                    z.max(),
-                    "the measured rig" if name == RIG else "the sync's offsets",
-                )
-                out.extend(range(off, off + n * size))
+        # The rig's mean over the cameras is pinned (the gauge) and carries its prior in the
+        # joint record already: it is judged by the significance gate alone.
+        if name not in (SCALE, RIG) and s.observable_ratio > 0:
+            ratio = sd[off : off + n * size] / np.maximum(prior_sd[off : off + n * size], 1e-30)
+            for c in range(n):
+                unseen = np.flatnonzero(ratio[c * size : (c + 1) * size] >= s.observable_ratio)
+                if len(unseen):
+                    log.info(
+                        "refine: %s of camera %d: components %s not shown by the capture; "
+                        "priors kept",
+                        name,
+                        c,
+                        unseen.tolist(),
+                    )
+                unseen_all.extend(off + c * size + int(k) for k in unseen)
+        if s.gate_sigma > 0 and name in s.gate_blocks:
+            out.extend(_insignificant(name, xs, cov, sd, off, n, size, s.gate_sigma))
+    unseen_set = set(unseen_all)
+    return sorted(unseen_set), sorted(set(out) - unseen_set)
+
+
+def _held_markers(
+    xs: np.ndarray,
+    cov: np.ndarray,
+    off: int,
+    n: int,
+    layout: _Layout,
+    s: RefineSettings,
+    has_prior: np.ndarray,
+) -> list[int]:
+    out: list[int] = []
+    floor = np.diag([math.radians(s.marker_floor_deg) ** 2] * 3 + [s.marker_floor_m**2] * 3)
+    for m in range(n):
+        i = off + 6 * m
+        if not (layout.free_markers[m] and has_prior[m]):
             continue
-        if name == READOUT and n > 1:
-            # The cameras' readouts together: with their clocks free, a readout trades against
-            # its camera's clock where the markers fill few rows (a level cart), while their
-            # common part, the walk's rolling shutter, stays sharp. Kept at the priors only if no
-            # combination of them moved beyond the gate (the largest z in any direction).
-            idx = np.arange(off, off + n * size)
-            d = xs[idx]
-            try:
-                z_max = math.sqrt(max(float(d @ np.linalg.solve(cov[np.ix_(idx, idx)], d)), 0.0))
-            except np.linalg.LinAlgError:
-                z_max = float(np.max(np.abs(d) / sd[idx]))
-            if z_max < s.gate_sigma:
-                log.info("refine: readouts not significant (%.1f sigma); priors kept", z_max)
-                out.extend(idx.tolist())
-            continue
-        for c in range(n):
-            i = off + c * size
-            z = np.abs(xs[i : i + size]) / sd[i : i + size]
-            if z.max() < s.gate_sigma:
-                log.info(
-                    "refine: %s%s not significant (max %.1f sigma); prior kept",
-                    name,
-                    "" if n == 1 and name == "scale" else f" of camera {c}",
-                    z.max(),
-                )
-                out.extend(range(i, i + size))
+        if _mahalanobis(xs[i : i + 6], cov[i : i + 6, i : i + 6] + floor) < s.marker_gate_sigma:
+            out.extend(range(i, i + 6))
+    return out
+
+
+def _insignificant(
+    name: str,
+    xs: np.ndarray,
+    cov: np.ndarray,
+    sd: np.ndarray,
+    off: int,
+    n: int,
+    size: int,
+    gate: float,
+) -> list[int]:
+    """The indices of block ``name`` whose correction is within ``gate`` posterior sigmas."""
+    if name in (RIG, CLOCK):  # gauged to the cameras' mean: judged as a whole
+        z = np.abs(xs[off : off + n * size]) / sd[off : off + n * size]
+        if z.max() < gate:
+            log.info(
+                "refine: %s change not significant (max %.1f sigma); %s kept",
+                "rig" if name == RIG else "cameras' clock",
+                z.max(),
+                "the measured rig" if name == RIG else "the sync's offsets",
+            )
+            return list(range(off, off + n * size))
+        return []
+    if name == READOUT and n > 1:
+        # The cameras' readouts together: with their clocks free, a readout trades against its
+        # camera's clock where the markers fill few rows (a level cart), while their common
+        # part, the walk's rolling shutter, stays sharp. Kept at the priors only if no
+        # combination of them moved beyond the gate (the largest z in any direction).
+        idx = np.arange(off, off + n * size)
+        d = xs[idx]
+        try:
+            z_max = math.sqrt(max(float(d @ np.linalg.solve(cov[np.ix_(idx, idx)], d)), 0.0))
+        except np.linalg.LinAlgError:
+            z_max = float(np.max(np.abs(d) / sd[idx]))
+        if z_max < gate:
+            log.info("refine: readouts not significant (%.1f sigma); priors kept", z_max)
+            return idx.tolist()
+        return []
+    out: list[int] = []
+    for c in range(n):
+        i = off + c * size
+        z = np.abs(xs[i : i + size]) / sd[i : i + size]
+        if z.max() < gate:
+            log.info(
+                "refine: %s%s not significant (max %.1f sigma); prior kept",
+                name,
+                "" if name == SCALE else f" of camera {c}",
+                z.max(),
+            )
+            out.extend(range(i, i + size))
     return out

@@ -64,9 +64,21 @@ class RefineSettings:
     )
     moved_sigma: float = 6.0  # a surveyed marker this many sigma from the data loses its prior
     flag_sigma: float = 3.0  # ... and one that moved more than this is reported
-    # Corrections of a static block smaller than this many of its posterior sigma are not applied:
-    # on an exact capture the data move nothing beyond noise, and the prior is kept.
+    # Each component of a camera's lens, readout and corner bias the capture did not show is held
+    # at its prior: its posterior sigma at least this share of its prior sigma (the rig's part no
+    # image shows, its mean over the cameras, is pinned by the gauge instead). What the
+    # capture did show takes the data's estimate, significant or not: holding every correction
+    # under 3 posterior sigmas kept a focal length 0.27 % off and readouts 6-8 ms off on a
+    # straight push (2.12 -> 1.51 cm median; docs/annotator.md, "Self-calibration", the gate).
+    observable_ratio: float = 0.5
+    # These blocks also keep their prior unless the correction exceeds gate_sigma posterior
+    # sigmas: the lens distortion (a walk shows it, but its corrections follow the corners'
+    # errors at the image's edge, and a board calibration knows it better: a push-real render
+    # 1.12 -> 0.90 cm with it gated), the cameras' clocks (the slate reads them to a frame; free,
+    # they trade with the readouts) and the markers' printed size (a constant corner bias and the
+    # size trade on exact prints: 0.15-0.6 % found for 0, about 2 sigma).
     gate_sigma: float = 3.0
+    gate_blocks: tuple[str, ...] = (DIST, CLOCK, SCALE)
     marker_gate_sigma: float = 1.0  # the same for a surveyed marker (Mahalanobis, per dof) ...
     # ... against its posterior widened by these floors: corner errors that are the same in every
     # frame (a bias that depends on the marker's size in the image, print flaws) move a marker by a

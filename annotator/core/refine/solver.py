@@ -141,7 +141,9 @@ def _solve(
     cov = lm.static_covariance(Hpp, Hps, Hss)
     post = cov  # the posterior of the final solve, before what the gate holds back
     has_prior = np.isfinite(prob.marker_sigma[:, 1]) & ~lm.skip
-    gated = _gate(x, cov, layout, s, has_prior)
+    prior_sd = 1 / np.sqrt(np.maximum(lm.prec, 1e-30))
+    unseen, within_noise = _gate(x, cov, layout, s, has_prior, prior_sd)
+    gated = sorted(unseen + within_noise)
     # What the data say of the printed size, before the gate holds it at the stated length.
     scale_found = float(lm.model.static_values(x)["scale"][0])
     held = np.zeros(layout.n_static)  # the corrections the data asked for and that were not applied
@@ -171,6 +173,10 @@ def _solve(
         # spread plus the correction it was denied (mean square error = P + d d^T). Without this the
         # held blocks claim the data's precision while keeping the survey's error (over-confident).
         held[gated] = before - x[g]
+        # ... except what the capture did not show: the data's "correction" there is mostly the
+        # noise of a weak estimate (a principal point trades with the rig's turn, and the
+        # posterior keeps that trade in its cross terms, which a d d^T on the diagonal ignores).
+        held[unseen] = 0.0
         cov = cov + np.outer(held, held)
     _, uv = lm.cost(x)
     v = lm.model.static_values(x)
@@ -180,7 +186,8 @@ def _solve(
     slices = layout.static_slices()
     determined = {
         cam.name: {
-            name: not any(i in gated_set for i in range(off + c * size, off + (c + 1) * size))
+            # Determined: the capture set at least one of the block's components.
+            name: not all(i in gated_set for i in range(off + c * size, off + (c + 1) * size))
             for name, (off, _n, size) in slices.items()
             if name not in ("marker", SCALE)
         }
