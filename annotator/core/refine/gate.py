@@ -116,10 +116,11 @@ def _gate(
     """Static indices held at their prior: (what the capture did not show, the corrections of
     the significance-gated blocks and markers that are within noise).
 
-    - Each component of a camera's block (a rig axis, fx, cx, the readout, ...) the capture did
-      not show: its posterior sigma at least ``observable_ratio`` of its prior's (``prior_sd``).
-      The principal point of a level walk is one: it trades with the rig's turn, and its
-      correction then follows the corners' errors (2-4 px off on a push, measured).
+    - Each component of a camera's lens, readout, clock or corner bias (fx, cx, k1, ...) the
+      capture did not show: its posterior sigma at least ``observable_ratio`` of its prior's
+      (``prior_sd``). The principal point of a level walk is one: it trades with the rig's turn,
+      and its correction then follows the corners' errors (2-4 px off on a push, measured). The
+      rig is not judged so: the part of it no image shows, its mean over the cameras, is pinned.
     - The blocks in ``gate_blocks`` whose correction is within ``gate_sigma`` posterior sigmas:
       the rig and the cameras' clocks as a whole (gauged to the cameras' mean, one camera cannot
       be judged alone), the cameras' readouts together (any combination beyond the gate), the
@@ -137,7 +138,7 @@ def _gate(
                 out.extend(_held_markers(xs, cov, off, n, layout, s, has_prior))
             continue
         # The rig's mean over the cameras is pinned (the gauge) and carries its prior in the
-        # joint record already: it is judged by the significance gate alone.
+        # joint record already: it is judged by the significance gate alone, when asked.
         if name not in (SCALE, RIG) and s.observable_ratio > 0:
             ratio = sd[off : off + n * size] / np.maximum(prior_sd[off : off + n * size], 1e-30)
             for c in range(n):
@@ -166,6 +167,7 @@ def _held_markers(
     s: RefineSettings,
     has_prior: np.ndarray,
 ) -> list[int]:
+    """The surveyed markers' indices whose correction is within ``marker_gate_sigma``."""
     out: list[int] = []
     floor = np.diag([math.radians(s.marker_floor_deg) ** 2] * 3 + [s.marker_floor_m**2] * 3)
     for m in range(n):
