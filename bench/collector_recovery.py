@@ -18,7 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from collector.ingest import StreamTracker, format_rows
+from collector.ingest import StreamTracker
+from collector.readings import Rows, format_rows, from_tuples
 from collector.store import RunWriter
 
 T0 = 1_795_318_500 * 10**9
@@ -28,11 +29,11 @@ def sensor_mac(i: int) -> str:
     return f"b827eb{i:06x}"
 
 
-def rows(n: int, start: int) -> list[tuple[int, int, bytes, int]]:
-    return [
+def rows(n: int, start: int) -> Rows:
+    return from_tuples(
         (T0 + (start + k) * 1_000_003, 0, bytes.fromhex("e78f135624ce"), -40 - k % 50)
         for k in range(n)
-    ]
+    )
 
 
 def main() -> None:

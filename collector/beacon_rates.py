@@ -27,19 +27,6 @@ RATE_WINDOW_S = 5.0
 MAX_BEACONS = 64  # per sensor; further beacons are not tracked (a flood of random addresses)
 
 
-def count_beacons(rows: list[tuple[int, int, bytes, int]]) -> dict[bytes, list[int]]:
-    """{beacon: [readings, sum of RSSI]} of one batch's rows ``(t_ns, mono, mac, rssi)``."""
-    out: dict[bytes, list[int]] = {}
-    for _, _, mac, rssi in rows:
-        c = out.get(mac)
-        if c is None:
-            out[mac] = [1, rssi]
-        else:
-            c[0] += 1
-            c[1] += rssi
-    return out
-
-
 @dataclass(frozen=True, slots=True)
 class Drop:
     """A finished bin in which a beacon was heard far less often than usual."""

@@ -13,6 +13,7 @@ from typing import Any
 
 from bgt_core import wire
 from bgt_core.messages import Ack
+from collector import readings
 from collector.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
@@ -20,7 +21,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, slots=True)
 class RawBatch:
-    """A validated batch whose readings stay as struct tuples (t_ns, mono_ns, mac6, rssi).
+    """A validated batch whose readings stay as one record array (``readings.READING``).
 
     Building a Reading object per row would cost more than everything else on the ingest path;
     iBeacon/Eddystone extras are not written to .mbd files, so they are not kept here.
@@ -30,7 +31,7 @@ class RawBatch:
     boot_id: str
     sensor: str
     seq: int
-    rows: list[tuple[int, int, bytes, int]]
+    rows: readings.Rows
     floor: int = -1  # the agent never (re)sends seqs below this; -1 = not said (older agent)
     skipped: int = 0  # implausible readings left out (RSSI, timestamp, monotonic time)
     skip_reason: str = ""  # why the first of them was left out
@@ -59,7 +60,9 @@ def decode(payload: bytes) -> RawBatch:
         b.boot_id,
         b.sensor,
         b.seq,
-        [(r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi) for r in b.readings],
+        readings.from_tuples(
+            (r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi) for r in b.readings
+        ),
         getattr(b, "floor", -1),
         len(skipped),
         f"reading {skipped[0][0]}: {skipped[0][1]}" if skipped else "",
@@ -98,38 +101,10 @@ def _decode_fast(data: bytes) -> RawBatch | None:
     floor = meta.get("floor", -1)
     if type(floor) is not int or not -1 <= floor < 2**63:
         return None
-    rows = list(wire.BATCH_READING.iter_unpack(data[start:end]))
-    if rows:
-        ts = [r[0] for r in rows]
-        rs = [r[3] for r in rows]
-        if (
-            min(ts) < wire.T_NS_MIN
-            or max(ts) > wire.T_NS_MAX
-            or min(rs) < wire.RSSI_MIN
-            or max(rs) > wire.RSSI_MAX
-            or min(r[1] for r in rows) < 0
-        ):
-            return None  # the canonical decoder skips the implausible readings one by one
+    rows = readings.from_payload(data, start, n)
+    if not readings.plausible(rows):
+        return None  # the canonical decoder skips the implausible readings one by one
     return RawBatch(agent, boot, sensor, seq, rows, floor)
-
-
-def format_rows(sensor: str, rows: list[tuple[int, int, bytes, int]]) -> str:
-    """The .mbd text of many rows at once; byte-identical to ``mbd.format_row`` per row.
-
-    This is the hottest loop of the collector, hence the shortcuts: the ",sensor,beacon," middle
-    is built once per beacon, and the timestamp is split as text (validated times are > 1e18 ns,
-    so the string always has more than nine digits).
-    """
-    middles: dict[bytes, str] = {}
-    parts: list[str] = []
-    add = parts.append
-    for t, _mono, mac, rssi in rows:
-        mid = middles.get(mac)
-        if mid is None:
-            mid = middles[mac] = f",{sensor},{mac.hex()},"
-        s = str(t)
-        add(f"{s[:-9]}.{s[-9:]}{mid}{rssi}\n")
-    return "".join(parts)
 
 
 # ---------------------------------------------------------------------------------------------

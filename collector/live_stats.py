@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 from bgt_core.control_messages import SensorRate
 from collector.beacon_rates import MAX_BEACONS, BeaconTrend, Drop
+from collector.readings import Rows
 
 RATE_WINDOW_S = 5.0
 RSSI_HISTORY = 40  # readings kept per sensor for the live sparkline
@@ -29,16 +30,17 @@ class SensorLive:
     def add(
         self,
         now: float,
-        rows: list[tuple[int, int, bytes, int]],
+        rows: Rows,
         counts: dict[bytes, list[int]] | None = None,
     ) -> list[tuple[bytes, Drop]]:
         """Count a batch's rows (``counts``: its per-beacon readings and RSSI sums,
-        beacon_rates.count_beacons); returns the beacons whose rate just dropped."""
+        readings.count_beacons); returns the beacons whose rate just dropped."""
+        recent = rows["rssi"][-RSSI_HISTORY:].tolist()
         self.readings += len(rows)
-        self.last_rssi = rows[-1][3]
+        self.last_rssi = recent[-1]
         self.last_seen = now
         self.window.append((now, len(rows)))
-        self.rssi.extend([r[3] for r in rows[-RSSI_HISTORY:]])
+        self.rssi.extend(recent)
         self._prune(now)
         drops = []
         for mac, (n, rssi_sum) in (counts or {}).items():

@@ -26,15 +26,15 @@ from bgt_core.sdnotify import Notifier
 from collector import views
 from collector.admission import MAX_AGENT_ENTRIES, StreamGate
 from collector.agents import AgentBook
-from collector.beacon_rates import count_beacons, report_drop
+from collector.beacon_rates import report_drop
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
 from collector.inbox import Inbox
 from collector.ingest import (
     StreamTracker,
-    format_rows,
 )
 from collector.live_stats import SensorLive
+from collector.readings import count_beacons, format_rows
 from collector.run_state import RunState
 from collector.store import STATE_FILE, FileWrite, RunWriter, is_disk_full, make_run_id
 from collector.summary import Counters, StatusView, run_summary
@@ -329,7 +329,7 @@ class Writer:
                 self.want_agent_info(b.agent_id)
             if not alive.get(b.agent_id):
                 self._count_unknown(b.agent_id)
-            if b.rows:
+            if len(b.rows):
                 sl = live.get((b.agent_id, b.sensor))
                 if sl is None:
                     sl = live[(b.agent_id, b.sensor)] = SensorLive(b.agent_id)

@@ -8,6 +8,7 @@ import pytest
 from collector.admission import StreamGate
 from collector.config import Limits
 from collector.live_stats import RATE_WINDOW_S, SensorLive
+from collector.readings import from_tuples
 
 
 def test_gate_admits_up_to_the_caps_and_counts_refusals() -> None:
@@ -25,8 +26,8 @@ def test_gate_admits_up_to_the_caps_and_counts_refusals() -> None:
 
 def test_live_rate_counts_the_last_window() -> None:
     live = SensorLive("a")
-    live.add(0.0, [(0, 0, b"", -60)] * 10)
-    live.add(1.0, [(0, 0, b"", -70)] * 5)
+    live.add(0.0, from_tuples([(0, 0, bytes(6), -60)] * 10))
+    live.add(1.0, from_tuples([(0, 0, bytes(6), -70)] * 5))
     assert live.readings == 15
     assert live.last_rssi == -70
     assert live.rate(1.0) == pytest.approx(15 / RATE_WINDOW_S)

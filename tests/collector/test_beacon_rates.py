@@ -8,8 +8,9 @@ import logging
 
 import pytest
 
-from collector.beacon_rates import BIN_S, count_beacons, report_drop
+from collector.beacon_rates import BIN_S, report_drop
 from collector.live_stats import SensorLive
+from collector.readings import count_beacons, from_tuples
 from collector.store import RunWriter
 
 BEACON = bytes.fromhex("e78f135624ce")
@@ -23,15 +24,15 @@ def feed(live: SensorLive, t0: float, seconds: float, per_s: int, rssi: int, bea
     for k in range(steps):
         now = t0 + k / 10
         n = per_s // 10 + (1 if (k % 10) < per_s % 10 else 0)
-        rows = [(0, 0, beacon, rssi)] * n
-        if rows:
+        rows = from_tuples([(0, 0, beacon, rssi)] * n)
+        if len(rows):
             drops += live.add(now, rows, count_beacons(rows))
         drops += live.check(now)
     return drops, t0 + steps / 10
 
 
 def test_count_beacons() -> None:
-    rows = [(0, 0, BEACON, -60), (0, 0, OTHER, -70), (0, 0, BEACON, -62)]
+    rows = from_tuples([(0, 0, BEACON, -60), (0, 0, OTHER, -70), (0, 0, BEACON, -62)])
     assert count_beacons(rows) == {BEACON: [2, -122], OTHER: [1, -70]}
 
 
@@ -85,7 +86,7 @@ def test_a_slow_beacon_is_never_a_drop() -> None:
     live = SensorLive("pi-1")
     drops, t = feed(live, 0.0, 300, 0, -60)
     for k in range(0, 300, 3):
-        rows = [(0, 0, OTHER, -60)]
+        rows = from_tuples([(0, 0, OTHER, -60)])
         drops += live.add(t + k, rows, count_beacons(rows))
     drops += live.check(t + 400)
     assert drops == []
@@ -93,7 +94,7 @@ def test_a_slow_beacon_is_never_a_drop() -> None:
 
 def test_run_yaml_counts_per_beacon_survive_a_restart(tmp_path) -> None:
     w = RunWriter(tmp_path, "r1", "n", 1_795_318_500 * 10**9, {"site": "default"})
-    rows = [(0, 0, BEACON, -60), (0, 0, OTHER, -70), (0, 0, BEACON, -62)]
+    rows = from_tuples([(0, 0, BEACON, -60), (0, 0, OTHER, -70), (0, 0, BEACON, -62)])
     w.append("pi-1", "b827eb4521b4", "x\n", 3, count_beacons(rows))
     w.append("pi-1", "b827eb4521b4", "x\n", 1, count_beacons(rows[:1]))
     st = w.sensors[("pi-1", "b827eb4521b4")]

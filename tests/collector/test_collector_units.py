@@ -3,6 +3,7 @@ run directories and config files."""
 
 from __future__ import annotations
 
+import random
 import struct
 
 import pytest
@@ -13,7 +14,8 @@ from bgt_core.formats.mbd import format_row, iter_rows
 from bgt_core.messages import Ack
 from collector.config import CollectorConfig, load_config
 from collector.errors import CollectorError, ConfigError
-from collector.ingest import RejectCounter, StreamTracker, decode, format_rows, reject_reason
+from collector.ingest import RejectCounter, StreamTracker, decode, reject_reason
+from collector.readings import as_tuples, count_beacons, format_rows, from_tuples
 from collector.store import RunWriter, clean_name, list_runs, make_run_id
 from collector_helpers import make_batch
 from full_disk import SwitchableDisk
@@ -25,7 +27,7 @@ def test_decode_matches_wire_decoder() -> None:
     b = make_batch(3, n=20)
     got = decode(wire.to_wire(b))
     assert (got.agent_id, got.boot_id, got.sensor, got.seq) == (b.agent_id, b.boot_id, b.sensor, 3)
-    assert [(t, bytes(m).hex(), r) for t, _mono, m, r in got.rows] == [
+    assert [(t, m.hex(), r) for t, _mono, m, r in as_tuples(got.rows)] == [
         (r.t_ns, r.beacon, r.rssi) for r in b.readings
     ]
 
@@ -40,7 +42,7 @@ def test_decode_with_extras_takes_the_full_path() -> None:
         (wire.Reading(1_700_000_000 * 10**9, "e78f135624ce", -50, 5, ibeacon=ib),),
     )
     got = decode(wire.to_wire(b))
-    assert got.rows == [(1_700_000_000 * 10**9, 5, bytes.fromhex("e78f135624ce"), -50)]
+    assert as_tuples(got.rows) == [(1_700_000_000 * 10**9, 5, bytes.fromhex("e78f135624ce"), -50)]
 
 
 def _corrupt(data: bytes, off: int, fmt: str, value) -> bytes:
@@ -90,7 +92,7 @@ def test_decode_skips_an_implausible_reading_and_keeps_the_rest(mutate, why) -> 
     assert (got.seq, got.skipped) == (0, 1)
     assert got.skip_reason.startswith(why)
     r = b.readings[0]
-    assert got.rows == [(r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi)]
+    assert as_tuples(got.rows) == [(r.t_ns, r.mono_ns, bytes.fromhex(r.beacon), r.rssi)]
 
 
 def test_reject_reasons() -> None:
@@ -107,14 +109,49 @@ def test_format_rows_is_format_row_in_bulk() -> None:
         format_row(r.t_ns, b.sensor, r.beacon, r.rssi) for r in b.readings
     )
     # ...including times with leading zeros in the fraction and whole seconds.
-    rows = [
-        (1_600_000_000_000_000_007, 0, b"\x01" * 6, -5),
-        (1_600_000_001_000_000_000, 0, b"\xff" * 6, 0),
-    ]
+    rows = from_tuples(
+        [
+            (1_600_000_000_000_000_007, 0, b"\x01" * 6, -5),
+            (1_600_000_001_000_000_000, 0, b"\xff" * 6, 0),
+        ]
+    )
     assert format_rows("aabbccddeeff", rows) == (
         "1600000000.000000007,aabbccddeeff,010101010101,-5\n"
         "1600000001.000000000,aabbccddeeff,ffffffffffff,0\n"
     )
+
+
+def test_format_rows_of_any_plausible_rows_is_format_row() -> None:
+    """Rows of mixed widths (RSSI -128..127, seconds before and after 2001), one width only, one
+    beacon, two, many, MACs ending in zero bytes: the array formatting is the row-by-row text,
+    byte for byte, and the per-beacon counts are a loop's."""
+    rng = random.Random(7)
+    for k in range(200):
+        n = rng.randrange(1, 60)
+        fixed_rssi = rng.randrange(-99, -9) if k % 2 else None
+        rows = [
+            (
+                rng.randrange(
+                    wire.T_NS_MIN, wire.T_NS_MIN + 10**17 if k % 5 == 0 else wire.T_NS_MAX
+                ),
+                rng.randrange(0, 2**62),
+                bytes(rng.randrange(256) for _ in range(5)) + bytes(1)
+                if k % 3
+                else bytes.fromhex(rng.choice(["e78f135624ce", "e78f13562400"])),
+                rng.randrange(wire.RSSI_MIN, wire.RSSI_MAX + 1)
+                if fixed_rssi is None
+                else fixed_rssi,
+            )
+            for _ in range(n)
+        ]
+        want = "".join(format_row(t, "aabbccddeeff", m.hex(), r) for t, _mono, m, r in rows)
+        assert format_rows("aabbccddeeff", from_tuples(rows)) == want
+        assert as_tuples(from_tuples(rows)) == rows
+        counts: dict[bytes, list[int]] = {}
+        for _t, _mono, m, r in rows:
+            c = counts.setdefault(m, [0, 0])
+            c[0], c[1] = c[0] + 1, c[1] + r
+        assert count_beacons(from_tuples(rows)) == counts
 
 
 # -- dedupe, gaps, watermarks --------------------------------------------------------------------

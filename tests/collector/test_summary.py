@@ -8,6 +8,7 @@ import pytest
 from bgt_core.control_messages import RefusedStreams, SensorRate
 from bgt_core.messages import AdapterStatus, AgentStatus, ClockSample
 from collector.live_stats import RATE_WINDOW_S, SensorLive
+from collector.readings import from_tuples
 from collector.summary import (
     STATUS_MAX_STREAMS,
     ActiveRun,
@@ -177,7 +178,11 @@ def test_refused_streams_keeps_the_twenty_worst() -> None:
 
 def test_a_sensor_rate_is_the_live_figures_at_that_time() -> None:
     live = SensorLive(A1)
-    live.add(10.0, [(0, 0, bytes.fromhex(BEACON), -70)] * 10, {bytes.fromhex(BEACON): [10, -700]})
+    live.add(
+        10.0,
+        from_tuples([(0, 0, bytes.fromhex(BEACON), -70)] * 10),
+        {bytes.fromhex(BEACON): [10, -700]},
+    )
     r = live.sensor_rate(11.0)
     assert r.rate_hz == pytest.approx(10 / RATE_WINDOW_S, abs=0.01)
     assert r.last_seen_age_s == 1.0
