@@ -225,9 +225,16 @@ def link(src: Path, dst: Path) -> None:
 
 
 def make_experiment(
-    folder: Path, video_dir: Path, cond: Condition, seed: int, width: int, height: int
+    folder: Path,
+    video_dir: Path,
+    cond: Condition,
+    seed: int,
+    width: int,
+    height: int,
+    slate: float = 0.0,
 ) -> Path:
-    """The condition's experiment: the cached videos plus files carrying its errors."""
+    """The condition's experiment: the cached videos plus files carrying its errors. ``slate``:
+    seconds of clock slate the videos start with (their true start, in true/experiment.yaml)."""
     folder.mkdir(parents=True, exist_ok=True)
     for name in ("front.mp4", "back.mp4", "truth.csv"):
         link(video_dir / name, folder / name)
@@ -236,7 +243,7 @@ def make_experiment(
         folder,
         default_cameras(width, height, str(video["lens"])),
         read_marker_map(site_dir("tetam") / "marker_positions.dat"),
-        {"front": T0, "back": T0 + START_OFFSET},
+        {"front": T0 - slate, "back": T0 + START_OFFSET - slate},
         readout=float(video["readout"]),
         exposure=float(video["exposure"]),
         errors=FileErrors(**cond.files, seed=seed),

@@ -158,7 +158,9 @@ def make_experiment(
 ) -> Path:
     """The cell's capture as a user hands it over: the field errors in the files, the simulated
     readings in run/, `sync: {mode: auto}`."""
-    exp = fa.make_experiment(folder, vdir, fa.CONDITIONS["all"], seed, cell.width, cell.height)
+    exp = fa.make_experiment(
+        folder, vdir, fa.CONDITIONS["all"], seed, cell.width, cell.height, SLATE["s"]
+    )
     write_simulated_run(
         folder / "run",
         cell_walk(cell),
