@@ -2,8 +2,9 @@
 the plausibility check, the per-beacon counts and the .mbd text of every row.
 
 The collector's ingest is bound by the Python work it does per reading; done on arrays, the
-decode, checks, counts and formatting of a 200-reading batch cost a third of what a loop over
-tuples did (``bench/collector_ingest.py``). The array views the received payload: no copy.
+decode, checks, counts and formatting of a 200-reading batch take 51 us on the development
+machine, against 116 us for a loop over tuples (``bench/collector_ingest.py`` gives the ingest
+rate). The array views the received payload: no copy.
 """
 
 from __future__ import annotations
@@ -101,7 +102,7 @@ def format_rows(sensor: str, rows: Rows) -> str:
     """The .mbd text of many rows at once; byte-identical to ``mbd.format_row`` per row.
 
     Each row is laid out in fixed columns (seconds in ten, nanoseconds in nine, the
-    ",sensor,beacon," middle, the RSSI in four); where the widths differ between rows (an RSSI
+    ",sensor,beacon," middle, the RSSI in up to four); where the widths differ between rows (an RSSI
     of -100 among -60s, seconds before 2001) the unused columns hold zero bytes, dropped at the
     end.
     """
@@ -120,8 +121,9 @@ def format_rows(sensor: str, rows: Rows) -> str:
     width = _RSSI_WIDTH[rs]
     w = int(width[0])
     fixed = bool((width == w).all()) and sec.min() >= 10**9
-    cols = 47 + (w if fixed else 4) + 1
-    out = np.empty((n, cols), np.uint8)
+    middle = len(sensor) + 15  # ",sensor," and the beacon's 12 hex digits and ","
+    at = 20 + middle  # where the RSSI starts
+    out = np.empty((n, at + (w if fixed else 4) + 1), np.uint8)
     hi, lo = sec // 10_000, sec % 10_000
     out[:, 0:2] = _text(_DIGITS4, hi // 10_000, 2)
     out[:, 2:6] = _text(_DIGITS4, hi % 10_000, 4)
@@ -133,13 +135,13 @@ def format_rows(sensor: str, rows: Rows) -> str:
     out[:, 16:20] = _text(_DIGITS4, lo, 4)
     first, inverse = _beacons(rows)
     middles = "".join(f",{sensor},{rows['mac'][i].tobytes().hex()}," for i in first)
-    mid = np.frombuffer(middles.encode("ascii"), np.uint8).reshape(len(first), 27)
-    out[:, 20:47] = mid if inverse is None else mid[inverse]
+    mid = np.frombuffer(middles.encode("ascii"), np.uint8).reshape(len(first), middle)
+    out[:, 20:at] = mid if inverse is None else mid[inverse]
     out[:, -1] = ord("\n")
     if fixed:
-        out[:, 47 : 47 + w] = _text(_RSSI_TEXT, rs, w)
+        out[:, at : at + w] = _text(_RSSI_TEXT, rs, w)
         return out.tobytes().decode("ascii")
-    out[:, 47:51] = _text(_RSSI_TEXT, rs, 4)
+    out[:, at : at + 4] = _text(_RSSI_TEXT, rs, 4)
     out[sec < 10**9, 0] = 0  # nine-digit seconds: no leading digit
     flat: np.ndarray = out.ravel()
     kept: bytes = flat[flat != 0].tobytes()
