@@ -64,9 +64,9 @@ class RefineSettings:
     )
     moved_sigma: float = 6.0  # a surveyed marker this many sigma from the data loses its prior
     flag_sigma: float = 3.0  # ... and one that moved more than this is reported
-    # Each component of a camera's lens, readout and corner bias the capture did not show is held
-    # at its prior: its posterior sigma at least this share of its prior sigma (the rig's part no
-    # image shows, its mean over the cameras, is pinned by the gauge instead). What the
+    # Each component of a camera's rig pose, lens, readout and corner bias the capture did not
+    # show is held at its prior: its posterior sigma at least this share of its prior sigma (the
+    # rig's mean over the cameras, which no image shows, is pinned by the gauge besides). What the
     # capture did show takes the data's estimate, significant or not: holding every correction
     # under 3 posterior sigmas kept a focal length 0.27 % off and readouts 6-8 ms off on a
     # straight push (2.12 -> 1.51 cm median; docs/annotator.md, "Self-calibration", the gate).
