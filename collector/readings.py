@@ -10,6 +10,7 @@ rate). The array views the received payload: no copy.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -76,21 +77,29 @@ def plausible(rows: Rows) -> bool:
     )
 
 
-def _beacons(rows: Rows) -> tuple[np.ndarray, np.ndarray | None]:
-    """Each distinct beacon's first row, and each row's beacon (None: all rows hear one)."""
+class Beacons(NamedTuple):
+    """The beacons of a batch's rows: each one's first row, and each row's beacon (None: all
+    rows hear one). Found once per batch, used by the counts and the text alike."""
+
+    first: np.ndarray
+    inverse: np.ndarray | None
+
+
+def beacons(rows: Rows) -> Beacons:
+    """The distinct beacons of (non-empty) rows."""
     word = rows.view(_MAC_WORD)["w"] & _MAC_MASK
     if (word == word[0]).all():  # the common case: a sensor hears one beacon per batch
-        return np.zeros(1, np.intp), None
+        return Beacons(np.zeros(1, np.intp), None)
     _, first, inverse = np.unique(word, return_index=True, return_inverse=True)
-    return first, inverse
+    return Beacons(first, inverse)
 
 
-def count_beacons(rows: Rows) -> dict[bytes, list[int]]:
-    """{beacon: [readings, sum of RSSI]} of one batch's rows."""
+def count_beacons(rows: Rows, found: Beacons | None = None) -> dict[bytes, list[int]]:
+    """{beacon: [readings, sum of RSSI]} of one batch's rows (``found``: their ``beacons``)."""
     if not len(rows):
         return {}
     mac, rssi = rows["mac"], rows["rssi"]
-    first, inverse = _beacons(rows)
+    first, inverse = found if found is not None else beacons(rows)
     if inverse is None:
         return {mac[0].tobytes(): [len(rows), int(rssi.sum(dtype=np.int64))]}
     n = np.bincount(inverse)
@@ -98,8 +107,9 @@ def count_beacons(rows: Rows) -> dict[bytes, list[int]]:
     return {mac[i].tobytes(): [int(c), int(s)] for i, c, s in zip(first, n, sums, strict=True)}
 
 
-def format_rows(sensor: str, rows: Rows) -> str:
-    """The .mbd text of many rows at once; byte-identical to ``mbd.format_row`` per row.
+def format_rows(sensor: str, rows: Rows, found: Beacons | None = None) -> str:
+    """The .mbd text of many rows at once (``found``: their ``beacons``); byte-identical to
+    ``mbd.format_row`` per row, for rows the wire accepts (seconds of 9 or 10 digits).
 
     Each row is laid out in fixed columns (seconds in ten, nanoseconds in nine, the
     ",sensor,beacon," middle, the RSSI in up to four); where the widths differ between rows (an RSSI
@@ -111,11 +121,8 @@ def format_rows(sensor: str, rows: Rows) -> str:
         return ""
     t = rows["t"]
     sec = t // _SEC
-    if sec.min() < 10**8 or sec.max() >= 10**10:  # outside what the wire accepts: row by row
-        return "".join(
-            f"{ti // _SEC}.{ti % _SEC:09d},{sensor},{mac.hex()},{r}\n"
-            for ti, _m, mac, r in as_tuples(rows)
-        )
+    if sec.min() < 10**8:  # an int64 of ns holds at most ten digits of seconds
+        raise ValueError("format_rows: a timestamp outside the wire's years")
     ns = t - sec * _SEC
     rs = rows["rssi"].view(np.uint8)
     width = _RSSI_WIDTH[rs]
@@ -133,7 +140,7 @@ def format_rows(sensor: str, rows: Rows) -> str:
     out[:, 11:12] = _text(_DIGITS4, hi // 10_000, 1)
     out[:, 12:16] = _text(_DIGITS4, hi % 10_000, 4)
     out[:, 16:20] = _text(_DIGITS4, lo, 4)
-    first, inverse = _beacons(rows)
+    first, inverse = found if found is not None else beacons(rows)
     middles = "".join(f",{sensor},{rows['mac'][i].tobytes().hex()}," for i in first)
     mid = np.frombuffer(middles.encode("ascii"), np.uint8).reshape(len(first), middle)
     out[:, 20:at] = mid if inverse is None else mid[inverse]

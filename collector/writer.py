@@ -30,11 +30,9 @@ from collector.beacon_rates import report_drop
 from collector.config import CollectorConfig
 from collector.errors import CollectorError
 from collector.inbox import Inbox
-from collector.ingest import (
-    StreamTracker,
-)
+from collector.ingest import StreamTracker
 from collector.live_stats import SensorLive
-from collector.readings import count_beacons, format_rows
+from collector.readings import beacons, count_beacons, format_rows
 from collector.run_state import RunState
 from collector.store import STATE_FILE, FileWrite, RunWriter, is_disk_full, make_run_id
 from collector.summary import Counters, StatusView, run_summary
@@ -333,11 +331,12 @@ class Writer:
                 sl = live.get((b.agent_id, b.sensor))
                 if sl is None:
                     sl = live[(b.agent_id, b.sensor)] = SensorLive(b.agent_id)
-                counts = count_beacons(b.rows)
+                found = beacons(b.rows)
+                counts = count_beacons(b.rows, found)
                 for mac, drop in sl.add(now, b.rows, counts):
                     report_drop(b.agent_id, b.sensor, mac, drop)
                 if run is not None:
-                    text = format_rows(b.sensor, b.rows)
+                    text = format_rows(b.sensor, b.rows, found)
                     why = gate.quota(b.agent_id, len(b.rows), len(text), now)
                     if why is not None:
                         # Refused after the tracker took it: the seq counts as handled (nothing

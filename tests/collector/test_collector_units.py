@@ -15,7 +15,7 @@ from bgt_core.messages import Ack
 from collector.config import CollectorConfig, load_config
 from collector.errors import CollectorError, ConfigError
 from collector.ingest import RejectCounter, StreamTracker, decode, reject_reason
-from collector.readings import as_tuples, count_beacons, format_rows, from_tuples
+from collector.readings import as_tuples, beacons, count_beacons, format_rows, from_tuples
 from collector.store import RunWriter, clean_name, list_runs, make_run_id
 from collector_helpers import make_batch
 from full_disk import SwitchableDisk
@@ -145,13 +145,17 @@ def test_format_rows_of_any_plausible_rows_is_format_row() -> None:
             for _ in range(n)
         ]
         want = "".join(format_row(t, "aabbccddeeff", m.hex(), r) for t, _mono, m, r in rows)
-        assert format_rows("aabbccddeeff", from_tuples(rows)) == want
+        arr = from_tuples(rows)
+        assert format_rows("aabbccddeeff", arr) == want
+        assert format_rows("aabbccddeeff", arr, beacons(arr)) == want
         assert as_tuples(from_tuples(rows)) == rows
         counts: dict[bytes, list[int]] = {}
         for _t, _mono, m, r in rows:
             c = counts.setdefault(m, [0, 0])
             c[0], c[1] = c[0] + 1, c[1] + r
-        assert count_beacons(from_tuples(rows)) == counts
+        assert count_beacons(arr) == count_beacons(arr, beacons(arr)) == counts
+    with pytest.raises(ValueError, match="outside the wire"):
+        format_rows("aabbccddeeff", from_tuples([(10**16, 0, bytes(6), -50)]))
 
 
 # -- dedupe, gaps, watermarks --------------------------------------------------------------------
