@@ -7,7 +7,8 @@ are off by more than 3 px (a wrong contour), in bins of the marker's side length
 the outward error along image x and along image y (out-x, out-y; negative = the square looks
 narrower / shorter), also in bins of the square's on-screen width / height (foreshortening).
 
-    python bench/corner_bias.py RENDER/experiment.yaml [--downscale 1] [--edges | --no-edges] [--step 3]
+    python bench/corner_bias.py RENDER/experiment.yaml [--downscale 1] [--edges | --no-edges]
+        [--no-profile] [--step 3]
 
 A render made with field errors keeps its true map, rig and lenses in true/: those are projected.
 """
@@ -46,6 +47,12 @@ def main() -> None:
         "--board-px", type=float, default=None, help="board_refine_px (default: the detector's)"
     )
     ap.add_argument("--step", type=int, default=3, help="use every n-th frame")
+    ap.add_argument(
+        "--profile",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="finish the edge corners with the profile model (default: on, as the tracker)",
+    )
     a = ap.parse_args()
     exp = load_experiment(a.experiment)
     truth = read_trajectory(Path(a.experiment).parent / "truth.csv")
@@ -58,7 +65,10 @@ def main() -> None:
     for name, cam in exp.rig.cameras.items():
         cal = cam.calibration
         settings = DetectorSettings(
-            downscale=a.downscale, edge_corners=a.edges, board_refine_px=a.board_px
+            downscale=a.downscale,
+            edge_corners=a.edges,
+            board_refine_px=a.board_px,
+            profile_corners=a.profile,
         )
         det = MarkerDetector(settings, room, cal)
         cap = cv2.VideoCapture(str(exp.videos[name]))

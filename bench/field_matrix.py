@@ -29,7 +29,10 @@ the exact truth. Cells:
 
 With `--sync slate` every camera also films the clock slate (`collector slate`, a 60 Hz screen
 with a random refresh phase) for a second before and after the walk, and `annotator run` uses
-`sync.mode: slate` (the covers stay: readings under them are not labelled).
+`sync.mode: slate` (the covers stay: readings under them are not labelled). With `--receiver`
+the radio runs the other way: the bundle carries a receiver 10 cm above its beacon, a beacon
+advertises at each of the site's 12 sensor positions, and every reading the receiver took is
+labelled with its antenna's position and scored against where that antenna truly was.
 
 Columns per row: posed share of the frames outside the covers; trajectory error median and p95
 (cm); rotation error median (deg); share of posed rows within 2.8 sigma_m (~95 % for an honest
@@ -61,12 +64,20 @@ from annotator.core.evaluate import compare_to_truth  # noqa: E402
 from annotator.io.trajectory import read_trajectory  # noqa: E402
 from annotator.render import render_experiment  # noqa: E402
 from annotator.render.conditions import IMAGING_NOISE, IMAGING_PRESETS, path_trajectory  # noqa: E402
-from annotator.render.rssi import COVER_RAMP_S, write_simulated_run  # noqa: E402
+from annotator.render.rssi import (  # noqa: E402
+    COVER_RAMP_S,
+    RECEIVER_ANTENNA,
+    RECEIVER_MAC,
+    add_receiver,
+    write_simulated_run,
+)
 from bgt_core import safe_yaml  # noqa: E402
 
 TRUE_READOUT_S = float(fa.FIELD["readout"])
 COVER_S = 1.5  # hands over the bundle at 2 s and 3 s before the end, this long
 SLATE = {"s": 0.0}  # seconds of clock slate at each end (--sync slate: 1)
+RECEIVER = {"on": False}  # --receiver: the bundle carries a receiver; the site's sensors beacon
+PROFILE = {"on": False}  # --profile-corners: the detector's profile model (off by default)
 
 
 def covers(duration: float) -> list[tuple[float, float]]:
@@ -168,11 +179,14 @@ def make_experiment(
         covers=covers(duration),
         seed=seed,
         rate_hz=rssi_rate,
+        receiver=RECEIVER_MAC if RECEIVER["on"] else None,
     )
     doc = safe_yaml.load_file(exp)
     doc["rssi"] = "run"
     doc["sync"] = {"mode": "slate" if SLATE["s"] else "auto"}
     exp.write_text(safe_yaml.dump(doc, sort_keys=False), encoding="utf-8")
+    if RECEIVER["on"]:
+        add_receiver(exp)
     return exp
 
 
@@ -203,11 +217,14 @@ def run_and_score(exp: Path, cell: Cell, duration: float, seed: int, jobs: int) 
     from annotator.commands.run import write_run_outputs
     from annotator.io.experiment import load_experiment
     from annotator.pipeline import RunSettings, TrackSettings, run_experiment
+    from annotator.vision.detection import DetectorSettings
 
     t = time.perf_counter()
     experiment = load_experiment(exp)
     try:
-        run = run_experiment(experiment, RunSettings(track=TrackSettings(jobs=jobs)))
+        detector = DetectorSettings(profile_corners=PROFILE["on"])
+        track = TrackSettings(jobs=jobs, detector=detector)
+        run = run_experiment(experiment, RunSettings(track=track))
     except Exception as e:  # noqa: BLE001 - a failed cell is a row, not the end of the bench
         print(f"{cell.name} seed {seed}: annotator run failed: {e}", flush=True)
         nan = float("nan")
@@ -248,9 +265,12 @@ def score(
     ok = np.isfinite(cmp.position_error)
     err = cmp.position_error[ok]
     sigma = traj.quality["sigma_m"][ok]
-    # labelled readings against the walk at their own time
+    # labelled readings against the walk at their own time: where the bundle's beacon was, or
+    # in receiver mode its receiver's antenna
     labels = pd.read_parquet(results / "annotated.parquet")
-    true_pos, _ = cell_walk(cell)(labels["t_ns"].to_numpy() / 1e9)
+    true_pos, true_rot = cell_walk(cell)(labels["t_ns"].to_numpy() / 1e9)
+    if RECEIVER["on"]:
+        true_pos = true_pos + true_rot.apply(np.asarray(RECEIVER_ANTENNA, float))
     lerr = np.linalg.norm(labels[["x", "y", "z"]].to_numpy() - true_pos, axis=1)
     lsig = labels["pos_sigma"].to_numpy()
     refined = report.get("refinement", {})
@@ -374,8 +394,22 @@ def main() -> None:
         help="how the videos are put on the RSSI clock: the hands cover (sync.mode: auto) or the "
         "clock slate filmed for 1 s at each end (sync.mode: slate)",
     )
+    ap.add_argument(
+        "--receiver",
+        action="store_true",
+        help="receiver mode: the bundle carries a receiver (10 cm above its beacon) and a beacon "
+        "sits at each of the site's 12 sensor positions; every reading the receiver took is "
+        "labelled with its antenna's position",
+    )
+    ap.add_argument(
+        "--profile-corners",
+        action="store_true",
+        help="track with the detector's profile model (annotator track --profile-corners)",
+    )
     args = ap.parse_args()
     SLATE["s"] = 1.0 if args.sync == "slate" else 0.0
+    RECEIVER["on"] = args.receiver
+    PROFILE["on"] = args.profile_corners
     names = [c.strip() for c in args.cells.split(",") if c.strip()]
     unknown = [n for n in names if n not in CELLS]
     if unknown:
@@ -386,7 +420,9 @@ def main() -> None:
     rows: list[MatrixRow] = []
     print(
         f"walks of {args.duration:g} s, every field error on, RSSI {args.rssi_rate:g} adverts/s, "
-        f"sync by the {args.sync}; cells {', '.join(names)}"
+        f"sync by the {args.sync}{', receiver mode' if args.receiver else ''}"
+        f"{', profile corners' if args.profile_corners else ''}; cells "
+        f"{', '.join(names)}"
     )
     print(HEADER, flush=True)
     try:

@@ -96,12 +96,22 @@ def track(
         bool | None,
         typer.Option(
             help="Place each corner where the fitted outer edges of the marker's black square meet "
-            "(unbiased for small and large markers; see docs/annotator.md, 'Corners: the window's "
-            "and the edge fit'). Default: on where detection runs on a downscaled copy "
-            "(frames wider than 1280 px), off otherwise.",
+            "(unbiased for small and large markers; see docs/annotator.md, 'Corners'). Default: "
+            "on where detection runs on a downscaled copy (frames wider than 1280 px) or with "
+            "--profile-corners, off otherwise.",
             show_default=False,
         ),
     ] = None,
+    profile_corners: Annotated[
+        bool,
+        typer.Option(
+            help="Finish the edge corners of small markers with a model of the blurred image "
+            "across each side, the marker's own bits included: unbiased on small and blurred "
+            "markers, where the edge fit is pulled 0.1-0.4 px inward. It finds the printed size "
+            "and helps fast walks, costs ~3x the detection time, and on slow walks it has not "
+            "yet beaten the default (docs/annotator.md, 'Corners').",
+        ),
+    ] = False,
     joint: Annotated[
         bool,
         typer.Option(
@@ -169,6 +179,7 @@ def track(
                 board_refine=board_refine,
                 threshold_windows=(3, 23, 10) if thorough_detect else (7, 7, 10),
                 edge_corners=edge_corners,
+                profile_corners=profile_corners,
             ),
             paper=PaperSettings(
                 frames=batch_frames, close=close, keep=keep, q=q, process=process_noise

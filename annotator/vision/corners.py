@@ -82,7 +82,7 @@ def _one_pass(
         & (flat[..., 1] >= 0)
         & (flat[..., 1] <= h - 1)
     ).all(axis=1)
-    prof = _bilinear(img, flat).reshape(n, 4, m, k)
+    prof = bilinear(img, flat).reshape(n, 4, m, k)
     grad = np.clip(np.diff(prof, axis=3), 0, None)
     centres = (_ACROSS[1:] + _ACROSS[:-1]) / 2  # (k-1,)
     total = grad.sum(axis=3)
@@ -91,14 +91,14 @@ def _one_pass(
     valid = (contrast > _MIN_CONTRAST) & inside.reshape(n, 4, m)
     edge = base + offset[..., None] * normal
     xy = undistort_points(cal, edge)  # (n, 4, m, 2) normalised
-    nrm, c, wsum = _fit_lines(xy, valid.astype(float))
+    nrm, c, wsum = fit_lines(xy, valid.astype(float))
     # Robust pass: drop points far off their first line.
     res = np.abs(np.einsum("nkmj,nkj->nkm", xy, nrm) - c[..., None])
     ranked = np.sort(np.where(valid, res, np.inf), axis=2)
     middle = np.minimum(valid.sum(axis=2, keepdims=True) // 2, m - 1)
     scale = np.take_along_axis(ranked, middle, axis=2)  # median residual of the valid points
     keep = valid & (res <= np.maximum(3 * np.where(np.isfinite(scale), scale, 0), 1e-6))
-    nrm, c, wsum = _fit_lines(xy, keep.astype(float))
+    nrm, c, wsum = fit_lines(xy, keep.astype(float))
     good = (keep.sum(axis=2) >= _MIN_POINTS).all(axis=1)
     # Corner i is where side i-1 meets side i.
     n1, c1 = np.roll(nrm, 1, axis=1), np.roll(c, 1, axis=1)
@@ -113,7 +113,7 @@ def _one_pass(
     return np.where(good[:, None, None], out, pts), good
 
 
-def _bilinear(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def bilinear(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Image values at sub-pixel points (..., 2), bilinear, clamped to the frame."""
     h, w = img.shape[:2]
     x = np.clip(xy[..., 0], 0, w - 1.001)
@@ -130,7 +130,7 @@ def _bilinear(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return top + fy * (v10 + fx * (v11 - v10) - top)
 
 
-def _fit_lines(xy: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fit_lines(xy: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Total-least-squares lines n . p = c through weighted points (..., m, 2)."""
     wsum = w.sum(axis=-1)
     mean = (xy * w[..., None]).sum(axis=-2) / np.maximum(wsum, 1e-12)[..., None]

@@ -15,6 +15,7 @@ import numpy as np
 from annotator.core.experiment import CameraCalibration
 from annotator.vision.corners import refine_corners_by_edges
 from annotator.vision.geometry import MarkerRoom
+from annotator.vision.profile_corners import marker_bits, profile_corners
 
 _REFINE = {
     "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
@@ -59,20 +60,25 @@ class DetectorSettings:
     # AUTO_MAX_WIDTH, e.g. 1080p), where cornerSubPix's size-dependent bias made the
     # self-calibration take a clean 1080p capture from 0.04 to ~1 cm; off at full-size detection,
     # where on the 960x540 field renders it is a wash (better on average over five seeds, worse on
-    # some); the self-calibration measures with them there too (edge_corners_for_refine). See
-    # docs/annotator.md, "Corners: the window's and the edge fit".
+    # some); the self-calibration measures with them there too (edge_corners_for_refine); on
+    # with profile_corners. See docs/annotator.md, "Corners".
     edge_corners: bool | None = None
+    # Finish the edge-fit corners with the profile model (annotator.vision.profile_corners): each
+    # side's blurred image fitted with the marker's own bits, which stays on the edge where the
+    # bits and the quiet zone's end pull the edge fit (small or blurred markers); a marker the
+    # model does not fit keeps the edge fit's corners. Off by default: on the field matrix it
+    # finds the printed size and cuts the fast walks' error, but the other cells came out
+    # 0.02-0.07 cm worse, and detection costs about 3x (docs/annotator.md, "Corners").
+    profile_corners: bool = False
     # Board refinement accepts a projected marker this close (full-resolution pixels) to a
     # candidate; a wide one lets it take a small marker's inner contour, one cell in.
-    # None: EDGE_BOARD_REFINE_PX with edge corners, else OpenCV's 10 px in the detection image.
+    # None: EDGE_BOARD_REFINE_PX with edge corners, else OpenCV's 10 px in the detection image;
+    # and 10 px with the profile model at full size (more markers found).
     board_refine_px: float | None = None
-    # Where the corners above are the window's, fit the edge corners too, for the
-    # self-calibration alone (Detections.edge; +0.8-1 ms CPU per frame). The window corner's bias
+    # Where the corners above are the window's, fit the edge corners (and profile corners, when
+    # asked for) too, for the self-calibration alone (Detections.edge). The window corner's bias
     # grows as a marker shrinks in the image, and a free map reads it as markers farther away:
     # on clean 960x540 walks a few markers took corrections of 1-2 cm and the trajectory 0.5 cm.
-    # The edge corner has no such bias on sharp frames but is pulled inward on blurred small
-    # markers, so the final pass, which also uses blurred frames, keeps the window corners
-    # (docs/annotator.md, "Corners: the window's and the edge fit").
     edge_corners_for_refine: bool = False
     # Where detection runs on a downscaled copy, look again at full resolution where the markers
     # found put the map's others (a pose from two or more found markers): a 30 px marker is
@@ -126,14 +132,17 @@ class MarkerDetector:
             raise ValueError("downscale must be in (0, 1]")
         self.settings = settings
         self.scale = s
-        self.edge_corners = s < 1 if settings.edge_corners is None else settings.edge_corners
+        edges = s < 1 or settings.profile_corners
+        self.edge_corners = edges if settings.edge_corners is None else settings.edge_corners
         self.room = room
         self.calibration = calibration
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, settings.dictionary))
+        self._dictionary = dictionary
+        self._bits: dict[int, np.ndarray] = {}
         # When corners are refined at full resolution afterwards, skip the detector's own refinement.
         refine = _REFINE["none" if s < 1 else settings.corner_refine]
         board_px = settings.board_refine_px
-        if board_px is None and self.edge_corners:
+        if board_px is None and self.edge_corners and (s < 1 or not settings.profile_corners):
             board_px = EDGE_BOARD_REFINE_PX
         rep = 10.0 if board_px is None else max(1.0, board_px * s)
         self._detector = _aruco_detector(dictionary, refine, settings.threshold_windows, rep)
@@ -181,6 +190,16 @@ class MarkerDetector:
         ).astype(np.int32)
         return tuple(new_corners), new_ids, rejected
 
+    def _profiled(self, gray: np.ndarray, ids: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        """``pts`` (edge-fit corners of markers ``ids``) finished by the profile model."""
+        if not self.settings.profile_corners or len(ids) == 0:
+            return np.asarray(pts, np.float64)
+        for i in ids:
+            if int(i) not in self._bits:
+                self._bits[int(i)] = marker_bits(self._dictionary, int(i))
+        bits = np.stack([self._bits[int(i)] for i in ids])
+        return profile_corners(gray, pts, bits, self.calibration)[0]
+
     def _known(self, ids: np.ndarray | None) -> int:
         return 0 if ids is None else int(np.count_nonzero(self.room.index(ids.reshape(-1)) >= 0))
 
@@ -224,7 +243,8 @@ class MarkerDetector:
         if self._roi is not None:
             ids, pts = self._search_predicted(gray, ids, pts)
         if self.edge_corners:
-            pts = refine_corners_by_edges(gray, pts, self.calibration).astype(np.float32)
+            pts = refine_corners_by_edges(gray, pts, self.calibration)
+            pts = self._profiled(gray, ids, pts).astype(np.float32)
         # A marker detected twice (reflections, refine) keeps its first copy only.
         _, first = np.unique(ids, return_index=True)
         first.sort()
@@ -232,7 +252,9 @@ class MarkerDetector:
         corners = pts[keep].astype(np.float64)
         edge = None
         if not self.edge_corners and self.settings.edge_corners_for_refine:
-            edge = refine_corners_by_edges(gray, corners, self.calibration)
+            edge = self._profiled(
+                gray, ids[keep], refine_corners_by_edges(gray, corners, self.calibration)
+            )
         return Detections(ids[keep].astype(int), corners, edge)
 
     def _search_predicted(

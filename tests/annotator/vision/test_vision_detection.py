@@ -199,6 +199,9 @@ def test_edge_corners_default_to_on_only_where_detection_is_downscaled():
         assert (det.scale, det.edge_corners) == (scale, edges)
         forced = MarkerDetector(DetectorSettings(edge_corners=not edges), room, cal)
         assert forced.edge_corners is (not edges)
+        # The profile model finishes edge corners: asking for it turns them on at any scale.
+        profiled = MarkerDetector(DetectorSettings(profile_corners=True), room, cal)
+        assert profiled.edge_corners is True
 
 
 def test_a_quad_inside_a_larger_one_is_a_misread_and_is_dropped():
