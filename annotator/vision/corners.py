@@ -75,13 +75,7 @@ def _one_pass(
     grid = base[:, :, :, None, :] + offs[:, :, None, :, None] * normal[:, :, :, None, :]
     n, k = len(pts), len(_ACROSS)
     flat = grid.reshape(-1, k, 2)
-    h, w = img.shape[:2]
-    inside = (
-        (flat[..., 0] >= 0)
-        & (flat[..., 0] <= w - 1)
-        & (flat[..., 1] >= 0)
-        & (flat[..., 1] <= h - 1)
-    ).all(axis=1)
+    inside = in_frame(flat, img.shape).all(axis=1)
     prof = bilinear(img, flat).reshape(n, 4, m, k)
     grad = np.clip(np.diff(prof, axis=3), 0, None)
     centres = (_ACROSS[1:] + _ACROSS[:-1]) / 2  # (k-1,)
@@ -111,6 +105,13 @@ def _one_pass(
     out = project_points(cal, ray)
     good &= np.isfinite(out).all(axis=(1, 2))
     return np.where(good[:, None, None], out, pts), good
+
+
+def in_frame(xy: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Which sub-pixel points (..., 2) lie inside an image of ``shape`` (rows, columns, ...)."""
+    h, w = shape[:2]
+    x, y = xy[..., 0], xy[..., 1]
+    return (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
 
 
 def bilinear(img: np.ndarray, xy: np.ndarray) -> np.ndarray:

@@ -34,7 +34,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from annotator.core.experiment import CameraCalibration
-from annotator.vision.corners import MARKER_CELLS, bilinear, fit_lines
+from annotator.vision.corners import MARKER_CELLS, bilinear, fit_lines, in_frame
 from annotator.vision.lens import project_points, undistort_points
 
 BITS = MARKER_CELLS - 2  # 6x6 data bits
@@ -252,13 +252,7 @@ def _one_round(
     cell = np.abs(out)  # (n, 4, m): a cell's width across the side at each sample, px
     xs = _ACROSS * cell[..., None]  # (n, 4, m, K)
     grid = base[:, :, :, None, :] + xs[..., None] * normal[:, :, :, None, :]
-    h, w = gray.shape[:2]
-    inside = (
-        (grid[..., 0] >= 0)
-        & (grid[..., 0] <= w - 1)
-        & (grid[..., 1] >= 0)
-        & (grid[..., 1] <= h - 1)
-    ).all(axis=(1, 2, 3))
+    inside = in_frame(grid, gray.shape).all(axis=(1, 2, 3))
     obs = bilinear(gray, grid.reshape(-1, 2)).reshape(xs.shape)
     flat = obs.reshape(n, -1)
     S = np.zeros((n, 4, 5))  # per side: offset, tilt, cell scale, wall level, quiet zone
