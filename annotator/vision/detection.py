@@ -75,10 +75,13 @@ class DetectorSettings:
     # None: EDGE_BOARD_REFINE_PX with edge corners, else OpenCV's 10 px in the detection image;
     # and 10 px with the profile model at full size (more markers found).
     board_refine_px: float | None = None
-    # Where the corners above are the window's, fit the edge corners (and profile corners, when
-    # asked for) too, for the self-calibration alone (Detections.edge). The window corner's bias
+    # Where the corners above are the window's, fit the edge corners too, for the
+    # self-calibration alone (Detections.edge; +0.8-1 ms CPU per frame). The window corner's bias
     # grows as a marker shrinks in the image, and a free map reads it as markers farther away:
     # on clean 960x540 walks a few markers took corrections of 1-2 cm and the trajectory 0.5 cm.
+    # The edge corner has no such bias on sharp frames but is pulled inward on blurred small
+    # markers, so the final pass, which also uses blurred frames, keeps the window corners
+    # (docs/annotator.md, "Corners"; the profile model, when asked for, finishes these too).
     edge_corners_for_refine: bool = False
     # Where detection runs on a downscaled copy, look again at full resolution where the markers
     # found put the map's others (a pose from two or more found markers): a 30 px marker is
