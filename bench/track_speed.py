@@ -102,6 +102,7 @@ def main() -> None:
         variants = [  # the defaults first, then what each option costs
             ("default (auto: half-res, 1 threshold)", DetectorSettings(dictionary=d)),
             ("--no-board-refine", DetectorSettings(dictionary=d, board_refine=False)),
+            ("--profile-corners", DetectorSettings(dictionary=d, profile_corners=True)),
             ("--thorough-detect", DetectorSettings(dictionary=d, threshold_windows=(3, 23, 10))),
             ("--downscale 1", DetectorSettings(dictionary=d, downscale=1.0)),
             (
