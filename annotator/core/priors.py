@@ -203,6 +203,10 @@ def _jig(obj: Any, source: str) -> Jig | None:
     )
 
 
+# ParameterCovariance.joint_index's key of the markers' printed size (relative, one for all).
+PRINTED_SCALE: tuple[str, str] = ("scale", "printed")
+
+
 @dataclass(frozen=True, eq=False)
 class ParameterCovariance:
     """Uncertainty of the static parameters the tracker uses (conventions in the module doc)."""
@@ -217,7 +221,8 @@ class ParameterCovariance:
     # After refinement: the joint covariance of the refined parameters as the trajectory sees them
     # (refine.solver._solve: the rig's gauge and the markers' floors included), and the rows of each block
     # in it keyed (kind, marker id or camera) with kind one of markers, rig, intrinsics,
-    # distortion, readout, bias (the detector's corner bias, px). A block without an entry is
+    # distortion, readout, bias (the detector's corner bias, px), and PRINTED_SCALE: the markers'
+    # printed size relative to the length used, one for all. A block without an entry is
     # independent of the rest.
     joint: np.ndarray | None = None
     joint_index: dict[tuple[str, int | str], np.ndarray] = field(default_factory=dict)

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from annotator.core.priors import ParameterCovariance
+from annotator.core.priors import PRINTED_SCALE, ParameterCovariance
 from annotator.core.refine.gate import _rigid_basis
 from annotator.core.refine.lm import _LM
 from annotator.core.refine.model import (
@@ -17,6 +17,7 @@ from annotator.core.refine.model import (
     INTR,
     READOUT,
     RIG,
+    SCALE,
     Problem,
     _Layout,
 )
@@ -109,6 +110,8 @@ def _joint_index(layout: _Layout, prob: Problem) -> dict[tuple[str, int | str], 
             if name in sl:
                 o, _, size = sl[name]
                 index[kind, cam.name] = np.arange(o + c * size, o + (c + 1) * size)
+    if SCALE in sl:  # the markers' printed size, one for all: relative to the length used
+        index[PRINTED_SCALE] = np.array([sl[SCALE][0]])
     return index
 
 

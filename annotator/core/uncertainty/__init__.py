@@ -29,7 +29,8 @@ along the direction of motion only. Per axis, as every other part of sigma_m (th
 and z), that is ``sigma_blur_m`` = speed x exposure / sqrt(12) / sqrt(3) = speed x exposure / 6.
 
 With a refinement's record (``ParameterCovariance.joint``), A Sigma A^T runs over every block at
-once (markers, rig, intrinsics and distortion, readout, and the detector's corner bias), with the
+once (markers, rig, intrinsics and distortion, readout, the detector's corner bias and the markers'
+printed size when the refinement estimated it), with the
 refinement's cross-covariances: the surveyed markers fix where the map sits in the room together,
 so that error is common to every marker and a frame that sees many markers keeps all of it, while
 a principal point shift and a turn of that camera in the rig, fitted to the same corners, largely

@@ -15,7 +15,7 @@ from scipy.linalg import block_diag
 from scipy.spatial.transform import Rotation
 
 from annotator.core.experiment import CameraCalibration, Experiment
-from annotator.core.priors import ParameterCovariance
+from annotator.core.priors import PRINTED_SCALE, ParameterCovariance
 from annotator.core.rolling_shutter import row_delay
 from annotator.core.uncertainty.records import BLOCKS, UncertaintySettings, VideoFrames
 from annotator.vision.geometry import MarkerRoom, marker_corners_local
@@ -124,6 +124,7 @@ class ViewBlock:
     Bi: np.ndarray  # (2m, 4)
     Bro: np.ndarray  # (2m,)
     Bb: np.ndarray  # (2m,) w.r.t. the detector's corner bias (px along each square's diagonal)
+    Bs: np.ndarray  # (2m,) w.r.t. the markers' printed size (relative; every mapped marker's)
     inner: np.ndarray  # (n,) per marker: residual energy left after its own rigid motion
     speed: np.ndarray  # (m,) image speed, px/s
     n_markers: int
@@ -212,6 +213,10 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
         if getattr(params, "joint", None) is not None
         else np.zeros(pix.size)
     )
+    # Printed size: a relative change s of every marker's side moves each corner by s times its
+    # offset from the marker's centre (the map's markers only).
+    Bs = np.einsum("mij,mj->mi", a, rel).reshape(-1)
+    Bs[np.repeat(~np.isin(ids, list(params.markers)), 8)] = 0.0
     return ViewBlock(
         v.camera,
         r.reshape(-1),
@@ -221,6 +226,7 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
         Bi,
         Bro,
         Bb,
+        Bs,
         inner,
         np.linalg.norm(img_vel, axis=1),
         len(ids),
@@ -368,9 +374,10 @@ def _row_joint(
     width: Mapping[str, int],
     n0: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The row's parameter covariance over the columns of B (BLOCKS order, then the corner bias,
-    added to B here): each block's own L L^T, overwritten wherever the joint record has the rows
-    (cross-block terms included); and each column's row in the record (-1: none)."""
+    """The row's parameter covariance over the columns of B (BLOCKS order, then the corner bias and
+    the printed size, added to B here): each block's own L L^T, overwritten wherever the joint
+    record has the rows (cross-block terms included); and each column's row in the record (-1:
+    none)."""
     assert params.joint is not None
     where = [
         _joint_rows(params, "markers", mids, [6] * len(mids)),
@@ -399,6 +406,11 @@ def _row_joint(
         B["bias"] = Bb
         roots.append(np.zeros((len(cams), len(cams))))
         where.append(bias_at)
+    scale_at = params.joint_index.get(PRINTED_SCALE)
+    if scale_at is not None and len(scale_at) == 1:
+        B["scale"] = np.concatenate([b.Bs for b in blocks])[:, None]
+        roots.append(np.zeros((1, 1)))
+        where.append(np.asarray(scale_at, int))
     cov = block_diag(*[Lk @ Lk.T for Lk in roots])
     idx = np.concatenate(
         [np.zeros(0, int)] + [w for w, Lk in zip(where, roots, strict=True) if Lk.shape[0]]
@@ -456,7 +468,8 @@ def _joint_sensitivity(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(6, k) pose change (rotation, position) per unit error of each column of jac.joint, and
     those columns' weighted residual Jacobian (m, k)."""
-    names = [b for b in (*BLOCKS, "bias") if b in jac.B and (b == "bias" or b in jac.L)]
+    extra = ("bias", "scale")  # columns only a joint record has (_row_joint)
+    names = [b for b in (*BLOCKS, *extra) if b in jac.B and (b in extra or b in jac.L)]
     Bw = np.concatenate([jac.B[b] for b in names], axis=1) * sw[:, None]
     return Hinv @ (Jw.T @ Bw), Bw
 

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from annotator.core.priors import MarkerPrior, Priors
+from annotator.core.priors import PRINTED_SCALE, MarkerPrior, Priors
 from annotator.core.refine import (
     CameraParams,
     FrameView,
@@ -644,6 +645,11 @@ def test_markers_printed_one_percent_large_come_back_within_their_sigma():
     two = _printed_scene(1.02)
     assert two.length_scale_determined
     assert abs(two.length_scale - 1.02) < 2.5 * two.length_scale_sigma
+    # The trajectory's sigma inherits it: the joint record holds the printed size's row.
+    cov = two.covariance
+    assert cov.joint is not None
+    (row,) = cov.joint_index[PRINTED_SCALE]
+    assert math.sqrt(cov.joint[row, row]) == pytest.approx(two.length_scale_sigma, rel=0.05)
 
 
 def test_markers_printed_exactly_keep_the_stated_length():
@@ -657,6 +663,7 @@ def test_no_length_sigma_no_scale_estimated():
     _, sol = _solve(survey_map, cams, keyframes, length)
     assert sol.length_scale == 1.0
     assert np.isnan(sol.length_scale_sigma)
+    assert PRINTED_SCALE not in sol.covariance.joint_index
 
 
 def _moving_keyframes(delay_s: float, seed: int = 0) -> tuple:

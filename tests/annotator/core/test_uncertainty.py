@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from annotator.core.experiment import CameraCalibration, Experiment, MarkerSetup, Rig
-from annotator.core.priors import ParameterCovariance, Priors
+from annotator.core.priors import PRINTED_SCALE, ParameterCovariance, Priors
 from annotator.core.uncertainty import (
     BLOCKS,
     FrameView,
@@ -358,6 +358,41 @@ def test_a_map_error_shared_by_every_marker_is_not_averaged_away():
     assert want == pytest.approx(spread, rel=0.15)
     assert want > 0.009  # the shared centimetre, in full
     assert _map_sigma(room, rig, R, p, dets, record, joint=False) != pytest.approx(spread, rel=0.2)
+
+
+def test_the_printed_size_s_uncertainty_moves_the_pose_as_a_misprinted_map_does():
+    """A refined record whose markers' printed size is known to 0.3 %: the pose's sigma from it
+    matches the spread of solves whose markers are all printed that much off (the corners move
+    along each marker's own face, so the camera's distance to every marker changes; with markers
+    on every side most of it cancels, leaving a tenth of a millimetre here). A record without
+    the printed size's row leaves that part out."""
+    room, rig, R, p, dets = _scene()
+    base = _map_record(room, rig, common_m=0.0, own_m=1e-6)
+    n = len(base.joint)
+    joint = np.zeros((n + 1, n + 1))
+    joint[:n, :n] = base.joint
+    sigma_scale = 0.003
+    joint[n, n] = sigma_scale**2
+    index = dict(base.joint_index) | {PRINTED_SCALE: np.array([n])}
+    record = ParameterCovariance(
+        base.markers, base.rig, base.intrinsics, joint=joint, joint_index=index
+    )
+    want = _map_sigma(room, rig, R, p, dets, record, joint=True)
+    rng = np.random.default_rng(11)
+    errs = []
+    for ds in sigma_scale * rng.standard_normal(N_DRAWS):
+        length = room.length * (1 + ds)
+        corners = (
+            np.einsum("mij,kj->mki", room.R_world_marker, marker_corners_local(length))
+            + room.t_world_marker[:, None]
+        )
+        printed = MarkerRoom(room.ids, room.R_world_marker, room.t_world_marker, corners, length)
+        errs.append(_solve(printed, rig, dets, R, p) - p)
+    spread = _per_axis(errs)
+    assert spread > 5e-5  # not vacuous
+    without = _map_sigma(room, rig, R, p, dets, base, joint=True)  # the markers' own 0.1 deg
+    assert without < want
+    assert np.sqrt(want**2 - without**2) == pytest.approx(spread, rel=0.15)
 
 
 def test_a_rest_at_a_known_pose_takes_out_what_it_pins():
