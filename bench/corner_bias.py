@@ -51,7 +51,7 @@ def main() -> None:
         "--profile",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="finish the edge corners with the profile model (default: on, as the tracker)",
+        help="finish the edge corners with the profile model (default: on; the tracker only with --profile-corners)",
     )
     a = ap.parse_args()
     exp = load_experiment(a.experiment)

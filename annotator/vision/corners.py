@@ -94,17 +94,25 @@ def _one_pass(
     keep = valid & (res <= np.maximum(3 * np.where(np.isfinite(scale), scale, 0), 1e-6))
     nrm, c, wsum = fit_lines(xy, keep.astype(float))
     good = (keep.sum(axis=2) >= _MIN_POINTS).all(axis=1)
-    # Corner i is where side i-1 meets side i.
+    out, met = corners_from_sides(nrm, c, cal)
+    good &= met
+    return np.where(good[:, None, None], out, pts), good
+
+
+def corners_from_sides(
+    nrm: np.ndarray, c: np.ndarray, cal: CameraCalibration
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each square's corners (n, 4, 2), distorted pixels, from its four side lines n . p = c in
+    normalised coordinates (corner i is where side i-1 meets side i); and which squares' sides
+    all meet at a clear angle and project to finite pixels (n,)."""
     n1, c1 = np.roll(nrm, 1, axis=1), np.roll(c, 1, axis=1)
     det = n1[..., 0] * nrm[..., 1] - n1[..., 1] * nrm[..., 0]
-    good &= (np.abs(det) > 0.05).all(axis=1)
+    good = (np.abs(det) > 0.05).all(axis=1)
     det = np.where(np.abs(det) > 1e-12, det, 1.0)
     x = (c1 * nrm[..., 1] - n1[..., 1] * c) / det
     y = (n1[..., 0] * c - c1 * nrm[..., 0]) / det
-    ray = np.stack([x, y, np.ones_like(x)], axis=-1)
-    out = project_points(cal, ray)
-    good &= np.isfinite(out).all(axis=(1, 2))
-    return np.where(good[:, None, None], out, pts), good
+    out = project_points(cal, np.stack([x, y, np.ones_like(x)], axis=-1))
+    return out, good & np.isfinite(out).all(axis=(1, 2))
 
 
 def in_frame(xy: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:

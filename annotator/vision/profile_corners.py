@@ -20,7 +20,7 @@ sigma turns that into a sum of error functions. Per marker, a least-squares fit 
   how bright the wall beyond it is.
 
 Each side's fitted offsets are undistorted, a line is fitted through them, and adjacent lines
-are intersected (as in :mod:`annotator.vision.corners`).
+are intersected (:func:`annotator.vision.corners.corners_from_sides`).
 
 Only the bits and a symmetric blur are assumed. No quiet-zone width, no contrast and no lighting
 are assumed. A marker the model does not fit (too small to resolve its cells, cut by the frame, a
@@ -34,7 +34,13 @@ import numpy as np
 from scipy.special import ndtr
 
 from annotator.core.experiment import CameraCalibration
-from annotator.vision.corners import MARKER_CELLS, bilinear, fit_lines, in_frame
+from annotator.vision.corners import (
+    MARKER_CELLS,
+    bilinear,
+    corners_from_sides,
+    fit_lines,
+    in_frame,
+)
 from annotator.vision.lens import project_points, undistort_points
 
 BITS = MARKER_CELLS - 2  # 6x6 data bits
@@ -267,22 +273,16 @@ def _one_round(
     offset = S[..., 0, None] + S[..., 1, None] * (_ALONG - 0.5)  # (n, 4, m) px
     xy = undistort_points(cal, base + offset[..., None] * normal)
     nrm, c, _ = fit_lines(xy, np.ones(xy.shape[:3]))
-    n1, c1 = np.roll(nrm, 1, axis=1), np.roll(c, 1, axis=1)
-    det = n1[..., 0] * nrm[..., 1] - n1[..., 1] * nrm[..., 0]
+    out, met = corners_from_sides(nrm, c, cal)
     contrast = P[:, 2] - P[:, 1]
     good = (
-        inside
+        met
+        & inside
         & (cell.min(axis=(1, 2)) >= _MIN_CELL_PX)
         & (contrast > _MIN_CONTRAST)
         & (rms < _MAX_RMS * np.maximum(contrast, 1e-9))
         & (np.abs(offset).max(axis=(1, 2)) < np.maximum(1.0, cell.min(axis=(1, 2))))
-        & (np.abs(det) > 0.05).all(axis=1)
     )
-    det = np.where(np.abs(det) > 1e-12, det, 1.0)
-    x = (c1 * nrm[..., 1] - n1[..., 1] * c) / det
-    y = (n1[..., 0] * c - c1 * nrm[..., 0]) / det
-    out = project_points(cal, np.stack([x, y, np.ones_like(x)], axis=-1))
-    good &= np.isfinite(out).all(axis=(1, 2))
     return np.where(good[:, None, None], out, pts), good
 
 
