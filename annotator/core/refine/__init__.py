@@ -16,10 +16,10 @@ poses over a few ms), and every corner is seen at its frame time + row / height 
 the bundle moving at the first pass's velocity meanwhile.
 
 All parameters are deltas from their starting values (rotations as world- or bundle-frame rotation
-vectors, as in `annotator.core.priors`), so the Jacobian is taken by forward differences on the deltas:
-a perturbation of component i of every instance of a block at once gives that column for every
-residual, since each residual depends on one instance of each block only (28 evaluations for the
-whole Jacobian). The solver is our own Levenberg-Marquardt with a Schur complement on the pose
+vectors, as in `annotator.core.priors`). The Jacobian is analytic, by the chain rule through the
+projection's stages (`refine/jacobian.py`); each residual depends on one instance of each block only,
+so each corner carries its own few dozen columns and the normal equations are summed over the
+corners of each marker and camera. The solver is our own Levenberg-Marquardt with a Schur complement on the pose
 blocks (6x6 each), so each step solves a dense system the size of the static parameters only;
 the inverse of that reduced system is the covariance of the static parameters (what
 `priors.ParameterCovariance` carries to the uncertainty propagation). See docs/annotator.md for

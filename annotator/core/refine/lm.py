@@ -1,15 +1,15 @@
-"""The self-calibration's least squares: the priors as precisions, the Jacobian by forward
-differences, and Levenberg-Marquardt with a Schur complement on the keyframe poses."""
+"""The self-calibration's least squares: the priors as precisions and Levenberg-Marquardt with a
+Schur complement on the keyframe poses (the Jacobian: refine/jacobian.py)."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
-import scipy.sparse as sp
 
+from annotator.core.refine.jacobian import StaticSlots, analytic_jacobian
 from annotator.core.refine.model import (
-    _FD_STEP,
     BIAS,
     CLOCK,
     CORNER_BIAS_SIGMA_PX,
@@ -113,47 +113,6 @@ def _gauge_rows(layout: _Layout) -> list[np.ndarray]:
     return rows
 
 
-def _jacobian(model: _Model, x: np.ndarray, uv0: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
-    """Pose part (N, 2, 6) and static part (2N x S sparse) by forward differences on the deltas."""
-    L = model.L
-    o = model.p.obs
-    N = len(o.keyframe)
-    Jp = np.zeros((N, 2, 6))
-    for i in range(6):
-        xp = x.copy()
-        xp[i : L.n_pose : 6] += _FD_STEP["pose"]
-        Jp[:, :, i] = (model.predict(xp)[0] - uv0) / _FD_STEP["pose"]
-    rows, cols, vals = [], [], []
-    row_idx = np.arange(2 * N).reshape(N, 2)
-    inst = {
-        "marker": o.marker,
-        RIG: o.camera,
-        INTR: o.camera,
-        DIST: o.camera,
-        READOUT: o.camera,
-        CLOCK: o.camera,
-        BIAS: o.camera,
-        SCALE: np.zeros(N, int),
-    }
-    for name, (off, n, size) in L.static_slices().items():
-        h = _FD_STEP[name]
-        which = inst[name]
-        free = L.free_markers[which] if name == "marker" else np.ones(N, bool)
-        for i in range(size):
-            xp = x.copy()
-            xp[L.n_pose + off + i : L.n_pose + off + n * size : size] += h
-            d = (model.predict(xp)[0] - uv0) / h  # (N, 2)
-            col = off + which * size + i
-            rows.append(row_idx[free].ravel())
-            cols.append(np.repeat(col[free], 2))
-            vals.append(d[free].ravel())
-    Js = sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-        shape=(2 * N, L.n_static),
-    )
-    return Jp, Js
-
-
 def _robust_weights(r: np.ndarray, k: float) -> np.ndarray:
     n = np.linalg.norm(r, axis=1)
     return np.where(n <= k, 1.0, k / np.maximum(n, 1e-12))
@@ -165,8 +124,15 @@ def _huber_cost(r: np.ndarray, k: float) -> np.ndarray:
 
 
 class _LM:
-    def __init__(self, prob: Problem, layout: _Layout, settings: RefineSettings) -> None:
+    def __init__(
+        self,
+        prob: Problem,
+        layout: _Layout,
+        settings: RefineSettings,
+        jacobian: Callable[[_Model, np.ndarray], tuple[np.ndarray, np.ndarray]] = analytic_jacobian,
+    ) -> None:
         self.prob, self.L, self.s = prob, layout, settings
+        self.jacobian = jacobian
         self.model = _Model(prob, layout)
         self.skip = np.zeros(layout.M, bool)
         self.sigma_px = 1.0
@@ -191,34 +157,39 @@ class _LM:
 
     def normal_equations(self, x: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, ...]:
         L, o = self.L, self.prob.obs
-        Jp, Js = _jacobian(self.model, x, uv)
+        Jp, Js = self.jacobian(self.model, x)
         r = (uv - o.uv) / self.sigma_px
         w = o.weight * _robust_weights(r, self.s.huber_px / self.sigma_px) / self.sigma_px**2
         rr = uv - o.uv  # pixels; w carries 1/sigma^2
         # Pose blocks.
-        Hpp = np.zeros((L.K, 6, 6))
-        np.add.at(Hpp, o.keyframe, np.einsum("nai,naj,n->nij", Jp, Jp, w))
-        gp = np.zeros((L.K, 6))
-        np.add.at(gp, o.keyframe, np.einsum("nai,na,n->ni", Jp, rr, w))
-        # Pose-static and static-static.
-        N = len(o.keyframe)
-        wr = np.repeat(w, 2)
-        Jp_sp = sp.csr_matrix(
-            (
-                Jp.reshape(-1),
-                (
-                    np.repeat(np.arange(2 * N), 6),
-                    (6 * o.keyframe[:, None, None] + np.arange(6)).repeat(2, 1).reshape(-1),
-                ),
-            ),
-            shape=(2 * N, L.n_pose),
+        JpT = np.swapaxes(Jp, 1, 2) * w[:, None, None]  # (N, 6, 2), weighted
+        kf = o.keyframe[:, None]
+        Hpp = np.bincount(
+            (36 * kf + np.arange(36)).ravel(), (JpT @ Jp).ravel(), minlength=36 * L.K
+        ).reshape(L.K, 6, 6)
+        gp = np.bincount(
+            (6 * kf + np.arange(6)).ravel(), (JpT @ rr[:, :, None]).ravel(), minlength=6 * L.K
+        ).reshape(L.K, 6)
+        # Pose-static and static-static, from each corner's own columns (StaticSlots): the corners
+        # of one marker seen by one camera share theirs.
+        slots = StaticSlots.of(self.model)
+        S = L.n_static
+        wr = w[:, None] * rr  # (N, 2)
+        gs = np.bincount(slots.columns.ravel(), (wr[:, None, :] @ Js)[:, 0].ravel(), minlength=S)
+        at = (6 * o.keyframe[:, None, None] + np.arange(6)[:, None]) * S + slots.columns[:, None]
+        Hps = np.bincount(at.ravel(), (JpT @ Js).ravel(), minlength=L.n_pose * S).reshape(
+            L.n_pose, S
         )
-        WJs = sp.diags(wr) @ Js
-        Hps = (Jp_sp.T @ WJs).toarray()  # (6K, S)
-        Hss = (Js.T @ WJs).toarray()
+        Hss = np.zeros((S, S))
+        bounds = np.r_[slots.starts, len(slots.order)]
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            rows = slots.order[a:b]
+            J = Js[rows].reshape(-1, Js.shape[2])
+            cols = slots.columns[rows[0]]
+            Hss[np.ix_(cols, cols)] += J.T @ (np.repeat(w[rows], 2)[:, None] * J)
         xs = x[L.n_pose :]
         Hss += np.diag(self.prec) + self.aspect_prec * self.A.T @ self.A
-        gs = Js.T @ (wr * rr.ravel()) + self.prec * xs + self.aspect_prec * self.A.T @ (self.A @ xs)
+        gs += self.prec * xs + self.aspect_prec * self.A.T @ (self.A @ xs)
         return Hpp, gp, Hps, Hss, gs
 
     def step(

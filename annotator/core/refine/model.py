@@ -250,6 +250,28 @@ def supported_lens(model: str, dist: np.ndarray) -> bool:
 # --- parameter layout -------------------------------------------------------------------------
 
 
+@dataclass(frozen=True, eq=False)
+class Forward:
+    """The stages of ``_Model.forward`` for N corners: the parameters' values, the corner in the
+    world (X), in the keyframe's bundle frame (Yk), the motion to the corner's row time (R_D, t_D)
+    and the bundle then (Y), in the camera (Xc, depth zs, pinhole xy), through the lens (xyd), and
+    the pixels (uv, bias included) with the raw depth z."""
+
+    values: dict[str, np.ndarray]
+    X: np.ndarray
+    Yk: np.ndarray
+    R_D: np.ndarray
+    t_D: np.ndarray
+    Y: np.ndarray
+    Xc: np.ndarray
+    zs: np.ndarray
+    xy: np.ndarray
+    dist: np.ndarray
+    xyd: np.ndarray
+    uv: np.ndarray
+    z: np.ndarray
+
+
 @dataclass(frozen=True)
 class _Layout:
     K: int
@@ -314,6 +336,8 @@ class _Model:
         self.models = sorted({c.model for c in cams})
         self.cam_model = np.array([c.model for c in cams])
         self._cache: dict[str, tuple[bytes, Any]] = {}
+        # Sparse patterns of the Jacobian's parts, the same for every evaluation (refine/jacobian.py).
+        self.patterns: dict[str, Any] = {}
 
     def unpack(self, x: np.ndarray) -> dict[str, np.ndarray]:
         L = self.L
@@ -356,25 +380,23 @@ class _Model:
 
     def predict(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 2) pixels and (N,) depth."""
+        f = self.forward(x)
+        return f.uv, f.z
+
+    def forward(self, x: np.ndarray) -> Forward:
+        """Every stage of the projection of every corner (``predict``'s pixels and depth with the
+        values the analytic Jacobian differentiates)."""
         v = self.static_values(x)
         o = self.p.obs
+        X = self._stage(
+            "X",
+            np.concatenate([v["R_m"].ravel(), v["t_m"].ravel(), v["scale"]]),
+            lambda: _mv(v["R_m"][o.marker], self.local * v["scale"][0]) + v["t_m"][o.marker],
+        )  # the corner in the world
         Yk = self._stage(
             "Yk",
-            np.concatenate(
-                [
-                    v["R_m"].ravel(),
-                    v["t_m"].ravel(),
-                    v["R_k"].ravel(),
-                    v["p_k"].ravel(),
-                    v["scale"],
-                ]
-            ),
-            lambda: _mtv(
-                v["R_k"][o.keyframe],
-                _mv(v["R_m"][o.marker], self.local * v["scale"][0])
-                + v["t_m"][o.marker]
-                - v["p_k"][o.keyframe],
-            ),
+            np.concatenate([X.ravel(), v["R_k"].ravel(), v["p_k"].ravel()]),
+            lambda: _mtv(v["R_k"][o.keyframe], X - v["p_k"][o.keyframe]),
         )  # R_k^T (X - p_k)
 
         def motion() -> tuple[np.ndarray, np.ndarray]:
@@ -389,11 +411,18 @@ class _Model:
         z = Xc[:, 2]
         zs = np.where(np.abs(z) < 1e-6, 1e-6, z)
         xy = Xc[:, :2] / zs[:, None]
-        xyd = np.empty_like(xy)
         dist = v["dist"][c]
+        xyd = self.distort(xy, dist)
+        Kc = v["K"][c]
+        uv = np.stack([Kc[:, 0] * xyd[:, 0] + Kc[:, 2], Kc[:, 1] * xyd[:, 1] + Kc[:, 3]], axis=1)
+        uv = uv + v["bias"][c][:, None] * self.diag
+        return Forward(v, X, Yk, R_D, t_D, Y, Xc, zs, xy, dist, xyd, uv, z)
+
+    def distort(self, xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
+        """Each corner's normalised coordinates through its own camera's lens (dist: (N, nd))."""
+        c = self.p.obs.camera
+        xyd = np.empty_like(xy)
         for model in self.models:
             sel = self.cam_model[c] == model
             xyd[sel] = distort_normalised(xy[sel], dist[sel], model)
-        Kc = v["K"][c]
-        uv = np.stack([Kc[:, 0] * xyd[:, 0] + Kc[:, 2], Kc[:, 1] * xyd[:, 1] + Kc[:, 3]], axis=1)
-        return uv + v["bias"][c][:, None] * self.diag, z
+        return xyd

@@ -18,7 +18,7 @@ from annotator.core.experiment import CameraCalibration, Experiment
 from annotator.core.priors import PRINTED_SCALE, ParameterCovariance
 from annotator.core.rolling_shutter import row_delay
 from annotator.core.uncertainty.records import BLOCKS, UncertaintySettings, VideoFrames
-from annotator.vision.geometry import MarkerRoom, marker_corners_local
+from annotator.vision.geometry import MarkerRoom, marker_corners_local, skew
 from annotator.vision.lens import undistort_points
 
 if TYPE_CHECKING:
@@ -49,19 +49,6 @@ def _sqrt_psd(cov: np.ndarray) -> np.ndarray:
     """A square root S of a covariance (S S^T = cov), tolerant of singular ones."""
     vals, vecs = np.linalg.eigh(0.5 * (cov + cov.T))
     return vecs * np.sqrt(np.maximum(vals, 0.0))[None, :]
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices: skew(a) @ b = a x b."""
-    z = np.zeros(v.shape[:-1])
-    return np.stack(
-        [
-            np.stack([z, -v[..., 2], v[..., 1]], -1),
-            np.stack([v[..., 2], z, -v[..., 0]], -1),
-            np.stack([-v[..., 1], v[..., 0], z], -1),
-        ],
-        -2,
-    )
 
 
 def trajectory_twist(
