@@ -21,7 +21,6 @@ from annotator.core.refine.model import (
     READOUT,
     RIG,
     SCALE,
-    Forward,
     _Model,
 )
 from annotator.vision.geometry import skew
@@ -52,13 +51,11 @@ def _lens_jacobian(model: _Model, xy: np.ndarray, dist: np.ndarray) -> np.ndarra
     return J
 
 
-def analytic_jacobian(
-    model: _Model, x: np.ndarray, f: Forward | None = None
-) -> tuple[np.ndarray, np.ndarray]:
+def analytic_jacobian(model: _Model, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """d(pixels)/d(parameter deltas): the pose part (N, 2, 6) and the static part (N, 2, Q), each
     corner's Q columns being those of its marker, its camera and the printed size
     (``StaticSlots``)."""
-    f = f if f is not None else model.forward(x)
+    f = model.forward(x)
     L, o, v = model.L, model.p.obs, f.values
     u = model.unpack(x)
     N = len(o.keyframe)

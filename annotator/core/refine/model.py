@@ -336,7 +336,7 @@ class _Model:
         self.models = sorted({c.model for c in cams})
         self.cam_model = np.array([c.model for c in cams])
         self._cache: dict[str, tuple[bytes, Any]] = {}
-        # Sparse patterns of the Jacobian's parts, the same for every evaluation (refine/jacobian.py).
+        # What the Jacobian derives once from the observations' layout (refine/jacobian.StaticSlots).
         self.patterns: dict[str, Any] = {}
 
     def unpack(self, x: np.ndarray) -> dict[str, np.ndarray]:
