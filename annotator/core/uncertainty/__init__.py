@@ -40,8 +40,9 @@ blocks are independent.
 ``sigma_unmodelled_m`` is a floor for what no model here covers (the detector's corner bias on
 small markers, the renderer's or a real lens's residual distortion), added in quadrature.
 
-The package: ``records`` (blocks, settings, the per-row result), ``propagation`` (Jacobians and
-A Sigma A^T per frame), ``rows`` (per trajectory row, with the prior scales), ``blur`` (the smear)
+The package: ``records`` (blocks, settings, the per-row result), ``views`` (each frame at the
+smoothed pose and twist of its time), ``propagation`` (Jacobians and A Sigma A^T per frame),
+``rows`` (per trajectory row, with the prior scales), ``blur`` (the smear)
 and ``budget`` (the total, its parts, the sync's share).
 """
 
@@ -55,12 +56,10 @@ from annotator.core.uncertainty.budget import (
 )
 from annotator.core.uncertainty.propagation import (
     FrameJacobians,
-    FrameView,
     condition_on_rest,
     frame_jacobians,
     parameter_covariance,
     propagate,
-    trajectory_twist,
 )
 from annotator.core.uncertainty.records import (
     BLOCKS,
@@ -70,6 +69,7 @@ from annotator.core.uncertainty.records import (
     VideoFrames,
 )
 from annotator.core.uncertainty.rows import row_uncertainty
+from annotator.core.uncertainty.views import FrameView, trajectory_twist
 
 __all__ = [
     "BLOCKS",

@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from annotator.core.experiment import Experiment
-from annotator.core.uncertainty.propagation import FrameView, trajectory_twist, views_at
 from annotator.core.uncertainty.records import UncertaintySettings, VideoFrames
+from annotator.core.uncertainty.views import FrameView, trajectory_twist, views_at
 from annotator.vision.geometry import MarkerRoom, skew
 
 if TYPE_CHECKING:

@@ -19,8 +19,6 @@ from annotator.core.uncertainty.propagation import (
     frame_jacobians,
     parameter_covariance,
     propagate,
-    trajectory_twist,
-    views_at,
 )
 from annotator.core.uncertainty.records import (
     BLOCKS,
@@ -28,6 +26,7 @@ from annotator.core.uncertainty.records import (
     UncertaintySettings,
     VideoFrames,
 )
+from annotator.core.uncertainty.views import trajectory_twist, views_at
 from annotator.vision.geometry import MarkerRoom
 
 if TYPE_CHECKING:
