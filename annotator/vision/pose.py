@@ -146,45 +146,69 @@ def camera_pose_candidates(
     return [pnp_to_camera(rv, tv)]
 
 
+@dataclass(frozen=True, eq=False)
+class _Corners:
+    """Every camera's corners of one solve, stacked once for all of its Gauss-Newton steps."""
+
+    world: np.ndarray  # (m, 3)
+    xn: np.ndarray  # (m, 2)
+    R_bc: np.ndarray  # (m, 3, 3): the rig rotation of each corner's camera
+    t_bc: np.ndarray  # (m, 3)
+    focal: np.ndarray  # (m, 1)
+    per_camera: tuple[int, ...]  # corners of each observation in turn
+
+    @classmethod
+    def of(cls, obs: list[CameraObservation]) -> _Corners:
+        counts = tuple(4 * len(o.ids) for o in obs)
+        if not sum(counts):
+            z = np.zeros((0, 3))
+            return cls(z, np.zeros((0, 2)), np.zeros((0, 3, 3)), z, np.zeros((0, 1)), counts)
+        use = [o for o in obs if len(o.ids)]
+        n = [4 * len(o.ids) for o in use]
+        return cls(
+            np.concatenate([o.world.reshape(-1, 3) for o in use]),
+            np.concatenate([o.xn.reshape(-1, 2) for o in use]),
+            np.repeat(np.stack([o.R_bc for o in use]), n, axis=0),
+            np.repeat(np.stack([o.t_bc for o in use]), n, axis=0),
+            np.repeat([o.focal for o in use], n)[:, None],
+            counts,
+        )
+
+
 def _residuals(
-    R_wb: np.ndarray, t_wb: np.ndarray, obs: list[CameraObservation], jacobian: bool
+    R_wb: np.ndarray, t_wb: np.ndarray, c: _Corners, jacobian: bool
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Stacked pixel residuals (m, 2), Jacobian (m, 2, 6) and depth (m,) for all corners."""
-    res, jac, depth = [], [], []
-    for o in obs:
-        if len(o.ids) == 0:
-            continue
-        Xw = o.world.reshape(-1, 3)
-        d = Xw - t_wb
-        Y = d @ R_wb  # rows: R_wb^T d, the corner in the bundle frame
-        Xc = (Y - o.t_bc) @ o.R_bc  # rows: R_bc^T (Y - t_bc)
-        z = Xc[:, 2]
-        zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
-        proj = Xc[:, :2] / zs[:, None]
-        res.append(o.focal * (proj - o.xn.reshape(-1, 2)))
-        depth.append(z)
-        if jacobian:
-            m = len(z)
-            dp = np.zeros((m, 2, 3))
-            dp[:, 0, 0] = 1 / zs
-            dp[:, 1, 1] = 1 / zs
-            dp[:, :, 2] = -proj / zs[:, None]
-            a = o.focal * dp @ (o.R_bc.T @ R_wb.T)  # d(pixels)/d(world-frame point offset)
-            # R_wb = exp(w) R_wb0 moves the corner in the bundle frame by R_wb^T (d x w), so the
-            # rotation columns are a . (d x w) = (a x d) . w for each Jacobian row a.
-            dd = d[:, None, :]
-            axd = np.stack(
-                [
-                    a[..., 1] * dd[..., 2] - a[..., 2] * dd[..., 1],
-                    a[..., 2] * dd[..., 0] - a[..., 0] * dd[..., 2],
-                    a[..., 0] * dd[..., 1] - a[..., 1] * dd[..., 0],
-                ],
-                axis=-1,
-            )
-            jac.append(np.concatenate([axd, -a], axis=2))
-    r = np.concatenate(res) if res else np.zeros((0, 2))
-    J = np.concatenate(jac) if jacobian and jac else None
-    return r, J, np.concatenate(depth) if depth else np.zeros(0)
+    if not len(c.world):
+        return np.zeros((0, 2)), None, np.zeros(0)
+    d = c.world - t_wb
+    Y = d @ R_wb  # rows: R_wb^T d, the corner in the bundle frame
+    Xc = ((Y - c.t_bc)[:, None, :] @ c.R_bc)[:, 0]  # rows: R_bc^T (Y - t_bc)
+    z = Xc[:, 2]
+    zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    proj = Xc[:, :2] / zs[:, None]
+    r = c.focal * (proj - c.xn)
+    if not jacobian:
+        return r, None, z
+    m = len(z)
+    dp = np.zeros((m, 2, 3))
+    dp[:, 0, 0] = 1 / zs
+    dp[:, 1, 1] = 1 / zs
+    dp[:, :, 2] = -proj / zs[:, None]
+    # d(pixels)/d(world-frame point offset): focal dp R_bc^T R_wb^T, per corner
+    a = c.focal[:, :, None] * dp @ (c.R_bc.transpose(0, 2, 1) @ R_wb.T)
+    # R_wb = exp(w) R_wb0 moves the corner in the bundle frame by R_wb^T (d x w), so the
+    # rotation columns are a . (d x w) = (a x d) . w for each Jacobian row a.
+    dd = d[:, None, :]
+    axd = np.stack(
+        [
+            a[..., 1] * dd[..., 2] - a[..., 2] * dd[..., 1],
+            a[..., 2] * dd[..., 0] - a[..., 0] * dd[..., 2],
+            a[..., 0] * dd[..., 1] - a[..., 1] * dd[..., 0],
+        ],
+        axis=-1,
+    )
+    return r, np.concatenate([axd, -a], axis=2), z
 
 
 def refine_bundle_pose(
@@ -193,8 +217,9 @@ def refine_bundle_pose(
     """Robust Gauss-Newton from a start pose; returns (R, t, cov 6x6, rms px) or None if degenerate."""
     R, t = R_wb.copy(), np.asarray(t_wb, dtype=float).copy()
     k = settings.huber_px
+    corners = _Corners.of(obs)
     for _ in range(settings.iterations):
-        r, J, _ = _residuals(R, t, obs, True)
+        r, J, _ = _residuals(R, t, corners, True)
         if J is None or len(r) < 3:
             return None
         norm = np.linalg.norm(r, axis=1)
@@ -211,7 +236,7 @@ def refine_bundle_pose(
         t = t + step[3:]
         if np.abs(step).max() < 1e-7:  # 0.1 urad / 0.1 um: far below what the corners resolve
             break
-    r, J, depth = _residuals(R, t, obs, True)
+    r, J, depth = _residuals(R, t, corners, True)
     if J is None or np.any(depth <= 0):
         return None  # a corner behind its camera: not a physical solution
     norm = np.linalg.norm(r, axis=1)
@@ -223,20 +248,18 @@ def refine_bundle_pose(
         cov = sigma2 * np.linalg.inv(Jf.T @ (Jf * wf[:, None]))
     except np.linalg.LinAlgError:
         return None
-    # Re-orthonormalise so accumulated steps never leave SO(3).
-    R = Rotation.from_matrix(R).as_matrix()
+    # Re-orthonormalise should accumulated steps (or the start) leave SO(3).
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-12:
+        R = Rotation.from_matrix(R).as_matrix()
     return R, t, cov, float(np.sqrt(np.mean(norm**2)))
 
 
 def _marker_rms(R: np.ndarray, t: np.ndarray, obs: list[CameraObservation]) -> list[np.ndarray]:
-    out = []
-    for o in obs:
-        if len(o.ids) == 0:
-            out.append(np.zeros(0))
-            continue
-        r, _, _ = _residuals(R, t, [o], False)
-        out.append(np.sqrt(np.mean(np.sum(r.reshape(-1, 4, 2) ** 2, axis=2), axis=1)))
-    return out
+    """Each observation's markers' RMS pixel residual at the pose (R, t)."""
+    corners = _Corners.of(obs)
+    r, _, _ = _residuals(R, t, corners, False)
+    rms = np.sqrt(np.mean(np.sum(r.reshape(-1, 4, 2) ** 2, axis=2), axis=1))
+    return np.split(rms, np.cumsum([n // 4 for n in corners.per_camera])[:-1])
 
 
 def _starts(

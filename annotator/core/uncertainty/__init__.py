@@ -56,6 +56,7 @@ from annotator.core.uncertainty.budget import (
 )
 from annotator.core.uncertainty.propagation import (
     FrameJacobians,
+    JacobianCache,
     condition_on_rest,
     frame_jacobians,
     parameter_covariance,
@@ -76,6 +77,7 @@ __all__ = [
     "SIGMA_PARTS",
     "FrameJacobians",
     "FrameView",
+    "JacobianCache",
     "RowUncertainty",
     "SigmaBudget",
     "UncertaintySettings",

@@ -7,11 +7,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.linalg import block_diag
 
 from annotator.core.experiment import CameraCalibration, Experiment
 from annotator.core.priors import PRINTED_SCALE, ParameterCovariance
@@ -51,10 +50,18 @@ def _sqrt_psd(cov: np.ndarray) -> np.ndarray:
     return vecs * np.sqrt(np.maximum(vals, 0.0))[None, :]
 
 
-def _undistort(
-    cal: CameraCalibration, pixels: np.ndarray, K: np.ndarray | None = None
-) -> np.ndarray:
-    return undistort_points(cal if K is None else replace(cal, camera_matrix=K), pixels)
+def block_diag(*mats: np.ndarray) -> np.ndarray:
+    """The matrices on the diagonal of one zero matrix (scipy's block_diag without its checks:
+    it runs for every row of a trajectory)."""
+    rows = sum(m.shape[0] for m in mats)
+    cols = sum(m.shape[1] for m in mats)
+    out = np.zeros((rows, cols))
+    r = c = 0
+    for m in mats:
+        out[r : r + m.shape[0], c : c + m.shape[1]] = m
+        r += m.shape[0]
+        c += m.shape[1]
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -77,7 +84,42 @@ class ViewBlock:
     n_markers: int
 
 
-def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> ViewBlock | None:
+@dataclass(eq=False)
+class JacobianCache:
+    """What ``frame_jacobians`` keeps between the rows of one capture, which share views and the
+    one parameter record: each view's blocks, each covariance's square root, and each lens with
+    one distortion coefficient moved."""
+
+    views: dict[int, ViewBlock | None] = field(default_factory=dict)  # by id() of the view
+    # by id() of the covariance, which is kept with its root so that the id cannot be reused
+    roots: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    lenses: dict[tuple[int, int, float], tuple[CameraCalibration, CameraCalibration]] = field(
+        default_factory=dict
+    )
+
+    def root(self, cov: np.ndarray) -> np.ndarray:
+        """``_sqrt_psd(cov)``, worked out once per covariance array."""
+        held = self.roots.get(id(cov))
+        if held is None or held[0] is not cov:
+            held = (cov, _sqrt_psd(cov))
+            self.roots[id(cov)] = held
+        return held[1]
+
+    def moved_lens(self, cal: CameraCalibration, j: int, step: float) -> CameraCalibration:
+        """``cal`` with distortion coefficient ``j`` moved by ``step``, made once per capture."""
+        key = (id(cal), j, step)
+        held = self.lenses.get(key)
+        if held is None or held[0] is not cal:
+            coeffs = cal.dist_coeffs.astype(float)
+            coeffs[j] += step
+            held = (cal, replace(cal, dist_coeffs=coeffs))
+            self.lenses[key] = held
+        return held[1]
+
+
+def _view_block(
+    v: FrameView, room: MarkerRoom, params: ParameterCovariance, cache: JacobianCache
+) -> ViewBlock | None:
     idx = room.index(v.ids)
     keep = idx >= 0
     if not keep.any():
@@ -90,7 +132,27 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
         pix = pix - bias * diag
     K = v.cal.camera_matrix
     focal = float(np.sqrt(K[0, 0] * K[1, 1]))
-    xn = _undistort(v.cal, pix).reshape(-1, 2)
+    # One undistortion for every set of pixels this lens is asked about: the corners; the corners
+    # as each of fx, fy, cx, cy moved by +-step sees them (a camera matrix K' reads pixel p as
+    # K'^-1 p, which K reads from the pixel K K'^-1 p); the corners moved +-h along their
+    # square's diagonal (the corner bias; only a refinement's joint record correlates it).
+    sets = [pix]
+    k_steps = None
+    if v.camera in params.intrinsics:
+        k_steps = np.sqrt(np.maximum(np.diag(params.intrinsics[v.camera]), 1e-12)) * 0.1
+        Ks = np.repeat(K[None].astype(float), 8, axis=0)
+        for j, (r_, c_) in enumerate(((0, 0), (1, 1), (0, 2), (1, 2))):
+            Ks[2 * j, r_, c_] += k_steps[j]
+            Ks[2 * j + 1, r_, c_] -= k_steps[j]
+        ph = np.concatenate([pix, np.ones(pix.shape[:-1] + (1,))], axis=-1)
+        moved = np.einsum("sij,...j->s...i", K @ np.linalg.inv(Ks), ph)
+        sets += list(moved[..., :2] / moved[..., 2:])
+    h = 0.05
+    with_bias = getattr(params, "joint", None) is not None
+    if with_bias:
+        sets += [pix + h * diag, pix - h * diag]
+    undone = undistort_points(v.cal, np.stack(sets)).reshape(len(sets), -1, 2)
+    xn = undone[0]
     Xw = room.corners_world[idx].reshape(-1, 3)
     d = Xw - v.t_wb
     e = d @ v.R_wb - v.t_bc  # bundle frame, from the camera centre
@@ -128,24 +190,15 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
     dist_cov = _distortion(params).get(v.camera)
     nd = 0 if dist_cov is None else len(dist_cov)
     Bi = np.zeros((2 * m, 4 + nd))
-    if v.camera in params.intrinsics:
-        steps = np.sqrt(np.maximum(np.diag(params.intrinsics[v.camera]), 1e-12)) * 0.1
-        for j, at in enumerate(((0, 0), (1, 1), (0, 2), (1, 2))):
-            Kp, Km = K.copy(), K.copy()
-            Kp[at] += steps[j]
-            Km[at] -= steps[j]
-            dxn = (_undistort(v.cal, pix, Kp) - _undistort(v.cal, pix, Km)).reshape(-1, 2) / (
-                2 * steps[j]
-            )
+    if k_steps is not None:
+        for j in range(4):
+            dxn = (undone[1 + 2 * j] - undone[2 + 2 * j]) / (2 * k_steps[j])
             Bi[:, j] = -focal * dxn.ravel()
     if dist_cov is not None and nd:
         steps = np.sqrt(np.maximum(np.diag(dist_cov), 1e-12)) * 0.1
         for j in range(min(nd, len(v.cal.dist_coeffs))):
-            dp_, dm_ = v.cal.dist_coeffs.astype(float), v.cal.dist_coeffs.astype(float)
-            dp_[j] += steps[j]
-            dm_[j] -= steps[j]
-            xp = undistort_points(replace(v.cal, dist_coeffs=dp_), pix)
-            xm = undistort_points(replace(v.cal, dist_coeffs=dm_), pix)
+            xp = undistort_points(cache.moved_lens(v.cal, j, steps[j]), pix)
+            xm = undistort_points(cache.moved_lens(v.cal, j, -steps[j]), pix)
             Bi[:, 4 + j] = -focal * ((xp - xm).reshape(-1, 2) / (2 * steps[j])).ravel()
     # Readout: row v is seen readout * v / H later; dr/dreadout = -J twist * v / H.
     img_vel = J @ v.twist  # (m, 2) pixels per second
@@ -153,11 +206,9 @@ def _view_block(v: FrameView, room: MarkerRoom, params: ParameterCovariance) -> 
     Bro = -(img_vel * rows_frac[:, None]).reshape(-1)
     # Corner bias: a larger bias moves every corrected corner further towards its square's centre.
     # Only a refinement's joint record correlates the bias with the rest (see _row_joint).
-    h = 0.05
     Bb = (
-        (focal / (2 * h))
-        * (_undistort(v.cal, pix + h * diag) - _undistort(v.cal, pix - h * diag)).reshape(-1)
-        if getattr(params, "joint", None) is not None
+        (focal / (2 * h)) * (undone[-2] - undone[-1]).reshape(-1)
+        if with_bias
         else np.zeros(pix.size)
     )
     # Printed size: a relative change s of every marker's side moves each corner by s times its
@@ -204,21 +255,21 @@ def frame_jacobians(
     params: ParameterCovariance,
     readout_sigma_s: float,
     settings: UncertaintySettings,
-    cache: dict[int, ViewBlock | None] | None = None,
+    cache: JacobianCache | None = None,
 ) -> FrameJacobians | None:
     """Residuals, weights and the pose / parameter Jacobians of one output row's frames.
 
-    Returns None without usable corners. ``cache`` keeps each view's blocks between the rows
-    that share it.
+    Returns None without usable corners. ``cache`` keeps what rows share (pass one per capture
+    and parameter record).
     """
+    cache = cache or JacobianCache()
     blocks = []
     for v in views:
-        if cache is not None and id(v) in cache:
-            vb = cache[id(v)]
+        if id(v) in cache.views:
+            vb = cache.views[id(v)]
         else:
-            vb = _view_block(v, room, params)
-            if cache is not None:
-                cache[id(v)] = vb
+            vb = _view_block(v, room, params, cache)
+            cache.views[id(v)] = vb
         if vb is not None:
             blocks.append(vb)
     starts = np.cumsum([0] + [len(b.r) for b in blocks])
@@ -250,7 +301,7 @@ def frame_jacobians(
             for mid, first, blk in b.markers:
                 Bmk[a0 + first : a0 + first + 8, 6 * col[mid] : 6 * col[mid] + 6] = blk
         B["markers"] = Bmk
-        L["markers"] = block_diag(*[_sqrt_psd(params.markers[mid]) for mid in mids])
+        L["markers"] = block_diag(*[cache.root(params.markers[mid]) for mid in mids])
     cams = sorted({b.camera for b in blocks})
     Brig = np.zeros((n0, 6 * len(cams)))
     width = {c: next(b.Bi.shape[1] for b in blocks if b.camera == c) for c in cams}
@@ -266,15 +317,15 @@ def frame_jacobians(
         Bro[a0:a1, c if readouts else 0] = b.Bro
     B["rig"] = Brig
     L["rig"] = block_diag(
-        *[_sqrt_psd(params.rig[c]) if c in params.rig else np.zeros((6, 6)) for c in cams]
+        *[cache.root(params.rig[c]) if c in params.rig else np.zeros((6, 6)) for c in cams]
     )
     B["intrinsics"] = Bint
     dist = _distortion(params)
     L["intrinsics"] = block_diag(
         *[
             block_diag(
-                _sqrt_psd(params.intrinsics[c]) if c in params.intrinsics else np.zeros((4, 4)),
-                _sqrt_psd(dist[c]) if width[c] > 4 else np.zeros((0, 0)),
+                cache.root(params.intrinsics[c]) if c in params.intrinsics else np.zeros((4, 4)),
+                cache.root(dist[c]) if width[c] > 4 else np.zeros((0, 0)),
             )
             for c in cams
         ]
@@ -404,7 +455,7 @@ def propagate(jac: FrameJacobians) -> tuple[np.ndarray, np.ndarray, float, float
         A, Bw = _joint_sensitivity(jac, sw, Jw, Hinv)
         resid = Bw - Jw @ A
         tot_var = max(float(np.trace(A[3:] @ jac.joint @ A[3:].T)) / 3, 0.0)
-        tot_q = max(float(np.trace(resid @ jac.joint @ resid.T)), 0.0)
+        tot_q = max(float(np.sum((resid @ jac.joint) * resid)), 0.0)  # trace(X C X^T)
         var = var * (tot_var / var.sum()) if var.sum() > 0 else np.array([tot_var, 0, 0, 0])
         q = q * (tot_q / q.sum()) if q.sum() > 0 else np.array([tot_q, 0, 0, 0])
     return var, q, e_obs - jac.noise2 * dof, dof
@@ -447,7 +498,7 @@ def condition_on_rest(
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
     H = np.zeros((6, P.shape[0]))
     used = 0
-    cache: dict[int, ViewBlock | None] = {}
+    cache = JacobianCache()
     for vs in views:
         jac = (
             frame_jacobians(vs, room, params, exp.priors.readout_sigma_s, s, cache) if vs else None

@@ -15,7 +15,7 @@ from annotator.core.experiment import Experiment
 from annotator.core.priors import ParameterCovariance
 from annotator.core.uncertainty.blur import exposures, fill_nearest, kernel_average
 from annotator.core.uncertainty.propagation import (
-    ViewBlock,
+    JacobianCache,
     frame_jacobians,
     parameter_covariance,
     propagate,
@@ -123,7 +123,7 @@ def row_uncertainty(
     dof = np.full(n, np.nan)
     smear = np.full(n, np.nan)
     exposure = exposures(frames, exp, s)
-    cache: dict[int, ViewBlock | None] = {}
+    cache = JacobianCache()
     for k in range(n):
         if not views[k]:
             continue

@@ -15,6 +15,7 @@ from annotator.core.priors import PRINTED_SCALE, ParameterCovariance, Priors
 from annotator.core.uncertainty import (
     BLOCKS,
     FrameView,
+    JacobianCache,
     UncertaintySettings,
     condition_on_rest,
     frame_jacobians,
@@ -25,6 +26,7 @@ from annotator.core.uncertainty import (
 )
 from annotator.vision.detection import Detections
 from annotator.vision.geometry import MarkerRoom, marker_corners_local
+from annotator.vision.lens import undistort_points
 from annotator.vision.pose import observe, solve_bundle_pose
 from bgt_core.formats.markers import read_marker_map
 from bgt_core.sites import site_dir
@@ -303,6 +305,49 @@ def test_distortion_covariance_from_a_refined_record_is_propagated():
         markers=base.markers, rig=base.rig, intrinsics={"front": zero4, "back": zero4}
     )
     assert _propagated(room, rig, R, p, dets, params=without)["intrinsics"] == 0.0
+
+
+def test_rows_sharing_a_cache_get_what_each_gets_alone():
+    """Rows of one capture share a JacobianCache (views, covariance roots, moved lenses): each
+    row's Jacobians are those it gets without one; the intrinsics columns are central differences
+    of the undistortion under a camera matrix moved by a tenth of each sigma."""
+    room, rig, R, p, dets = _scene()
+    params = _params(room, rig)
+    views = _views(room, rig, R, p, dets, np.array([0.1, -0.2, 0.3, 0.2, 0.1, -0.1]))
+    rows = [views, views[:1], views[1:]]
+    cache = JacobianCache()
+    s = UncertaintySettings()
+    for row in rows:
+        shared = frame_jacobians(row, room, params, READOUT_SIGMA, s, cache)
+        alone = frame_jacobians(row, room, params, READOUT_SIGMA, s)
+        assert shared is not None
+        assert alone is not None
+        np.testing.assert_array_equal(shared.J, alone.J)
+        for b in alone.B:
+            np.testing.assert_array_equal(shared.B[b], alone.B[b])
+            np.testing.assert_array_equal(shared.L[b], alone.L[b])
+    assert len(cache.views) == 2  # each view worked out once
+    assert cache.roots
+
+    v = views[0]
+    K = v.cal.camera_matrix
+    focal = float(np.sqrt(K[0, 0] * K[1, 1]))
+    steps = np.sqrt(np.diag(params.intrinsics[v.camera])) * 0.1
+    jac = frame_jacobians([v], room, params, READOUT_SIGMA, s)
+    assert jac is not None
+    for j, at in enumerate(((0, 0), (1, 1), (0, 2), (1, 2))):
+        Kp, Km = K.copy(), K.copy()
+        Kp[at] += steps[j]
+        Km[at] -= steps[j]
+        moved = [
+            undistort_points(
+                CameraCalibration(Kx, v.cal.dist_coeffs, v.cal.width, v.cal.height), v.pixels
+            )
+            for Kx in (Kp, Km)
+        ]
+        want = -focal * ((moved[0] - moved[1]) / (2 * steps[j])).reshape(-1)
+        got = jac.B["intrinsics"][:, j]
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
 
 
 def _map_record(room, rig, common_m: float, own_m: float) -> ParameterCovariance:
