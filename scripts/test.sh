@@ -29,4 +29,9 @@ PY=${PYTHON:-python3}
 .venv/bin/python -m ruff check .
 .venv/bin/python -m ruff format --check .
 .venv/bin/python -m mypy
-exec .venv/bin/python -m pytest "$@"
+# One worker per core, at most 4 (pytest-xdist). --dist loadfile keeps each file on one worker, so a
+# file's module fixtures (the booted test-bed hosts, a shared render) are built once. `-n 0` after
+# the script's name runs the suite in one process (the last -n given wins).
+workers=$(nproc 2>/dev/null || echo 1)
+((workers > 4)) && workers=4
+exec .venv/bin/python -m pytest -n "$workers" --dist loadfile "$@"
