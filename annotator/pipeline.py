@@ -7,8 +7,8 @@ motion-compensated with the pass-1 trajectory -> smooth again -> (refine != none
 over keyframes (annotator.core.refine) -> joint solves with the refined map, rig and lenses (rolling
 shutter from the previous pass's motion) -> smooth again. Method ``paper``: per-marker poses
 -> batches -> selection -> random-walk Kalman filter.
-With jobs > 1 one process pool serves the whole run: the videos, then the joint solves and the
-rotation half of each smoothing pass.
+With jobs > 1 one process pool serves the whole run: the videos, then the joint solves, the
+rotation half of each smoothing pass and the rows' uncertainty.
 
 Only the order lives here: the maths of each stage are in annotator.core (tracking, smoothing,
 refine, uncertainty, sync, labeling), the files are read by annotator.io. ``track`` returns a
@@ -366,7 +366,9 @@ def _track_rig(
         cams = {n: c.calibration.camera_matrix for n, c in exp.rig.cameras.items()}
         params = ParameterCovariance.from_priors(exp.priors, [int(i) for i in room.ids], cams)
     # The priors (posterior None) are checked against the residuals; a posterior is not shrunk.
-    u = row_uncertainty(frames, exp, t_out, pos, R, posterior, settings.uncertainty)
+    u = row_uncertainty(
+        frames, exp, t_out, pos, R, posterior, settings.uncertainty, pool, settings.jobs
+    )
     traj = Trajectory(
         t_out,
         pos,
