@@ -75,6 +75,18 @@ def _params(room, rig) -> ParameterCovariance:
     )
 
 
+def _experiment(room: MarkerRoom, rig) -> Experiment:  # noqa: ANN001 - track_helpers' rig
+    """The tetam map and this rig as an experiment (no videos, the default priors)."""
+    return Experiment(
+        Path("experiment.yaml"),
+        MarkerSetup(read_marker_map(site_dir("tetam") / "marker_positions.dat"), "", room.length),
+        Rig(rig),
+        {},
+        None,
+        None,
+    )
+
+
 def _propagated(room, rig, R, p, dets, twist=None, params=None) -> dict[str, float]:
     jac = frame_jacobians(
         _views(room, rig, R, p, dets, twist),
@@ -369,14 +381,7 @@ def test_rows_propagated_in_a_process_pool_get_what_one_process_gives():
         )
         for n, cam in rig.items()
     ]
-    exp = Experiment(
-        Path("experiment.yaml"),
-        MarkerSetup(read_marker_map(site_dir("tetam") / "marker_positions.dat"), "", room.length),
-        Rig(rig),
-        {},
-        None,
-        None,
-    )
+    exp = _experiment(room, rig)
     for record in (None, _map_record(room, rig, common_m=0.01, own_m=0.002)):
         alone = row_uncertainty(frames, exp, t, pos, R, record)
         with ProcessPoolExecutor(max_workers=2) as pool:
@@ -484,14 +489,7 @@ def test_a_rest_at_a_known_pose_takes_out_what_it_pins():
     datum's centimetre to about the jig's millimetre. Without a joint record nothing changes."""
     room, rig, R, p, dets = _scene()
     record = _map_record(room, rig, common_m=0.01, own_m=0.002)
-    exp = Experiment(
-        Path("experiment.yaml"),
-        MarkerSetup(read_marker_map(site_dir("tetam") / "marker_positions.dat"), "", room.length),
-        Rig(rig),
-        {},
-        None,
-        None,
-    )
+    exp = _experiment(room, rig)
     t = np.arange(3) / 30.0  # three frames at 30 fps
     frames = [
         SimpleNamespace(camera=n, t=t, detections=[dets[n]] * 3, frame_interval=1 / 30) for n in rig
