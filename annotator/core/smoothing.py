@@ -36,10 +36,8 @@ class SmootherSettings:
     gate_chi2: float = CHI2_3DOF_999
     rot_bandwidth_s: float = 0.08  # Gaussian kernel sigma of the rotation fit
     # The kernel of the motion the self-calibration reads the rolling shutter from: narrower, so
-    # a carried bundle's ~3 Hz wobble keeps its rate (0.08 s passes a third of it, 0.03 s about
-    # 85 %). Against 0.04 s on the field matrix (seeds 0-4): fast walks 1.31 -> 1.19 cm median,
-    # walk 0.84 -> 0.81, hand-carried 0.87 -> 0.93 cm (bench/NOTES.md).
-    motion_rot_bandwidth_s: float = 0.03
+    # a carried bundle's ~3 Hz wobble keeps its rate (0.08 s passes a third of it, 0.04 s 3/4).
+    motion_rot_bandwidth_s: float = 0.04
     rot_gate_deg: float = 3.0  # a rotation this far from its neighbours' fit is an outlier
     # The track is re-anchored on the measurements when more than this many in a row, over more
     # than reset_after_s, all fail the gate (the filter, not the camera, is lost).

@@ -169,7 +169,7 @@ def test_bridged_fills_short_gaps_between_poses_and_leaves_long_ones_and_the_end
 def test_the_motion_for_the_self_calibration_keeps_a_carried_bundles_wobble():
     """A 3 Hz, 4 deg wobble (a bundle carried at a brisk walk) seen at 120 frames/s with 0.2 deg
     noise: the smoothed rotations keep about a third of its angular rate (0.08 s kernel), the
-    motion handed to the self-calibration (0.03 s) about 85 % (0.04 s kept three quarters)."""
+    motion handed to the self-calibration (0.04 s) three quarters."""
     from annotator.core.tracking import motion_rotations
     from annotator.core.trajectory import Trajectory
 
@@ -191,7 +191,7 @@ def test_the_motion_for_the_self_calibration_keeps_a_carried_bundles_wobble():
 
     print(f"rate gain: wide {rate_gain(wide):.2f}, narrow {rate_gain(narrow):.2f}")
     assert 0.25 < rate_gain(wide) < 0.45
-    assert 0.78 < rate_gain(narrow) < 0.95
+    assert 0.65 < rate_gain(narrow) < 0.95
     # Rows the wide fit has no rotation for stay without one.
     gap = wide.copy()
     gap[100:110] = np.nan
