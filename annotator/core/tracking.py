@@ -10,15 +10,15 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from annotator.core.experiment import Experiment
+from annotator.core.parallel import map_in_runs
 from annotator.core.refine import Refinement, blur_weight, motion_at, predicted_smear_px
 from annotator.core.smoothing import SmootherSettings, smooth_positions, smooth_rotations, supported
 from annotator.core.trajectory import Trajectory
@@ -294,8 +294,11 @@ def smooth(
     return pos, R, sig * noise_scale
 
 
-def _solve_chunk(args: tuple[Any, ...]) -> list[BundlePose | None]:
-    room, solver, problems = args
+def _solve_run(
+    shared: tuple[MarkerRoom, SolverSettings],
+    problems: Sequence[tuple[list[CameraObservation], tuple[np.ndarray, np.ndarray]]],
+) -> list[BundlePose | None]:
+    room, solver = shared
     return [
         solve_bundle_pose(obs, room, solver, prior=prior, prior_first=True)
         for obs, prior in problems
@@ -310,14 +313,8 @@ def solve_all(
     jobs: int,
 ) -> list[BundlePose | None]:
     """Joint solves (each independent of the others), in the pool's processes when there is one."""
-    if pool is None or len(problems) < 64:  # a handful of solves costs less than shipping them
-        return _solve_chunk((room, solver, problems))
-    # A few chunks per worker even out uneven chunks on a loaded machine.
-    bounds = np.linspace(0, len(problems), 2 * jobs + 1).astype(int)
-    chunks = [
-        (room, solver, problems[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a
-    ]
-    return [pose for part in pool.map(_solve_chunk, chunks) for pose in part]
+    parts = map_in_runs(_solve_run, (room, solver), problems, pool, jobs)
+    return [pose for part in parts for pose in part]
 
 
 def joint_measurements(

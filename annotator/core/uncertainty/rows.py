@@ -13,6 +13,7 @@ import numpy as np
 from scipy.optimize import nnls
 
 from annotator.core.experiment import Experiment
+from annotator.core.parallel import map_in_runs
 from annotator.core.priors import ParameterCovariance
 from annotator.core.uncertainty.blur import exposures, fill_nearest, kernel_average
 from annotator.core.uncertainty.propagation import (
@@ -91,18 +92,12 @@ def _scales(
 
 
 def _propagate_rows(
-    args: tuple[
-        list[list[FrameView]],
-        MarkerRoom,
-        ParameterCovariance,
-        float,
-        UncertaintySettings,
-        dict[str, float],
-    ],
+    shared: tuple[MarkerRoom, ParameterCovariance, float, UncertaintySettings, dict[str, float]],
+    views: Sequence[list[FrameView]],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per row of ``views``: the blocks' variance, their predicted residual energy, the residual
     energy, its degrees of freedom, and the smear (px); NaN where a row has no Jacobian."""
-    views, room, pc, readout_sigma, s, exposure = args
+    room, pc, readout_sigma, s, exposure = shared
     n = len(views)
     var = np.full((n, 4), np.nan)
     q = np.full((n, 4), np.nan)
@@ -144,8 +139,8 @@ def row_uncertainty(
     2.8 sigma_m pooled over 20 / 20 / 14 seeds: 99.9 / 100 / 100 %, now 95.2 / 95.6 / 99.8 %).
 
     ``frames`` are the pipeline's CameraFrames (camera, t, detections, frame_interval). With a
-    ``pool``, the rows' propagation runs in ``2 * jobs`` runs of rows in its processes; the
-    figures are the same as without.
+    ``pool``, the rows' propagation runs in runs of neighbouring rows in its processes
+    (``annotator.core.parallel.map_in_runs``); the figures are the same as without.
     """
     s = settings or UncertaintySettings()
     pc = parameter_covariance(exp, params)
@@ -153,20 +148,12 @@ def row_uncertainty(
         exp.priors.readout_sigma_s
     )  # shared by the cameras unless the record has its own
     room = MarkerRoom.from_map(exp.markers.markers, exp.markers.length)
-    n = len(t_out)
     omega, vel = trajectory_twist(t_out, pos, R)
     views = views_at(frames, exp, t_out, pos, R, omega, vel)
     exposure = exposures(frames, exp, s)
-    shared = (room, pc, readout_sigma, s, exposure)
-    if pool is None or n < 64 or jobs <= 1:  # a few rows cost less than shipping them
-        var, q, e, dof, smear = _propagate_rows((views, *shared))
-    else:
-        # Runs of neighbouring rows per task: they share views, which each task works out once.
-        bounds = np.linspace(0, n, 2 * jobs + 1).astype(int)
-        tasks = [(views[a:b], *shared) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
-        var, q, e, dof, smear = (
-            np.concatenate(col) for col in zip(*pool.map(_propagate_rows, tasks), strict=True)
-        )
+    # Neighbouring rows share views, which each run works out once.
+    parts = map_in_runs(_propagate_rows, (room, pc, readout_sigma, s, exposure), views, pool, jobs)
+    var, q, e, dof, smear = (np.concatenate(col) for col in zip(*parts, strict=True))
     scales = _scales(var, q, e, dof, s) if params is None else {b: 1.0 for b in BLOCKS}
     var = var * np.array([scales[b] ** 2 for b in BLOCKS])[None, :]
     if log.isEnabledFor(logging.DEBUG) and np.isfinite(var).any():
